@@ -1,0 +1,65 @@
+"""Input validation shared by every public function: one place that turns bad input into an
+error naming the argument."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bayespsf.errors import BayespsfInputError
+
+
+def finite_array(name: str, value) -> np.ndarray:
+    """``value`` as a float64 array; NaN or infinity raise an error naming ``name``."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise BayespsfInputError(f"{name} must be numeric, got {type(value).__name__}") from exc
+    if not np.all(np.isfinite(arr)):
+        bad = np.count_nonzero(~np.isfinite(arr))
+        raise BayespsfInputError(f"{name} must be finite; {bad} entries are NaN or infinite")
+    return arr
+
+
+def nonnegative_array(name: str, value) -> np.ndarray:
+    """A finite float64 array with every entry >= 0."""
+    arr = finite_array(name, value)
+    if np.any(arr < 0):
+        raise BayespsfInputError(
+            f"{name} must be >= 0 (expected photons per pixel); min is {arr.min():.6g}"
+        )
+    return arr
+
+
+def scalar_in_range(
+    name: str, value, low: float, high: float = np.inf, *, low_inclusive: bool = True
+) -> float:
+    """``value`` as a float in [low, high] (or (low, high] when ``low_inclusive`` is False)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise BayespsfInputError(f"{name} must be a number, got {value!r}") from exc
+    ok_low = v >= low if low_inclusive else v > low
+    if not (np.isfinite(v) and ok_low and v <= high):
+        bracket = "[" if low_inclusive else "("
+        raise BayespsfInputError(f"{name} must be in {bracket}{low:g}, {high:g}], got {value!r}")
+    return v
+
+
+def broadcast_pair(name_a: str, a: np.ndarray, name_b: str, b: np.ndarray):
+    """Broadcast two arrays, raising an error that names both when their shapes do not fit."""
+    try:
+        return np.broadcast_arrays(a, b)
+    except ValueError as exc:
+        raise BayespsfInputError(
+            f"{name_a} with shape {a.shape} does not broadcast against {name_b} "
+            f"with shape {b.shape}"
+        ) from exc
+
+
+def as_generator(rng) -> np.random.Generator:
+    """A numpy Generator from a Generator, an integer seed or a SeedSequence."""
+    if isinstance(rng, np.random.Generator):
+        return rng
+    if rng is None:
+        raise BayespsfInputError("rng must be a numpy Generator or an integer seed, got None")
+    return np.random.default_rng(rng)

@@ -1,0 +1,7 @@
+"""Camera laws: the distribution of a pixel's counts (ADU) given its expected photons."""
+
+from bayespsf.cameras.base import Camera
+from bayespsf.cameras.emccd import EMCCD
+from bayespsf.cameras.photon import Photon
+
+__all__ = ["EMCCD", "Camera", "Photon"]

@@ -1,0 +1,60 @@
+"""The interface every camera implements (in the spirit of ``scipy.stats``: ``logpdf``/``rvs``).
+
+A camera turns expected photons per pixel (``expected``, >= 0) into counts in ADU. Its three
+public methods validate their input and broadcast over leading batch dimensions; subclasses
+implement the unchecked ``_log_likelihood`` / ``_sample`` / ``_fisher_information`` that hot
+loops (the vectorised log-posterior) may call after validating once.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from bayespsf._checks import as_generator, broadcast_pair, finite_array, nonnegative_array
+
+
+class Camera(ABC):
+    """Base class: the law of a pixel's counts (ADU) given its expected photons."""
+
+    def log_likelihood(self, counts, expected) -> np.ndarray:
+        """Element-wise log p(counts | expected), broadcasting ``counts`` against ``expected``.
+
+        ``counts`` in ADU (finite), ``expected`` in photons (finite, >= 0). Values outside the
+        law's support give ``-inf``; bad input raises ``ValueError`` naming the argument.
+        """
+        c = finite_array("counts", counts)
+        lam = nonnegative_array("expected", expected)
+        c, lam = broadcast_pair("counts", c, "expected", lam)
+        self._check_counts(c)
+        return self._log_likelihood(c, lam)
+
+    def sample(self, expected, rng) -> np.ndarray:
+        """Counts in ADU drawn from the law, same shape as ``expected``.
+
+        ``rng`` is a :class:`numpy.random.Generator` or an integer seed.
+        """
+        lam = nonnegative_array("expected", expected)
+        return self._sample(lam, as_generator(rng))
+
+    def fisher_information(self, expected) -> np.ndarray:
+        """Per-pixel Fisher information about the expected photons, ``E[(d log p / d lam)^2]``."""
+        lam = nonnegative_array("expected", expected)
+        return self._fisher_information(lam)
+
+    def _check_counts(self, counts: np.ndarray) -> None:  # noqa: B027 (optional hook)
+        """Hook for cameras whose counts have a restricted domain; the default accepts all."""
+
+    @abstractmethod
+    def _log_likelihood(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray: ...
+
+    @abstractmethod
+    def _sample(self, expected: np.ndarray, rng: np.random.Generator) -> np.ndarray: ...
+
+    @abstractmethod
+    def _fisher_information(self, expected: np.ndarray) -> np.ndarray: ...
+
+    @abstractmethod
+    def to_dict(self) -> dict:
+        """The camera's parameters, enough to rebuild it (scenes, result files)."""

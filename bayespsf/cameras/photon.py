@@ -1,0 +1,44 @@
+"""Ideal photon counting: counts are photons, Poisson distributed."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import special
+
+from bayespsf.cameras.base import Camera
+from bayespsf.errors import BayespsfInputError
+
+
+def poisson_log_pmf(k, lam):
+    """``k log lam - lam - log k!`` for ``k >= 0`` (real ``k`` through ``gammaln``), ``lam >= 0``.
+
+    ``xlogy`` gives the right limit ``0 log 0 = 0`` when ``lam == 0``.
+    """
+    return special.xlogy(k, lam) - lam - special.gammaln(k + 1.0)
+
+
+class Photon(Camera):
+    """An ideal photon-counting detector: ``counts ~ Poisson(expected)``, 1 ADU per photon."""
+
+    def _check_counts(self, counts):
+        if np.any(counts < 0) or np.any(counts != np.round(counts)):
+            raise BayespsfInputError(
+                "counts must be non-negative integers (photons) for the Photon camera"
+            )
+
+    def _log_likelihood(self, counts, expected):
+        return poisson_log_pmf(counts, expected)
+
+    def _sample(self, expected, rng):
+        return rng.poisson(expected).astype(np.float64)
+
+    def _fisher_information(self, expected):
+        """``1 / lam`` (infinite at ``lam == 0``)."""
+        with np.errstate(divide="ignore"):
+            return 1.0 / expected
+
+    def to_dict(self):
+        return {"kind": "photon"}
+
+    def __repr__(self):
+        return "Photon()"
