@@ -13,6 +13,10 @@ Likelihood tiers (``likelihood=``), each a trade of accuracy for time (see bench
 ``"exact"``
     The readout convolution by adaptive Gauss-Legendre quadrature, ~1e-12 in log p against
     mpmath: the reference. Without readout it is the closed form below, exactly.
+``"table"``
+    The exact law precomputed once per ``readout_sd / gain`` on a grid of log lam and a
+    sqrt-like count coordinate and interpolated bicubically (:mod:`._emccd_table`); exact
+    quadrature outside the grid. Without readout it is the closed form, like ``"exact"``.
 ``"high-gain"``
     The closed form ``exp(-lam - x/G) sqrt(lam / (x G)) I1(2 sqrt(lam x / G)) / G`` for the
     amplified electrons, with readout ignored for them; the zero-electron atom is convolved with
@@ -37,12 +41,12 @@ from __future__ import annotations
 import numpy as np
 
 from bayespsf._checks import nonnegative_array, scalar_in_range
-from bayespsf.cameras import _emccd_fisher, _emccd_law
+from bayespsf.cameras import _emccd_fisher, _emccd_law, _emccd_table
 from bayespsf.cameras.base import Camera
 from bayespsf.cameras.photon import poisson_log_pmf
 from bayespsf.errors import BayespsfInputError
 
-TIERS = ("exact", "high-gain", "gaussian", "poisson")
+TIERS = ("exact", "table", "high-gain", "gaussian", "poisson")
 FISHER_METHODS = ("exact", "excess-noise")
 
 
@@ -95,7 +99,9 @@ class EMCCD(Camera):
         tier = self.likelihood
         if tier == "exact" and r > 0:
             return _emccd_law.log_exact(t, expected, r) + log_jacobian
-        if tier in ("exact", "high-gain"):
+        if tier == "table" and r > 0:
+            return _emccd_table.log_table(t, expected, r) + log_jacobian
+        if tier in ("exact", "table", "high-gain"):
             return self._log_high_gain(t, expected, r, log_jacobian)
         if tier == "gaussian":
             return _gaussian_log_pdf(t, expected, r) + log_jacobian

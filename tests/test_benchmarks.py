@@ -1,0 +1,21 @@
+"""The benchmark scripts run (quick mode) and measure what they claim; no timing is asserted."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import likelihood
+
+
+def test_likelihood_benchmark_quick():
+    df = likelihood.run(quick=True)
+    assert set(df["tier"]) == {"exact", "table", "high-gain", "gaussian", "poisson"}
+    assert np.all(df["evals/s"] > 0)
+    exact = df[df["tier"] == "exact"]
+    assert np.all(exact["worst |Δlog p| domain"] == 0)
+    table = df[df["tier"] == "table"]
+    assert np.all(table["worst |Δlog p| domain"] <= 1e-4)
+    assert "| camera" in likelihood.markdown(df, "python benchmarks/likelihood.py --quick")

@@ -1,0 +1,66 @@
+"""The `table` tier: its error against the exact tier over the realistic EMCCD domain, and
+exactness wherever it falls back to quadrature."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bayespsf.cameras import EMCCD
+from bayespsf.cameras import _emccd_table as table
+
+# Realistic EMCCD cameras: EM gain 100-1000, readout 10-100 e- (readout/gain 0.01 to 1).
+REALISTIC = [
+    dict(gain=1000.0, readout_sd=10.0, offset=100.0, e_per_adu=20.0),
+    dict(gain=300.0, readout_sd=30.0, offset=500.0, e_per_adu=12.0),
+    dict(gain=100.0, readout_sd=100.0, offset=100.0, e_per_adu=2.0),
+]
+
+
+@pytest.mark.parametrize("params", REALISTIC, ids=lambda p: f"G{p['gain']:g}-s{p['readout_sd']:g}")
+def test_table_within_1e4_of_exact_on_counts_from_the_law(params):
+    # the documented target of the tier: |log p - exact| <= 1e-4 for lam in [1e-2, 1e4] and
+    # counts drawn from the law itself (measured worst ~3e-5: benchmarks/README.md)
+    rng = np.random.default_rng(11)
+    lam = 10 ** rng.uniform(-2, 4, 20_000)
+    exact = EMCCD(**params, likelihood="exact")
+    counts = exact.sample(lam, rng)
+    fast = EMCCD(**params, likelihood="table")
+    err = np.abs(fast.log_likelihood(counts, lam) - exact.log_likelihood(counts, lam))
+    assert err.max() <= 1e-4
+
+
+def test_outside_the_grid_it_is_the_exact_quadrature():
+    params = REALISTIC[1]
+    exact = EMCCD(**params, likelihood="exact")
+    fast = EMCCD(**params, likelihood="table")
+    g = params["gain"] / params["e_per_adu"]
+    off = params["offset"]
+    lam = np.array([1e-5, 1e6, 5.0, 5.0, 5.0])
+    counts = np.array([off + 3.0, off + 1e6 * g, off - 60.0, off + 200.0 * g, off + 5.0 * g])
+    a, b = fast.log_likelihood(counts, lam), exact.log_likelihood(counts, lam)
+    assert np.allclose(a[:4], b[:4], rtol=0, atol=1e-12)  # the four off-grid points
+    assert abs(a[4] - b[4]) < 1e-4  # on the grid
+
+
+def test_zero_signal_no_readout_and_large_readout():
+    cam = EMCCD(gain=300.0, readout_sd=30.0, likelihood="table")
+    assert np.allclose(
+        cam.log_likelihood([-20.0, 0.0, 40.0], 0.0),
+        EMCCD(gain=300.0, readout_sd=30.0).log_likelihood([-20.0, 0.0, 40.0], 0.0),
+    )
+    c = np.array([0.0, 150.0, 900.0])
+    no_readout = EMCCD(gain=300.0, likelihood="table").log_likelihood(c, 2.0)
+    assert np.array_equal(no_readout, EMCCD(gain=300.0).log_likelihood(c, 2.0))
+    # readout/gain above R_MAX: the table is not built, the exact law is used
+    big = dict(gain=1.0, readout_sd=table.R_MAX * 2)
+    assert np.array_equal(
+        EMCCD(**big, likelihood="table").log_likelihood(c, 2.0), EMCCD(**big).log_likelihood(c, 2.0)
+    )
+
+
+@settings(max_examples=100, deadline=None)
+@given(counts=st.floats(-1e4, 1e8), lam=st.floats(1e-6, 1e6))
+def test_table_finite_everywhere(counts, lam):
+    value = EMCCD(**REALISTIC[1], likelihood="table").log_likelihood(counts, lam)
+    assert np.isfinite(value)
