@@ -7,11 +7,10 @@ from the law, and times each tier on a 15x15 ROI x 32 walkers, relative to the P
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pandas as pd
 
+from bayespsf._timing import best_time
 from bayespsf.cameras import EMCCD
 from bayespsf.cameras.emccd import TIERS
 
@@ -66,7 +65,7 @@ def tier_table(camera_kwargs: dict, seed: int = 0, shape=(32, 15, 15)) -> pd.Dat
     for tier in TIERS:
         cam = EMCCD(**camera_kwargs, likelihood=tier)
         values = cam._log_likelihood(counts, lam)
-        timings[tier] = _best_time(lambda cam=cam: cam._log_likelihood(counts, lam))
+        timings[tier] = best_time(lambda cam=cam: cam._log_likelihood(counts, lam))
         finite = np.isfinite(values)
         rows.append(
             {
@@ -81,15 +80,6 @@ def tier_table(camera_kwargs: dict, seed: int = 0, shape=(32, 15, 15)) -> pd.Dat
     table = pd.DataFrame(rows).set_index("tier")
     table["throughput vs poisson"] = table["evals/s"] / table.loc["poisson", "evals/s"]
     return table
-
-
-def _best_time(fn, repeat: int = 3) -> float:
-    best = np.inf
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def run() -> str:

@@ -17,6 +17,7 @@ import time
 import numpy as np
 import pandas as pd
 
+from bayespsf._timing import best_time
 from bayespsf.cameras import EMCCD, _emccd_table
 from bayespsf.cameras.emccd import TIERS
 from bayespsf.psf import expected_counts
@@ -34,15 +35,6 @@ def walker_roi(rng, walkers=32):
     spread = np.array([10.0, 10.0, 8.0, 8.0, 80.0, 0.5])
     params = truth + spread * rng.standard_normal((walkers, 6))
     return expected_counts(params, 15, 79.0)
-
-
-def best_time(fn, repeat):
-    best = np.inf
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def run(quick: bool) -> pd.DataFrame:

@@ -3,5 +3,6 @@
 from bayespsf.cameras.base import Camera
 from bayespsf.cameras.emccd import EMCCD
 from bayespsf.cameras.photon import Photon
+from bayespsf.cameras.scmos import SCMOS
 
-__all__ = ["EMCCD", "Camera", "Photon"]
+__all__ = ["EMCCD", "SCMOS", "Camera", "Photon"]
