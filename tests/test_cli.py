@@ -28,3 +28,32 @@ def test_help_and_unknown_command():
     assert result.returncode == 0 and "selfcheck" in result.stdout
     with pytest.raises(SystemExit):
         cli.main(["nonsense"])
+
+
+def test_simulate_command_writes_counts_and_truth(tmp_path, capsys):
+    import numpy as np
+    import pandas as pd
+
+    from bayespsf import scenes, simulate
+
+    assert (
+        cli.main(["simulate", "paper-fig3", "-n", "7", "--seed", "3", "--out", str(tmp_path / "a")])
+        == 0
+    )
+    counts = np.load(tmp_path / "a.npy")
+    truth = pd.read_csv(tmp_path / "a.truth.csv", index_col="image")
+    expected, expected_truth = simulate(scenes.load("paper-fig3"), 7, seed=3)
+    assert np.array_equal(counts, expected)
+    assert np.allclose(truth.to_numpy(), expected_truth.to_numpy())
+    assert "MultinomialPhotons" in capsys.readouterr().out
+
+
+def test_simulate_command_scene_file_and_errors(tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_text("[geometry]\nroi = 5\n")
+    assert cli.main(["simulate", str(path), "-n", "2", "--out", str(tmp_path / "b")]) == 0
+    with pytest.raises(SystemExit, match="no scene file"):
+        cli.main(["simulate", str(tmp_path / "missing.toml")])
+    path.write_text("[geometry]\nroi = -5\n")
+    with pytest.raises(SystemExit, match=r"geometry\.roi"):
+        cli.main(["simulate", str(path)])

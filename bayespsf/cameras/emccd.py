@@ -44,6 +44,7 @@ from bayespsf._checks import nonnegative_array, scalar_in_range
 from bayespsf.cameras import _emccd_fisher, _emccd_law, _emccd_table
 from bayespsf.cameras.base import Camera
 from bayespsf.cameras.photon import poisson_log_pmf
+from bayespsf.effects import add_normal, gamma_register
 from bayespsf.errors import BayespsfInputError
 
 TIERS = ("exact", "table", "high-gain", "gaussian", "poisson")
@@ -120,10 +121,9 @@ class EMCCD(Camera):
         return np.logaddexp(atom, continuous) + log_jacobian
 
     def _sample(self, expected, rng):
-        n = rng.poisson(expected)
-        electrons = rng.gamma(n, self.gain)  # shape 0 gives exactly 0
+        electrons = gamma_register(rng.poisson(expected), self.gain, rng)
         if self.readout_sd > 0:
-            electrons = electrons + rng.normal(0.0, self.readout_sd, size=electrons.shape)
+            electrons = add_normal(electrons, self.readout_sd, rng)
         return self.offset + electrons / self.e_per_adu
 
     def fisher_information(self, expected, method: str = "exact") -> np.ndarray:

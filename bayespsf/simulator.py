@@ -1,0 +1,216 @@
+"""The simulator: a pipeline of exactly the effects a scene declares, run in reproducible blocks.
+
+``simulate(scene, n, seed)`` returns ``(counts, truth)``: counts ``(n, roi, roi)`` in ADU and a
+DataFrame with one row per image and the columns ``x0 y0 s_x s_y N b`` (plus
+``photons_emitted`` when photons are binned one by one). ``build_pipeline(scene)`` shows the
+effects and their order.
+
+Photon paths, chosen from what the scene declares: Poisson pixel counts from the expected image
+(fast); a multinomial over the pixels when each image emits exactly N photons; photon-by-photon
+binning (the paper's method) when photons carry their own width (``width_jitter``).
+
+Reproducibility: images are simulated in blocks of :func:`block_size` images (a function of the
+scene only); block ``k`` draws from ``Generator(PCG64(SeedSequence(seed, spawn_key=(k,))))``.
+Whole blocks are always simulated, so image ``i`` depends on ``seed`` and ``i`` only: the same
+seed gives the same images for any ``n`` (a shorter run is a prefix of a longer one), in chunks
+of any size (:func:`simulate_chunks`, for runs larger than memory) and on any machine. The
+working memory is one block.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from bayespsf import effects as fx
+from bayespsf.errors import BayespsfInputError
+from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.scene import Scene
+
+_PHOTONS_PER_BLOCK = 2**22  # bounds the photon-by-photon path's memory (~200 MB of arrays)
+_MAX_BLOCK = 1024
+
+
+def background_effect(scene: Scene) -> fx.BackgroundPhotons | None:
+    """The background law of the scene as an effect (None for kind 'none')."""
+    bg = scene.background
+    kind = bg["kind"]
+    if kind == "none":
+        return None
+    if kind == "poisson":
+        return fx.PoissonBackground(bg["mean"])
+    if kind in ("gaussian", "truncated-gaussian"):
+        return fx.DiscreteGaussianBackground(bg["mean"], bg["sd"])
+    var = bg["sd"] ** 2
+    probability = 1.0 - var / bg["mean"]
+    return fx.BinomialBackground(round(bg["mean"] / probability), probability)
+
+
+def photon_path(scene: Scene) -> str:
+    """'expected', 'multinomial' or 'photons': how the scene's signal photons are drawn."""
+    e = scene.emitter
+    if e["width_jitter"] > 0 or scene.optics["psf"] == "airy":
+        return "photons"
+    return "multinomial" if e["photon_statistics"] == "fixed" else "expected"
+
+
+def build_pipeline(scene: Scene) -> list[fx.Effect]:
+    """The ordered effects that exactly the scene's declarations call for."""
+    e, g, cam = scene.emitter, scene.geometry, scene.camera
+    a = g["pixel_size"]
+    background = background_effect(scene)
+    b_mean = background.moments[0] if background is not None else 0.0
+    x0, y0 = (e["x0"], e["y0"]) if e["position"] == "fixed" else (0.0, 0.0)
+    airy = scene.optics["psf"] == "airy"
+    if airy:
+        s_x = s_y = fx.airy_gaussian_sd(scene.optics["wavelength"], scene.optics["na"])
+    else:
+        s_x, s_y = e["s0x"], e["s0y"]
+    steps: list[fx.Effect] = [fx.EmitterTruth(x0, y0, s_x, s_y, e["photons"], b_mean)]
+    if e["position"] == "pixel":
+        steps.append(fx.UniformPosition(0.5 * a))
+    elif e["position"] == "box":
+        steps.append(fx.UniformPosition(e["box"]))
+    if e["photon_jitter"] > 0:
+        steps.append(fx.PhotonNumberJitter(e["photon_jitter"]))
+    path = photon_path(scene)
+    fixed = e["photon_statistics"] == "fixed"
+    if fixed:
+        steps.append(fx.WholePhotonNumber())
+    if path == "expected":
+        steps.append(fx.ExpectedSignal(a))
+        if isinstance(background, fx.PoissonBackground):
+            steps.append(fx.PoissonBackgroundMean(background.mean))
+            background = None
+        steps.append(fx.PoissonPhotons())
+    elif path == "multinomial":
+        steps.append(fx.MultinomialPhotons(a))
+    elif airy:
+        o = scene.optics
+        steps.append(fx.AiryPhotons(a, o["wavelength"], o["na"], e["width_jitter"], fixed))
+    else:
+        steps.append(fx.PhotonBinning(a, e["width_jitter"], fixed))
+    if background is not None:
+        steps.append(background)
+    steps += _camera_effects(cam)
+    return steps
+
+
+def _camera_effects(cam) -> list[fx.Effect]:
+    kind = cam["kind"]
+    if kind == "photon":
+        return [fx.PhotonCounting()]
+    steps: list[fx.Effect] = []
+    if kind == "emccd":
+        if cam["clock_induced_charge"] > 0:
+            steps.append(fx.ClockInducedCharge(cam["clock_induced_charge"]))
+        if cam["register"] == "stages":
+            steps.append(fx.StagedRegister(cam["gain"], cam["stages"]))
+        else:
+            steps.append(fx.GammaRegister(cam["gain"]))
+        if cam["readout_sd"] > 0:
+            steps.append(fx.ReadoutNoise(cam["readout_sd"], "electrons"))
+        steps.append(fx.ElectronsToADU(cam["offset"], cam["e_per_adu"]))
+    else:
+        steps.append(fx.PhotoelectronsToADU(cam["gain"], cam["offset"]))
+        if cam["variance"] > 0:
+            steps.append(fx.ReadoutNoise(float(np.sqrt(cam["variance"])), "adu"))
+    if cam["quantize"]:
+        steps.append(fx.Quantize())
+    if cam["saturation"] > 0:
+        steps.append(fx.Saturate(cam["saturation"]))
+    return steps
+
+
+def describe(scene: Scene) -> str:
+    """The pipeline, one effect per line, marking those that draw random numbers."""
+    return "\n".join(
+        f"{i}. {step!r}" + ("  [random]" if step.draws else "")
+        for i, step in enumerate(build_pipeline(scene), 1)
+    )
+
+
+def block_size(scene: Scene) -> int:
+    """Images per random-number block: 1024, fewer when photons are binned one by one."""
+    if photon_path(scene) != "photons":
+        return _MAX_BLOCK
+    mean = scene.emitter["photons"] * (1.0 + scene.emitter["photon_jitter"])
+    return int(np.clip(_PHOTONS_PER_BLOCK // max(mean, 1.0), 1, _MAX_BLOCK))
+
+
+def simulate(scene: Scene, n: int, seed: int):
+    """Simulate ``n`` images of ``scene``.
+
+    Parameters
+    ----------
+    scene : Scene
+    n : int
+        Number of images (>= 0).
+    seed : int
+        Non-negative integer; image ``i`` depends on ``seed`` and ``i`` only.
+
+    Returns
+    -------
+    counts : ndarray, shape (n, roi, roi)
+        Camera counts in ADU.
+    truth : pandas.DataFrame
+        One row per image: ``x0 y0 s_x s_y N b`` (nm, photons, photons/pixel), plus
+        ``photons_emitted`` on the photon-by-photon paths.
+
+    See Also
+    --------
+    simulate_chunks : the same images in chunks, for runs too large to hold in memory.
+    """
+    roi = _check_run(scene, n, seed, 1)
+    chunks = list(simulate_chunks(scene, n, seed))
+    if not chunks:
+        return np.empty((0, roi, roi)), pd.DataFrame(columns=list(PARAMETER_NAMES), dtype=float)
+    counts = np.concatenate([c for c, _ in chunks])
+    return counts, pd.concat([t for _, t in chunks], ignore_index=True)
+
+
+def simulate_chunks(scene: Scene, n: int, seed: int, chunk_size: int = 16_384):
+    """Yield ``(counts, truth)`` for consecutive chunks of at most ``chunk_size`` images.
+
+    Memory is bounded by the chunk; the images (and the truth rows, indexed by image number)
+    are those of :func:`simulate` whatever the chunk size.
+    """
+    roi = _check_run(scene, n, seed, chunk_size)
+    steps = build_pipeline(scene)
+    block = block_size(scene)
+    columns = list(PARAMETER_NAMES)
+    cached: tuple[int, fx.Batch] | None = None  # a block shared by consecutive small chunks
+    start = 0
+    while start < n:
+        stop = min(n, start + chunk_size)
+        counts = np.empty((stop - start, roi, roi))
+        truths = []
+        for k in range(start // block, -(-stop // block)):
+            if cached is None or cached[0] != k:
+                cached = (k, _run_block(steps, block, roi, seed, k))
+            batch = cached[1]
+            lo, hi = max(start, k * block), min(stop, (k + 1) * block)
+            counts[lo - start : hi - start] = batch.image[lo - k * block : hi - k * block]
+            truth = pd.DataFrame(batch.truth, index=np.arange(k * block, (k + 1) * block))
+            truths.append(truth.loc[lo : hi - 1])
+        truth = pd.concat(truths)
+        yield counts, truth[columns + [c for c in truth.columns if c not in columns]]
+        start = stop
+
+
+def _run_block(steps, block: int, roi: int, seed: int, k: int) -> fx.Batch:
+    """Block ``k``: always whole, so that image i never depends on n or the chunking."""
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(k,))))
+    batch = fx.Batch(block, roi)
+    for step in steps:
+        step(batch, rng)
+    return batch
+
+
+def _check_run(scene, n, seed, chunk_size) -> int:
+    if not isinstance(scene, Scene):
+        raise BayespsfInputError(f"scene must be a bayespsf.Scene, got {type(scene).__name__}")
+    for name, value, low in (("n", n, 0), ("seed", seed, 0), ("chunk_size", chunk_size, 1)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+            raise BayespsfInputError(f"{name} must be an integer >= {low}, got {value!r}")
+    return scene.geometry["roi"]
