@@ -162,11 +162,16 @@ def simulate(scene: Scene, n: int, seed: int):
     simulate_chunks : the same images in chunks, for runs too large to hold in memory.
     """
     roi = _check_run(scene, n, seed, 1)
-    chunks = list(simulate_chunks(scene, n, seed))
-    if not chunks:
-        return np.empty((0, roi, roi)), pd.DataFrame(columns=list(PARAMETER_NAMES), dtype=float)
-    counts = np.concatenate([c for c, _ in chunks])
-    return counts, pd.concat([t for _, t in chunks], ignore_index=True)
+    counts = np.empty((n, roi, roi))
+    truths = []
+    start = 0
+    for chunk, truth in simulate_chunks(scene, n, seed):
+        counts[start : start + chunk.shape[0]] = chunk
+        start += chunk.shape[0]
+        truths.append(truth)
+    if not truths:
+        return counts, pd.DataFrame(columns=list(PARAMETER_NAMES), dtype=float)
+    return counts, pd.concat(truths, ignore_index=True)
 
 
 def simulate_chunks(scene: Scene, n: int, seed: int, chunk_size: int = 16_384):

@@ -19,3 +19,14 @@ def test_likelihood_benchmark_quick():
     table = df[df["tier"] == "table"]
     assert np.all(table["worst |Δlog p| domain"] <= 1e-4)
     assert "| camera" in likelihood.markdown(df, "python benchmarks/likelihood.py --quick")
+
+
+def test_simulate_benchmark_quick():
+    import simulate as simulate_benchmark
+
+    df = simulate_benchmark.run(quick=True)
+    assert set(df["roi"]) == {15, 19}
+    assert np.all(df["images/s"] > 0) and np.all(df["peak MB"] > 0)
+    ideal = df[df["scene"] == "ideal"]
+    assert np.allclose(ideal["throughput / ideal"], 1.0)
+    assert "| scene" in simulate_benchmark.markdown(df, "python benchmarks/simulate.py --quick")

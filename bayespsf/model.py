@@ -1,0 +1,132 @@
+"""The inference model: geometry, camera law (one likelihood tier) and prior of one molecule.
+
+Built from the same scene as the simulator (:meth:`Model.from_scene`), or from geometry and a
+camera for real data. It maps parameters ``x0 y0 s_x s_y N b`` (:data:`PARAMETER_NAMES`) to
+expected photons per pixel and scores counts under the camera law, vectorised over leading
+batch dimensions (walkers, molecules).
+
+What the model leaves out of the simulator's effects, by design: ADC rounding (the continuous
+density is used for whole-ADU counts) and saturation (saturated pixels must be masked or
+censored by the caller). Clock-induced charge is added to the expected photoelectrons, which is
+exact for the Poisson-Gamma law.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bayespsf import psf
+from bayespsf._checks import finite_array
+from bayespsf.cameras import EMCCD, SCMOS, Camera, Photon
+from bayespsf.errors import BayespsfInputError
+from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.scene import Scene
+
+DEFAULT_TIER = {"emccd": "table", "scmos": "exact"}
+
+
+def camera_from_scene(scene: Scene, likelihood: str | None = None) -> Camera:
+    """The camera law a scene declares, with the likelihood tier ``likelihood`` (or the scene's
+    ``camera.likelihood``, or the default: ``table`` for EMCCD, ``exact`` for sCMOS)."""
+    cam = scene.camera
+    kind = cam["kind"]
+    tier = likelihood or cam.get("likelihood") or DEFAULT_TIER.get(kind)
+    if kind == "photon":
+        if tier not in (None, "exact", "poisson"):
+            raise BayespsfInputError(f"likelihood {tier!r} does not apply to a photon camera")
+        return Photon()
+    if kind == "emccd":
+        return EMCCD(cam["gain"], cam["readout_sd"], cam["offset"], cam["e_per_adu"], tier)
+    return SCMOS(cam["gain"], cam["offset"], cam["variance"], likelihood=tier)
+
+
+class Model:
+    """One molecule in a square ROI seen through a camera.
+
+    Parameters
+    ----------
+    roi, pixel_size
+        Odd ROI side in pixels; pixel size in nm.
+    camera
+        A :class:`bayespsf.cameras.Camera` (its ``likelihood`` tier is the model's).
+    prior
+        The ``[prior]`` table of a scene (kind and parameters per parameter); ``None`` takes
+        the scene defaults for this geometry.
+    clock_induced_charge
+        Mean spurious electrons per pixel (EMCCD), added to the expected photoelectrons.
+    """
+
+    def __init__(
+        self,
+        roi: int,
+        pixel_size: float,
+        camera: Camera,
+        prior: dict | None = None,
+        clock_induced_charge: float = 0.0,
+    ):
+        psf.pixel_centres(roi, pixel_size)  # validates the geometry
+        if not isinstance(camera, Camera):
+            raise BayespsfInputError(f"camera must be a bayespsf camera, got {camera!r}")
+        self.roi = int(roi)
+        self.pixel_size = float(pixel_size)
+        self.camera = camera
+        geometry = {"roi": self.roi, "pixel_size": self.pixel_size}
+        self.prior = Scene.from_dict({"geometry": geometry, "prior": prior or {}}).to_dict()[
+            "prior"
+        ]
+        self.clock_induced_charge = float(clock_induced_charge)
+
+    @classmethod
+    def from_scene(cls, scene: Scene, likelihood: str | None = None) -> Model:
+        """The model of a scene: its geometry, camera (tier ``likelihood``), prior and CIC."""
+        cam = scene.camera
+        return cls(
+            scene.geometry["roi"],
+            scene.geometry["pixel_size"],
+            camera_from_scene(scene, likelihood),
+            scene.prior,
+            cam.get("clock_induced_charge", 0.0),
+        )
+
+    def expected(self, params) -> np.ndarray:
+        """Expected photoelectrons per pixel ``(..., roi, roi)`` (PSF, background and CIC)."""
+        return psf.expected_counts(params, self.roi, self.pixel_size) + self.clock_induced_charge
+
+    def expected_and_jacobian(self, params):
+        """Expected photoelectrons and their derivatives ``(..., 6, roi, roi)``."""
+        mu, jac = psf.expected_counts_and_jacobian(params, self.roi, self.pixel_size)
+        return mu + self.clock_induced_charge, jac
+
+    def check_counts(self, counts) -> np.ndarray:
+        """ROI counts as a float array of shape ``(..., roi, roi)``, validated once."""
+        c = finite_array("counts", counts)
+        if c.ndim < 2 or c.shape[-2:] != (self.roi, self.roi):
+            raise BayespsfInputError(
+                f"counts must have shape (..., {self.roi}, {self.roi}) for this model, "
+                f"got {c.shape}"
+            )
+        self.camera._check_counts(c)
+        return c
+
+    def log_likelihood(self, counts, params) -> np.ndarray:
+        """Sum over pixels of log p(counts | params), broadcasting batch dimensions."""
+        c = self.check_counts(counts)
+        lam = self.expected(finite_array("params", params))
+        return self.camera._log_likelihood(c, lam).sum(axis=(-2, -1))
+
+    def to_photons(self, counts) -> np.ndarray:
+        """Counts converted to photons with the camera's mean conversion (offset removed,
+        divided by the mean ADU per photon): what the paper fits by least squares."""
+        cam = self.camera
+        c = np.asarray(counts, dtype=np.float64)
+        if isinstance(cam, EMCCD):
+            return (c - cam.offset) * cam.e_per_adu / cam.gain
+        if isinstance(cam, SCMOS):
+            return (c - cam.offset_map) / cam.gain_map
+        return c
+
+    def __repr__(self) -> str:
+        return f"Model(roi={self.roi}, pixel_size={self.pixel_size:g}, camera={self.camera!r})"
+
+
+__all__ = ["PARAMETER_NAMES", "Model", "camera_from_scene"]
