@@ -106,6 +106,12 @@ class Model:
                 f"got {c.shape}"
             )
         self.camera._check_counts(c)
+        cam = self.camera
+        if isinstance(cam, EMCCD) and cam.readout_sd == 0 and np.any(c < cam.offset):
+            raise BayespsfInputError(
+                f"counts below the offset ({cam.offset:g} ADU) are impossible for an EMCCD "
+                f"without readout noise; min is {c.min():.6g} (declare its readout_sd)"
+            )
         return c
 
     def log_likelihood(self, counts, params) -> np.ndarray:
@@ -116,14 +122,14 @@ class Model:
 
     def to_photons(self, counts) -> np.ndarray:
         """Counts converted to photons with the camera's mean conversion (offset removed,
-        divided by the mean ADU per photon): what the paper fits by least squares."""
-        cam = self.camera
-        c = np.asarray(counts, dtype=np.float64)
-        if isinstance(cam, EMCCD):
-            return (c - cam.offset) * cam.e_per_adu / cam.gain
-        if isinstance(cam, SCMOS):
-            return (c - cam.offset_map) / cam.gain_map
-        return c
+        times photons per ADU): what the paper fits by least squares."""
+        per_adu, offset = self.camera.photons_per_adu()
+        return (np.asarray(counts, dtype=np.float64) - offset) * per_adu
+
+    def photon_variance(self, lam) -> np.ndarray:
+        """Variance of :meth:`to_photons` of a pixel with ``lam`` expected photoelectrons."""
+        per_adu, _ = self.camera.photons_per_adu()
+        return self.camera.variance(lam) * np.asarray(per_adu) ** 2
 
     def __repr__(self) -> str:
         return f"Model(roi={self.roi}, pixel_size={self.pixel_size:g}, camera={self.camera!r})"

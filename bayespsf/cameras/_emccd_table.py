@@ -33,7 +33,7 @@ from scipy.interpolate import CubicSpline
 
 from bayespsf.cameras import _emccd_law as law
 
-LAM_MIN, LAM_MAX = 1e-3, 1e5
+LAM_MIN, LAM_MAX = 1e-6, 1e5
 XI_STEP = 0.05
 ETA_MAX, ETA_STEP = 8.0, 0.05
 NEAR, TAU_STEP = 12.0, 0.1

@@ -43,6 +43,37 @@ class Camera(ABC):
         lam = nonnegative_array("expected", expected)
         return self._fisher_information(lam)
 
+    def score(self, counts, expected) -> np.ndarray:
+        """Element-wise ``d log p(counts | expected) / d expected`` (the gradient the maximum
+        likelihood fit and the sampler's start use)."""
+        c = finite_array("counts", counts)
+        lam = nonnegative_array("expected", expected)
+        c, lam = broadcast_pair("counts", c, "expected", lam)
+        self._check_counts(c)
+        return self._score(c, lam)
+
+    def _score(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
+        """Central difference of the log-likelihood (step 1e-5 of lam + 1e-3), forward
+        difference where lam is smaller than the step. Cameras with a closed form override."""
+        h = 1e-5 * (expected + 1e-3)
+        low = np.maximum(expected - h, 0.0)
+        high = expected + h
+        return (self._log_likelihood(counts, high) - self._log_likelihood(counts, low)) / (
+            high - low
+        )
+
+    def variance(self, expected) -> np.ndarray:
+        """Variance of the counts, in ADU^2, given expected photons (its exact second moment)."""
+        return self._variance(nonnegative_array("expected", expected))
+
+    @abstractmethod
+    def _variance(self, expected: np.ndarray) -> np.ndarray: ...
+
+    @abstractmethod
+    def photons_per_adu(self):
+        """Mean photons per ADU above the offset (scalar or per-pixel map), and the offset:
+        ``(counts - offset) * photons_per_adu`` is the photon estimate the paper fits."""
+
     def _check_counts(self, counts: np.ndarray) -> None:  # noqa: B027 (optional hook)
         """Hook for cameras whose counts have a restricted domain; the default accepts all."""
 

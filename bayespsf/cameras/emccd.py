@@ -48,6 +48,7 @@ from bayespsf.effects import add_normal, gamma_register
 from bayespsf.errors import BayespsfInputError
 
 TIERS = ("exact", "table", "high-gain", "gaussian", "poisson")
+MAX_EXPECTED = 1e10  # photons per pixel: the readout quadrature is validated up to here
 FISHER_METHODS = ("exact", "excess-noise")
 
 
@@ -98,6 +99,11 @@ class EMCCD(Camera):
         log_jacobian = np.log(self.e_per_adu / self.gain)
         r = self.readout_in_gain_units
         tier = self.likelihood
+        if tier in ("exact", "table") and r > 0 and expected.max(initial=0.0) > MAX_EXPECTED:
+            raise BayespsfInputError(
+                f"expected must be <= {MAX_EXPECTED:g} photons per pixel for the EMCCD law with "
+                f"readout (got {expected.max():.3g}); no camera pixel holds that many"
+            )
         if tier == "exact" and r > 0:
             return _emccd_law.log_exact(t, expected, r) + log_jacobian
         if tier == "table" and r > 0:
@@ -125,6 +131,24 @@ class EMCCD(Camera):
         if self.readout_sd > 0:
             electrons = add_normal(electrons, self.readout_sd, rng)
         return self.offset + electrons / self.e_per_adu
+
+    def _score(self, counts, expected):
+        """Closed form for the exact tier (quadrature with readout, Bessel ratio without);
+        other tiers by differences of their own log-likelihood."""
+        r = self.readout_in_gain_units
+        if self.likelihood != "exact" or np.any(expected == 0):
+            return super()._score(counts, expected)
+        t = self.gain_units(counts)
+        if r > 0:
+            return _emccd_law.log_and_score_exact(t, expected, r)[1]
+        return _emccd_law.score_high_gain(t, expected)
+
+    def _variance(self, expected):
+        """``(2 lam G^2 + readout_sd^2) / e_per_adu^2`` (ADU^2)."""
+        return (2.0 * expected * self.gain**2 + self.readout_sd**2) / self.e_per_adu**2
+
+    def photons_per_adu(self):
+        return self.e_per_adu / self.gain, self.offset
 
     def fisher_information(self, expected, method: str = "exact") -> np.ndarray:
         """Per-pixel Fisher information about the expected photons.

@@ -32,6 +32,17 @@ class Photon(Camera):
     def _sample(self, expected, rng):
         return rng.poisson(expected).astype(np.float64)
 
+    def _score(self, counts, expected):
+        """``k / lam - 1`` (``-1`` where both are 0)."""
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return np.where(counts == 0, -1.0, counts / expected - 1.0)
+
+    def _variance(self, expected):
+        return expected.copy()
+
+    def photons_per_adu(self):
+        return 1.0, 0.0
+
     def _fisher_information(self, expected):
         """``1 / lam`` (infinite at ``lam == 0``)."""
         with np.errstate(divide="ignore"):

@@ -549,6 +549,13 @@ class SCMOS(Camera):
             counts = counts + np.sqrt(self._v) * rng.standard_normal(expected.shape)
         return np.broadcast_to(counts, expected.shape).astype(np.float64)
 
+    def _variance(self, expected: np.ndarray) -> np.ndarray:
+        """``g^2 lam + v`` (ADU^2)."""
+        return self._g**2 * expected + self._v
+
+    def photons_per_adu(self):
+        return 1.0 / self._g, self._o
+
     def _fisher_information(self, expected: np.ndarray) -> np.ndarray:
         self._check_shape("expected", expected.shape)
         lam, g, v = np.broadcast_arrays(expected, self._g, self._v)

@@ -1,0 +1,340 @@
+"""Point estimates for a stack of ROIs: the paper's least squares, maximum likelihood, Laplace.
+
+All three return a DataFrame with one row per ROI and the truth table's columns
+``x0 y0 s_x s_y N b``, plus ``converged`` (bool) and ``message``; ``fit_mle`` adds ``sd_<p>``
+columns (the Laplace approximation) and ``log_likelihood``. A fit that fails is flagged
+(``converged = False``, the reason in ``message``), never dropped: the row keeps the last
+iterate, or NaN if there was none.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy import optimize
+
+from bayespsf.model import Model
+from bayespsf.psf import PARAMETER_NAMES, pixel_centres
+
+_LOG_SCALE = (2, 3, 4)  # s_x, s_y, N are fitted in log space (positive, scale-free)
+
+
+def start_values(photons: np.ndarray, model: Model) -> np.ndarray:
+    """Robust starting parameters ``(n, 6)`` from ROIs in photons ``(n, roi, roi)``.
+
+    Background: the median of the border pixels (>= 0). Position: the centroid of the
+    background-subtracted image (negative values set to 0). Widths: its second moments,
+    kept within [a/2, ROI side / 2]. N: the background-subtracted total, at least 1.
+    """
+    a, roi = model.pixel_size, model.roi
+    c = pixel_centres(roi, a)
+    border = np.concatenate(
+        [photons[:, 0, :], photons[:, -1, :], photons[:, 1:-1, 0], photons[:, 1:-1, -1]], axis=1
+    )
+    b = np.maximum(np.median(border, axis=1), 0.0)
+    signal = np.maximum(photons - b[:, None, None], 0.0)
+    total = signal.sum(axis=(1, 2))
+    weight = np.where(total > 0, total, 1.0)
+    px, py = signal.sum(axis=1), signal.sum(axis=2)
+    x0 = np.where(total > 0, px @ c / weight, 0.0)
+    y0 = np.where(total > 0, py @ c / weight, 0.0)
+    sx = np.sqrt(np.maximum(px @ c**2 / weight - x0**2 - a * a / 12, 0.0))
+    sy = np.sqrt(np.maximum(py @ c**2 / weight - y0**2 - a * a / 12, 0.0))
+    lo, hi = 0.5 * a, 0.5 * roi * a
+    return np.column_stack(
+        [x0, y0, np.clip(sx, lo, hi), np.clip(sy, lo, hi), np.maximum(total, 1.0), b]
+    )
+
+
+def _frame(rows: list[dict]) -> pd.DataFrame:
+    df = pd.DataFrame(rows)
+    first = list(PARAMETER_NAMES)
+    return df[first + [c for c in df.columns if c not in first]]
+
+
+# ---------------------------------------------------------------------------- least squares
+
+
+def gauss2d(theta, model: Model):
+    """Eq. gauss2dfxn sampled at the pixel centres, and its Jacobian.
+
+    ``theta = (f0, x0, y0, s_x, s_y, b)``: ``f0 exp(-(x-x0)^2/2s_x^2 - (y-y0)^2/2s_y^2) + b``.
+    Returns ``(values (roi, roi), jacobian (6, roi, roi))``.
+    """
+    f0, x0, y0, sx, sy, _ = theta
+    c = pixel_centres(model.roi, model.pixel_size)
+    dx, dy = (c - x0) / sx, (c - y0) / sy
+    gx, gy = np.exp(-0.5 * dx * dx), np.exp(-0.5 * dy * dy)
+    shape = gy[:, None] * gx[None, :]
+    jac = np.empty((6, model.roi, model.roi))
+    jac[0] = shape
+    jac[1] = f0 * shape * (dx / sx)[None, :]
+    jac[2] = f0 * shape * (dy / sy)[:, None]
+    jac[3] = f0 * shape * (dx * dx / sx)[None, :]
+    jac[4] = f0 * shape * (dy * dy / sy)[:, None]
+    jac[5] = 1.0
+    return f0 * shape + theta[5], jac
+
+
+def lsq_to_params(theta, pixel_size: float) -> np.ndarray:
+    """``(f0, x0, y0, s_x, s_y, b)`` to ``x0 y0 s_x s_y N b`` with ``N = 2 pi s_x s_y f0 / a^2``
+    (the Gaussian's integral over the plane, in photons)."""
+    f0, x0, y0, sx, sy, b = np.moveaxis(np.asarray(theta, float), -1, 0)
+    return np.stack([x0, y0, sx, sy, 2 * np.pi * sx * sy * f0 / pixel_size**2, b], axis=-1)
+
+
+def _lsq_one(photons, start, model):
+    a = model.pixel_size
+    f0 = start[4] * a * a / (2 * np.pi * start[2] * start[3])
+    theta0 = np.array([f0, start[0], start[1], start[2], start[3], start[5]])
+    lower = [-np.inf, -np.inf, -np.inf, 1e-3 * a, 1e-3 * a, -np.inf]
+    y = photons.ravel()
+
+    def residual(theta):
+        return gauss2d(theta, model)[0].ravel() - y
+
+    def jacobian(theta):
+        return gauss2d(theta, model)[1].reshape(6, -1).T
+
+    res = optimize.least_squares(
+        residual, theta0, jac=jacobian, bounds=(lower, np.inf), method="trf", x_scale="jac"
+    )
+    return res
+
+
+def fit_lsq(counts, model: Model) -> pd.DataFrame:
+    """The paper's fit: unweighted least squares of Eq. gauss2dfxn to counts in photons.
+
+    As in DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010) (MATLAB ``lsqcurvefit``):
+    counts are converted to photons with the camera's mean gain (:meth:`Model.to_photons`) and
+    fitted by a trust-region least squares (scipy ``least_squares``, analytic Jacobian) of the
+    sampled Gaussian with amplitude f0 and constant background. Its widths estimate the
+    pixelated width (Eq. tophat), not s0. Not converged: the optimiser failed, a width ran
+    away beyond the ROI, or a value is not finite.
+    """
+    c = model.check_counts(counts)
+    stack = c.reshape(-1, model.roi, model.roi)
+    photons = model.to_photons(stack)
+    starts = start_values(photons, model)
+    rows = []
+    limit = model.roi * model.pixel_size
+    for image, start in zip(photons, starts, strict=True):
+        res = _lsq_one(image, start, model)
+        params = lsq_to_params(res.x, model.pixel_size)
+        ok, message = bool(res.success), res.message
+        if not np.all(np.isfinite(params)):
+            ok, message = False, "non-finite estimate"
+        elif params[2] > limit or params[3] > limit:
+            ok, message = False, "a width ran away beyond the ROI"
+        rows.append(dict(zip(PARAMETER_NAMES, params, strict=True), converged=ok, message=message))
+    return _frame(rows)
+
+
+def lsq_first_order(model: Model, params):
+    """First-order prediction of :func:`fit_lsq`: its limit and its covariance.
+
+    The limit is the least-squares fit of Eq. gauss2dfxn to the noise-free expected image (in
+    photons): the sampled Gaussian that best matches the pixel-integrated spot. The covariance
+    is the M-estimator sandwich ``A^-1 B A^-1`` with ``A`` the Hessian of the half sum of
+    squares at the limit (including the residual-curvature term, since the models differ) and
+    ``B = J^T diag(var) J`` with the camera's exact pixel variances in photons (Huber 1967;
+    White 1982). Returned in ``x0 y0 s_x s_y N b`` by the delta method.
+
+    Returns
+    -------
+    limit : ndarray (6,), covariance : ndarray (6, 6)
+    """
+    params = np.asarray(params, float)
+    lam = model.expected(params)  # the mean of the counts in photons (CIC included)
+    res = _lsq_one(lam, params, model)
+    theta = res.x
+    _, jac = gauss2d(theta, model)
+    j = jac.reshape(6, -1).T
+    variance = model.photon_variance(lam).ravel()
+
+    def gradient(th):
+        values, jj = gauss2d(th, model)
+        return jj.reshape(6, -1) @ (values - lam).ravel()
+
+    steps = 1e-6 * np.maximum(np.abs(theta), 1.0)
+    hess = np.array(
+        [
+            (gradient(theta + e) - gradient(theta - e)) / (2 * h)
+            for e, h in zip(np.diag(steps), steps, strict=True)
+        ]
+    )
+    a_inv = np.linalg.inv(0.5 * (hess + hess.T))
+    cov_theta = a_inv @ (j.T * variance) @ j @ a_inv
+    f0, _, _, sx, sy, _ = theta
+    a2 = model.pixel_size**2
+    to_params = np.zeros((6, 6))  # d(x0 y0 s_x s_y N b) / d(f0 x0 y0 s_x s_y b)
+    to_params[0, 1] = to_params[1, 2] = to_params[2, 3] = to_params[3, 4] = to_params[5, 5] = 1.0
+    to_params[4] = [
+        2 * np.pi * sx * sy / a2,
+        0,
+        0,
+        2 * np.pi * sy * f0 / a2,
+        2 * np.pi * sx * f0 / a2,
+        0,
+    ]
+    return lsq_to_params(theta, model.pixel_size), to_params @ cov_theta @ to_params.T
+
+
+# ----------------------------------------------------------------------- maximum likelihood
+
+
+def _to_internal(params, a):
+    u = np.array(params, float)
+    u[[0, 1]] /= a
+    u[[2, 3]] = np.log(u[[2, 3]] / a)
+    u[4] = np.log(u[4])
+    return u
+
+
+def _from_internal(u, a):
+    p = np.array(u, float)
+    p[[0, 1]] *= a
+    p[[2, 3]] = a * np.exp(p[[2, 3]])
+    p[4] = np.exp(p[4])
+    return p
+
+
+def _negative_log_likelihood(u, counts, model):
+    """-log L and its gradient in the internal coordinates (x/a, y/a, log s/a, log N, b)."""
+    a = model.pixel_size
+    p = _from_internal(u, a)
+    lam, jac = model.expected_and_jacobian(p)
+    value = -model.camera._log_likelihood(counts, lam).sum()
+    score = model.camera._score(counts, lam)
+    grad = -np.einsum("kxy,xy->k", jac, score)
+    grad[[0, 1]] *= a
+    grad[[2, 3, 4]] *= p[[2, 3, 4]]
+    if not np.isfinite(value):
+        return 1e300, np.zeros(6)
+    return value, grad
+
+
+def _scaled(v, scale, counts, model):
+    value, grad = _negative_log_likelihood(v / scale, counts, model)
+    return value, grad / scale
+
+
+def _information_scale(model, p, u) -> np.ndarray:
+    """sqrt of the diagonal of the expected information in the internal coordinates."""
+    lam, jac = model.expected_and_jacobian(p)
+    chain = np.array([model.pixel_size, model.pixel_size, p[2], p[3], p[4], 1.0])
+    j = jac * chain[:, None, None]
+    info = np.einsum("kxy,kxy,xy->k", j, j, model.camera.fisher_information(np.maximum(lam, 1e-12)))
+    return np.sqrt(np.clip(info, 1e-8, 1e12))
+
+
+def _hessian(counts, model, p):
+    """Observed information: central differences of the analytic gradient in the parameters."""
+    a = model.pixel_size
+    steps = np.array([1e-3 * a, 1e-3 * a, 1e-4 * p[2], 1e-4 * p[3], 1e-4 * p[4], 1e-3])
+    steps[5] = max(1e-4 * p[5], 1e-4)
+
+    def grad(q):
+        lam, jac = model.expected_and_jacobian(q)
+        return -np.einsum("kxy,xy->k", jac, model.camera._score(counts, lam))
+
+    h = np.empty((6, 6))
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = steps[k]
+        lower = p - e
+        lower[5] = max(lower[5], 0.0)
+        h[k] = (grad(p + e) - grad(lower)) / (p[k] + steps[k] - lower[k])
+    return 0.5 * (h + h.T)
+
+
+def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFrame:
+    """Maximum likelihood under the model's camera law (any tier), with the Laplace SDs.
+
+    L-BFGS-B on (x0/a, y0/a, log s_x/a, log s_y/a, log N, b >= 0), bounded to physical
+    ranges (a fit ending on a bound is flagged), with the analytic gradient
+    (PSF Jacobian times the camera's per-pixel score). With ``laplace``, ``sd_<p>`` columns are
+    the square roots of the diagonal of the inverse observed information (the Hessian of
+    -log L by differences of the analytic gradient). Not converged: the optimiser failed, a
+    width ran away beyond the ROI, or the Hessian is not positive definite (SDs then NaN).
+
+    Parameters
+    ----------
+    counts : array_like, shape (..., roi, roi)
+    model : Model
+    start : array_like, shape (..., 6), optional
+        Starting parameters; default :func:`start_values` of the counts in photons.
+    """
+    c = model.check_counts(counts)
+    stack = c.reshape(-1, model.roi, model.roi)
+    starts = (
+        start_values(model.to_photons(stack), model)
+        if start is None
+        else np.asarray(start, float).reshape(-1, 6)
+    )
+    a = model.pixel_size
+    roi = model.roi
+    # keep the optimiser's line searches inside physical ranges (the spot's centre within two
+    # ROI sides, widths from a/20 to the ROI side times 4, N <= 1e9, b <= 1e7 photons)
+    bounds = [
+        (-roi, roi),
+        (-roi, roi),
+        (np.log(0.05), np.log(4 * roi)),
+        (np.log(0.05), np.log(4 * roi)),
+    ]
+    bounds += [(np.log(1e-3), np.log(1e9)), (0.0, 1e7)]
+    limit = roi * a
+    rows = []
+    for image, p0 in zip(stack, starts, strict=True):
+        u0 = _to_internal(p0, a)
+        # precondition by the expected information at the start, so that a unit step is about
+        # one standard deviation in every coordinate (L-BFGS-B's first step has unit length)
+        scale = _information_scale(model, p0, u0)
+        res = optimize.minimize(
+            lambda v, img=image, sc=scale: _scaled(v, sc, img, model),
+            u0 * scale,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=[(lo * k, hi * k) for (lo, hi), k in zip(bounds, scale, strict=True)],
+            options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-8},
+        )
+        res.x = res.x / scale
+        p = _from_internal(res.x, a)
+        # a line search that stops at machine precision on a flat optimum is not a failure
+        stationary = np.all(np.abs(res.jac) < 1e-3)
+        ok, message = bool(res.success or stationary), str(res.message)
+        if not np.all(np.isfinite(p)) or not np.isfinite(res.fun):
+            ok, message = False, "non-finite estimate"
+        elif p[2] > limit or p[3] > limit:
+            ok, message = False, "a width ran away beyond the ROI"
+        elif _on_bound(res.x, bounds):
+            ok, message = False, "ended on a bound of the search box"
+        row = dict(zip(PARAMETER_NAMES, p, strict=True), log_likelihood=-res.fun)
+        if laplace:
+            sd = np.full(6, np.nan)
+            if ok:
+                try:
+                    cov = np.linalg.inv(_hessian(image, model, p))
+                    if np.all(np.diag(cov) > 0) and np.all(np.linalg.eigvalsh(cov) > 0):
+                        sd = np.sqrt(np.diag(cov))
+                    else:
+                        ok, message = False, "observed information not positive definite"
+                except np.linalg.LinAlgError:
+                    ok, message = False, "observed information singular"
+            row.update({f"sd_{name}": v for name, v in zip(PARAMETER_NAMES, sd, strict=True)})
+        row.update(converged=ok, message=message)
+        rows.append(row)
+    return _frame(rows)
+
+
+def _on_bound(u, bounds) -> bool:
+    """True if any coordinate other than b (whose bound 0 is physical) sits on its bound."""
+    return any(
+        (lo is not None and abs(v - lo) < 1e-9) or (hi is not None and abs(v - hi) < 1e-9)
+        for v, (lo, hi) in zip(u[:5], bounds[:5], strict=True)
+    )
+
+
+def fit_laplace(counts, model: Model, start=None) -> pd.DataFrame:
+    """The Laplace approximation: :func:`fit_mle` with its ``sd_<p>`` columns."""
+    return fit_mle(counts, model, start=start, laplace=True)
