@@ -1,0 +1,82 @@
+"""Gain calibration (Eq. photonConv) on simulated movies: its bias and spread.
+
+Movies of one immobile molecule on an EMCCD (EM gain 100, readout 30 e-, offset 100 ADU,
+5 e-/ADU: 20 ADU per photon; Poisson background of 5 photons per pixel), at a bright and a dim
+molecule (nine centre pixels, or the centre pixel alone below SNR 3), for movies of 100 and 500
+frames: the mean of the estimates, its bias relative to the truth with its Monte Carlo error,
+and the spread of single-movie estimates.
+
+    python validation/gain_calibration.py [--quick]
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bayespsf import Scene, simulate
+from bayespsf.calibration import calibrate_gain
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _common import parser, write
+
+CAMERA = {"kind": "emccd", "gain": 100.0, "readout_sd": 30.0, "offset": 100.0, "e_per_adu": 5.0}
+TRUE_M = 20.0
+
+
+def run(movies: int, frames=(100, 500), photons=(2000.0, 60.0)) -> pd.DataFrame:
+    rows = []
+    for n_photons in photons:
+        scene = Scene.from_dict(
+            {
+                "geometry": {"roi": 11, "pixel_size": 100.0},
+                "emitter": {"photons": n_photons, "s0x": 120.0, "s0y": 120.0},
+                "background": {"kind": "poisson", "mean": 5.0},
+                "camera": CAMERA,
+            }
+        )
+        for n_frames in frames:
+            results = [calibrate_gain(simulate(scene, n_frames, seed=k)[0]) for k in range(movies)]
+            m = np.array([r.adu_per_photon for r in results])
+            rows.append(
+                {
+                    "N": n_photons,
+                    "frames": n_frames,
+                    "movies": movies,
+                    "pixels used": len(results[0].pixel_estimates),
+                    "mean M": m.mean(),
+                    "bias %": 100 * (m.mean() / TRUE_M - 1),
+                    "bias MC error %": 100 * m.std(ddof=1) / np.sqrt(movies) / TRUE_M,
+                    "spread (SD) %": 100 * m.std(ddof=1) / TRUE_M,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def main(argv=None):
+    args = parser(__doc__).parse_args(argv)
+    started = time.perf_counter()
+    table = run(5 if args.quick else 200, (100,) if args.quick else (100, 500))
+    text = (
+        f"# Gain calibration (Eq. photonConv): true M = {TRUE_M:g} ADU per photon\n\n"
+        + table.to_markdown(index=False, floatfmt=".3g")
+    )
+    command = "python validation/gain_calibration.py" + (" --quick" if args.quick else "")
+    write(
+        args.out,
+        "gain_calibration" + ("_quick" if args.quick else ""),
+        table,
+        text,
+        command,
+        started,
+    )
+    print(text)
+    return table
+
+
+if __name__ == "__main__":
+    main()
