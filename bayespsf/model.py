@@ -23,6 +23,21 @@ from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.scene import Scene
 
 DEFAULT_TIER = {"emccd": "table", "scmos": "exact"}
+LOG_PARAMETERS = [2, 3, 4]  # s_x, s_y, N are sampled in log space
+
+
+def _log_prior_1d(spec: dict, x: np.ndarray) -> np.ndarray:
+    """Log density (up to a constant) of one parameter's prior; -inf outside its support."""
+    kind = spec["kind"]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if kind == "uniform":
+            return np.where((x >= spec["low"]) & (x <= spec["high"]), 0.0, -np.inf)
+        if kind == "log-uniform":
+            inside = (x >= spec["low"]) & (x <= spec["high"])
+            return np.where(inside, -np.log(np.where(inside, x, 1.0)), -np.inf)
+        if kind == "normal":
+            return -0.5 * ((x - spec["mean"]) / spec["sd"]) ** 2
+        return np.where(x >= 0, -0.5 * (x / spec["scale"]) ** 2, -np.inf)  # half-normal
 
 
 def camera_from_scene(scene: Scene, likelihood: str | None = None) -> Camera:
@@ -130,6 +145,44 @@ class Model:
         """Variance of :meth:`to_photons` of a pixel with ``lam`` expected photoelectrons."""
         per_adu, _ = self.camera.photons_per_adu()
         return self.camera.variance(lam) * np.asarray(per_adu) ** 2
+
+    # ------------------------------------------------------------------ posterior (issue 5)
+
+    def to_unconstrained(self, params) -> np.ndarray:
+        """Sampling coordinates: ``x0, y0, log s_x, log s_y, log N, b`` (positions and the
+        background stay in their own units; proposals outside their prior support are
+        rejected)."""
+        z = np.array(params, dtype=np.float64)
+        z[..., LOG_PARAMETERS] = np.log(z[..., LOG_PARAMETERS])
+        return z
+
+    def from_unconstrained(self, z) -> np.ndarray:
+        p = np.array(z, dtype=np.float64)
+        p[..., LOG_PARAMETERS] = np.exp(p[..., LOG_PARAMETERS])
+        return p
+
+    def log_prior(self, params) -> np.ndarray:
+        """Log prior density of ``params`` (..., 6) up to a constant; -inf outside its support."""
+        p = np.asarray(params, dtype=np.float64)
+        total = np.zeros(p.shape[:-1])
+        for k, name in enumerate(PARAMETER_NAMES):
+            total = total + _log_prior_1d(self.prior[name], p[..., k])
+        return total
+
+    def log_posterior(self, z, counts) -> np.ndarray:
+        """Log posterior in sampling coordinates ``z`` (..., 6), up to a constant: log prior +
+        log |Jacobian| (the log of s_x, s_y, N) + log-likelihood. Vectorised over walkers; the
+        likelihood is evaluated only where the prior is finite. ``counts`` must already be
+        validated (:meth:`check_counts`)."""
+        z = np.asarray(z, dtype=np.float64)
+        p = self.from_unconstrained(z)
+        out = self.log_prior(p) + z[..., LOG_PARAMETERS].sum(axis=-1)
+        inside = np.isfinite(out)
+        if inside.any():
+            lam = self.expected(p[inside])
+            out[inside] += self.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
+        out[~np.isfinite(out)] = -np.inf
+        return out
 
     def __repr__(self) -> str:
         return f"Model(roi={self.roi}, pixel_size={self.pixel_size:g}, camera={self.camera!r})"

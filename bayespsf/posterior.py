@@ -1,0 +1,159 @@
+"""Posterior: the draws of one molecule's parameters, their summary, plots and result files.
+
+The draws live in an ArviZ 1.x ``xarray.DataTree`` (group ``posterior``, dims
+``(chain, draw)`` with one chain per emcee walker). Walkers are not independent chains, so
+``r_hat`` over walkers is a heuristic; the sampler's own convergence test uses emcee's
+integrated autocorrelation time, reported here as ``tau`` (in steps, before thinning).
+
+A result file (NetCDF, :meth:`Posterior.save`) holds the draws, the observed counts (group
+``observed_data``) and, as attributes, the sampler settings, tau, the camera, the scene (TOML)
+and the truth when known: it is self-describing and opens in plain ArviZ or xarray.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import arviz as az
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from bayespsf.psf import PARAMETER_NAMES
+
+
+class Posterior:
+    """Draws of ``x0 y0 s_x s_y N b`` (nm, photons) with what produced them."""
+
+    def __init__(self, tree: xr.DataTree):
+        self.tree = tree
+
+    @classmethod
+    def from_draws(
+        cls, draws, tau=None, info=None, counts=None, model=None, truth=None, scene=None
+    ):
+        """From draws ``(chains, draws, 6)`` in the parameter order."""
+        draws = np.asarray(draws, dtype=np.float64)
+        data = {name: draws[..., k] for k, name in enumerate(PARAMETER_NAMES)}
+        groups = {"posterior": data}
+        dims = None
+        if counts is not None:
+            groups["observed_data"] = {"counts": np.asarray(counts)}
+            dims = {"counts": ["row", "column"]}
+        tree = az.from_dict(groups, dims=dims)
+        attrs = {"bayespsf": "posterior of x0 y0 s_x s_y N b (nm, photons)"}
+        if tau is not None:
+            attrs["tau"] = json.dumps(dict(zip(PARAMETER_NAMES, map(float, tau), strict=True)))
+        if info is not None:
+            attrs["sampler"] = json.dumps(info)
+        if getattr(model, "camera", None) is not None:
+            attrs["camera"] = json.dumps(model.camera.to_dict(), default=_jsonable)
+            attrs["geometry"] = json.dumps({"roi": model.roi, "pixel_size": model.pixel_size})
+        if truth is not None:
+            attrs["truth"] = json.dumps(dict(zip(PARAMETER_NAMES, map(float, truth), strict=True)))
+        if scene is not None:
+            attrs["scene"] = scene.dumps()
+        tree.attrs.update(attrs)
+        return cls(tree)
+
+    # ------------------------------------------------------------------------------ reading
+
+    def _attr(self, key):
+        value = self.tree.attrs.get(key)
+        return None if value is None else json.loads(value)
+
+    @property
+    def info(self) -> dict:
+        """Sampler settings and run facts (steps, burn, thin, converged, acceptance)."""
+        return self._attr("sampler") or {}
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.info.get("converged", False))
+
+    @property
+    def tau(self) -> pd.Series:
+        """emcee's integrated autocorrelation time per parameter, in steps."""
+        return pd.Series(self._attr("tau"), name="tau")
+
+    @property
+    def truth(self) -> pd.Series | None:
+        t = self._attr("truth")
+        return None if t is None else pd.Series(t, name="truth")
+
+    def draws(self) -> pd.DataFrame:
+        """All draws as a DataFrame (one column per parameter)."""
+        post = self.tree["posterior"]
+        return pd.DataFrame({n: post[n].values.ravel() for n in PARAMETER_NAMES})
+
+    def summary(self) -> pd.DataFrame:
+        """Mean, sd, 68% and 95% HDI bounds, ess_bulk, ess_tail, r_hat (over walkers: a
+        heuristic), mcse of the mean, and tau, indexed by parameter."""
+        s68 = az.summary(self.tree, ci_kind="hdi", ci_prob=0.68, round_to="none")
+        s95 = az.summary(self.tree, ci_kind="hdi", ci_prob=0.95, round_to="none")
+        out = s68[["mean", "sd", "hdi68_lb", "hdi68_ub"]].join(
+            s95[["hdi95_lb", "hdi95_ub", "ess_bulk", "ess_tail", "r_hat", "mcse_mean"]]
+        )
+        tau = self._attr("tau")
+        if tau is not None:
+            out["tau"] = pd.Series(tau)
+        return out.loc[list(PARAMETER_NAMES)]
+
+    def sd(self) -> pd.Series:
+        """Posterior SD of each parameter."""
+        return self.draws().std(ddof=1)
+
+    def interval(self, prob: float = 0.68, kind: str = "central") -> pd.DataFrame:
+        """Per parameter, the ``prob`` credible interval: 'central' (equal tails) or 'hdi'."""
+        if not 0 < prob < 1:
+            raise ValueError(f"prob must be in (0, 1), got {prob!r}")
+        d = self.draws()
+        if kind == "central":
+            q = d.quantile([(1 - prob) / 2, (1 + prob) / 2]).T
+            q.columns = ["lower", "upper"]
+            return q
+        if kind == "hdi":
+            s = az.summary(self.tree, ci_kind="hdi", ci_prob=prob, round_to="none")
+            cols = [c for c in s.columns if c.startswith("hdi")]
+            return s[cols].set_axis(["lower", "upper"], axis=1).loc[list(PARAMETER_NAMES)]
+        raise ValueError(f"kind must be 'central' or 'hdi', got {kind!r}")
+
+    # -------------------------------------------------------------------------------- plots
+
+    def corner(self, truths=None):
+        """Corner plot (corner.py) with 16/50/84% quantiles; truths from the run if known."""
+        import corner
+
+        truths = self.truth if truths is None else pd.Series(truths, index=list(PARAMETER_NAMES))
+        return corner.corner(
+            self.draws().to_numpy(),
+            labels=[r"$x_0$ (nm)", r"$y_0$ (nm)", r"$s_x$ (nm)", r"$s_y$ (nm)", "N", "b"],
+            truths=None if truths is None else truths.to_numpy(),
+            quantiles=[0.16, 0.5, 0.84],
+            show_titles=True,
+        )
+
+    # -------------------------------------------------------------------------------- files
+
+    def save(self, path) -> Path:
+        """Write the self-describing NetCDF result file."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.tree.to_netcdf(path)
+        return path
+
+    @classmethod
+    def load(cls, path) -> Posterior:
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"no result file {path}")
+        return cls(xr.open_datatree(path).load())
+
+
+def _jsonable(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot store {type(value).__name__} in a result file")

@@ -1,0 +1,133 @@
+"""The emcee driver and the Posterior: exactness on a closed-form target, reproducibility,
+flagged caps, agreement with the Cramér–Rao bound at high N, result files."""
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from bayespsf import Scene, scenes, simulate
+from bayespsf.model import Model
+from bayespsf.posterior import Posterior
+from bayespsf.sampling import sample_posterior
+from bayespsf.theory import crlb
+
+MEAN = np.array([10.0, -5.0, np.log(120.0), np.log(110.0), np.log(800.0), 4.0])
+COV = np.diag([8.0, 8.0, 0.06, 0.05, 0.04, 0.2]) ** 2
+COV[2, 4] = COV[4, 2] = 0.5 * 0.06 * 0.04  # correlated width and photons
+PREC = np.linalg.inv(COV)
+
+
+class GaussianModel(Model):
+    """A model whose posterior in sampling coordinates is a known correlated Gaussian."""
+
+    def log_posterior(self, z, counts):
+        d = np.asarray(z) - MEAN
+        return -0.5 * np.einsum("...i,ij,...j->...", d, PREC, d)
+
+
+def gaussian_model():
+    return GaussianModel.from_scene(scenes.load("ideal"))
+
+
+def start(seed=0, walkers=32):
+    rng = np.random.default_rng(seed)
+    return MEAN + rng.standard_normal((walkers, 6)) * np.sqrt(np.diag(COV))
+
+
+def test_closed_form_posterior_mean_and_sd():
+    # means within 5 Monte Carlo SEs (SE = sd / sqrt(ESS)), SDs within 5 SEs of an SD
+    # (sd / sqrt(2 ESS)), in the sampling coordinates where the target is exactly Gaussian
+    model = gaussian_model()
+    post = sample_posterior(np.zeros((15, 15)), model, seed=3, start=start(), ess=1000)
+    assert post.converged
+    z = model.to_unconstrained(post.draws().to_numpy())
+    ess = post.summary()["ess_bulk"].to_numpy()
+    sd = np.sqrt(np.diag(COV))
+    assert np.all(np.abs(z.mean(0) - MEAN) <= 5 * sd / np.sqrt(ess))
+    assert np.all(np.abs(z.std(0) - sd) <= 5 * sd / np.sqrt(2 * ess))
+    assert np.all(ess >= 1000 * 0.5)  # arviz's ESS on thinned draws vs the tau-based target
+    assert np.corrcoef(z[:, 2], z[:, 4])[0, 1] == pytest.approx(0.5, abs=0.1)
+
+
+def test_same_seed_same_draws_and_independent_streams():
+    model = gaussian_model()
+    counts = np.zeros((15, 15))
+    a = sample_posterior(counts, model, seed=5, start=start(), ess=100).draws()
+    b = sample_posterior(counts, model, seed=5, start=start(), ess=100).draws()
+    c = sample_posterior(counts, model, seed=6, start=start(), ess=100).draws()
+    assert a.equals(b) and not a.equals(c)
+
+
+def test_step_cap_is_flagged_not_hidden():
+    post = sample_posterior(
+        np.zeros((15, 15)), gaussian_model(), seed=1, start=start(), ess=1e6, max_steps=600
+    )
+    assert not post.converged and post.info["steps"] == 600
+
+
+@pytest.mark.slow
+def test_posterior_sd_of_s_x_near_the_crlb_at_high_n():
+    # EMCCD (table tier), N = 5000: averaged over 3 molecules, posterior SD of s_x within 10%
+    # of sqrt(CRLB) (the issue's tolerance; the posterior SD's own Monte Carlo error at ESS 400
+    # is ~3.5%, and O(1/N) departures from the Gaussian limit are ~1%)
+    scene = scenes.load("emccd-typical").replace(emitter={"photons": 5000.0, "position": "fixed"})
+    model = Model.from_scene(scene)
+    counts, _ = simulate(scene, 3, seed=40)
+    ratios = []
+    for k in range(3):
+        post = sample_posterior(counts[k], model, seed=k)
+        assert post.converged
+        ratios.append(post.sd()["s_x"] / crlb(scene)["s_x"])
+    assert abs(np.mean(ratios) - 1) <= 0.10
+
+
+def test_result_file_is_self_describing(tmp_path):
+    scene = scenes.load("paper-fig3")
+    model = gaussian_model()
+    truth = np.exp(MEAN) * [0, 0, 1, 1, 1, 0] + MEAN * [1, 1, 0, 0, 0, 1]
+    post = sample_posterior(
+        np.zeros((15, 15)), model, seed=2, start=start(), ess=100, truth=truth, scene=scene
+    )
+    path = post.save(tmp_path / "one.nc")
+    plain = xr.open_datatree(path)  # no bayespsf needed to read it
+    assert set(plain["posterior"].data_vars) == {"x0", "y0", "s_x", "s_y", "N", "b"}
+    assert plain["posterior"]["s_x"].dims == ("chain", "draw")
+    assert plain["observed_data"]["counts"].dims == ("row", "column")
+    assert Scene.loads(plain.attrs["scene"]) == scene
+    assert json.loads(plain.attrs["sampler"])["seed"] == 2
+    loaded = Posterior.load(path)
+    assert np.allclose(loaded.summary().to_numpy(), post.summary().to_numpy())
+    assert np.allclose(loaded.truth.to_numpy(), truth)
+    figure = loaded.corner()
+    assert len(figure.axes) == 36
+
+
+def test_summary_interval_and_bad_input():
+    post = sample_posterior(np.zeros((15, 15)), gaussian_model(), seed=4, start=start(), ess=100)
+    s = post.summary()
+    assert list(s.index) == ["x0", "y0", "s_x", "s_y", "N", "b"]
+    for col in ("mean", "sd", "hdi68_lb", "hdi68_ub", "hdi95_lb", "hdi95_ub", "ess_bulk", "ess_tail", "r_hat", "tau"):  # fmt: skip
+        assert col in s.columns
+    assert np.all(s["hdi95_lb"] < s["hdi68_lb"]) and np.all(s["hdi68_ub"] < s["hdi95_ub"])
+    central = post.interval(0.95)
+    assert np.all(central["lower"] < s["mean"]) and np.all(s["mean"] < central["upper"])
+    with pytest.raises(ValueError, match="prob"):
+        post.interval(1.5)
+    model = Model.from_scene(scenes.load("ideal"))
+    with pytest.raises(ValueError, match="one ROI"):
+        sample_posterior(np.zeros((2, 15, 15)), model)
+    with pytest.raises(ValueError, match="counts"):
+        sample_posterior(np.zeros((9, 9)), model)
+    with pytest.raises(ValueError, match="seed"):
+        sample_posterior(np.zeros((15, 15)), model, seed=-1)
+
+
+def test_demo_runs(tmp_path):
+    from bayespsf import demo
+
+    table, post, text = demo.run(tmp_path, seed=1)
+    assert post.converged and (tmp_path / "corner.png").exists()
+    assert (tmp_path / "posterior.nc").exists() and "Eq. sigma2dp3" in text
+    assert np.all(table["ess_bulk"] >= 400)
