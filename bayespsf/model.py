@@ -6,9 +6,9 @@ expected photons per pixel and scores counts under the camera law, vectorised ov
 batch dimensions (walkers, molecules).
 
 What the model leaves out of the simulator's effects, by design: ADC rounding (the continuous
-density is used for whole-ADU counts) and saturation (saturated pixels must be masked or
-censored by the caller). Clock-induced charge is added to the expected photoelectrons, which is
-exact for the Poisson-Gamma law.
+density is used for whole-ADU counts) and saturation (a ROI with a saturated pixel is rejected
+with an error: its likelihood would need censoring). Clock-induced charge is added to the
+expected photoelectrons, which is exact for the Poisson-Gamma law.
 """
 
 from __future__ import annotations
@@ -69,6 +69,8 @@ class Model:
         the scene defaults for this geometry.
     clock_induced_charge
         Mean spurious electrons per pixel (EMCCD), added to the expected photoelectrons.
+    saturation
+        The ADC's full scale in ADU (0: none); ROIs with saturated pixels are rejected.
     """
 
     def __init__(
@@ -78,6 +80,7 @@ class Model:
         camera: Camera,
         prior: dict | None = None,
         clock_induced_charge: float = 0.0,
+        saturation: float = 0.0,
     ):
         psf.pixel_centres(roi, pixel_size)  # validates the geometry
         if not isinstance(camera, Camera):
@@ -90,6 +93,7 @@ class Model:
             "prior"
         ]
         self.clock_induced_charge = float(clock_induced_charge)
+        self.saturation = float(saturation)
 
     @classmethod
     def from_scene(cls, scene: Scene, likelihood: str | None = None) -> Model:
@@ -101,6 +105,7 @@ class Model:
             camera_from_scene(scene, likelihood),
             scene.prior,
             cam.get("clock_induced_charge", 0.0),
+            cam.get("saturation", 0.0),
         )
 
     def expected(self, params) -> np.ndarray:
@@ -126,6 +131,12 @@ class Model:
             raise BayespsfInputError(
                 f"counts below the offset ({cam.offset:g} ADU) are impossible for an EMCCD "
                 f"without readout noise; min is {c.min():.6g} (declare its readout_sd)"
+            )
+        if self.saturation > 0 and np.any(c >= self.saturation):
+            raise BayespsfInputError(
+                f"counts: {int(np.count_nonzero(c >= self.saturation))} pixels are saturated "
+                f"(>= {self.saturation:g} ADU); their true counts are unknown and the model has "
+                "no censored likelihood: crop or mask the ROI, or lower the EM gain"
             )
         return c
 
@@ -175,7 +186,8 @@ class Model:
         likelihood is evaluated only where the prior is finite. ``counts`` must already be
         validated (:meth:`check_counts`)."""
         z = np.asarray(z, dtype=np.float64)
-        p = self.from_unconstrained(z)
+        with np.errstate(over="ignore"):  # exp overflow -> inf -> outside the prior's support
+            p = self.from_unconstrained(z)
         out = self.log_prior(p) + z[..., LOG_PARAMETERS].sum(axis=-1)
         inside = np.isfinite(out)
         if inside.any():

@@ -57,3 +57,44 @@ def test_simulate_command_scene_file_and_errors(tmp_path):
     path.write_text("[geometry]\nroi = -5\n")
     with pytest.raises(SystemExit, match=r"geometry\.roi"):
         cli.main(["simulate", str(path)])
+
+
+def test_fit_command_tif_and_camera_file(tmp_path, capsys):
+    import numpy as np
+    import pandas as pd
+    import tifffile
+
+    from bayespsf import scenes, simulate
+    from bayespsf.posterior import Posterior
+
+    counts, _ = simulate(scenes.load("emccd-typical"), 2, seed=4)
+    tifffile.imwrite(tmp_path / "rois.tif", counts.astype(np.float32))
+    camera = tmp_path / "camera.toml"
+    camera.write_text(
+        "[geometry]\npixel_size = 100.0\n[camera]\nkind = 'emccd'\ngain = 200.0\n"
+        "readout_sd = 50.0\noffset = 100.0\ne_per_adu = 12.0\n"
+    )
+    out = tmp_path / "fit"
+    args = ["fit", str(tmp_path / "rois.tif"), "--camera", str(camera), "--ess", "50"]
+    assert cli.main([*args, "--out", str(out)]) == 0
+    summary = pd.read_csv(out / "summary.csv")
+    assert len(summary) == 2 and {"s_x_mean", "s_x_sd", "s_x_hdi95_lb", "converged"} <= set(summary)
+    post = Posterior.load(out / "roi00001.nc")
+    assert post.summary().loc["s_x", "mean"] == summary.loc[1, "s_x_mean"]
+
+
+def test_fit_command_errors_name_the_file(tmp_path):
+    import numpy as np
+
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.zeros((3, 14, 14)))
+    with pytest.raises(SystemExit, match=r"bad\.npy.*odd size"):
+        cli.main(["fit", str(bad), "--scene", "ideal"])
+    wrong = tmp_path / "rois.csv"
+    wrong.write_text("1,2\n")
+    with pytest.raises(SystemExit, match=r"rois\.csv.*unknown file type"):
+        cli.main(["fit", str(wrong), "--scene", "ideal"])
+    small = tmp_path / "small.npy"
+    np.save(small, np.zeros((1, 9, 9)))
+    with pytest.raises(SystemExit, match="declares 15"):
+        cli.main(["fit", str(small), "--scene", "ideal"])

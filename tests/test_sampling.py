@@ -132,3 +132,39 @@ def test_demo_runs(tmp_path):
     assert post.converged and (tmp_path / "corner.png").exists()
     assert (tmp_path / "posterior.nc").exists() and "Eq. sigma2dp3" in text
     assert np.all(table["ess_bulk"] >= 400)
+
+
+HARD = {
+    "N = 30": dict(emitter={"photons": 30.0}),
+    "b = 0": dict(background={"kind": "none"}),
+    "b = 500": dict(background={"kind": "poisson", "mean": 500.0}),
+    "PSF centred on the ROI edge": dict(emitter={"x0": 750.0}),
+    "s0 much larger than the ROI": dict(emitter={"s0x": 3000.0, "s0y": 3000.0}),
+    "a/s0 = 0.2": dict(geometry={"pixel_size": 26.0, "roi": 31}),
+    "a/s0 = 3": dict(geometry={"pixel_size": 390.0, "roi": 7}),
+    "EM gain 1000, readout 100 e-": dict(camera={"gain": 1000.0, "readout_sd": 100.0}),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", sorted(HARD))
+def test_hard_cases_give_a_finite_flagged_posterior(case):
+    # bounded work (ESS 100, at most 4000 steps); the result is finite or says it is not converged
+    scene = (
+        scenes.load("emccd-typical").replace(emitter={"position": "fixed"}).replace(**HARD[case])
+    )
+    model = Model.from_scene(scene)
+    counts, _ = simulate(scene, 1, seed=50)
+    post = sample_posterior(counts[0], model, seed=1, ess=100, max_steps=4000)
+    draws = post.draws().to_numpy()
+    assert np.all(np.isfinite(draws)) or not post.converged
+    assert np.all(draws[:, 2:5] > 0) and np.all(draws[:, 5] >= 0)
+    assert isinstance(post.converged, bool) and post.info["steps"] <= 4000
+
+
+def test_saturated_pixels_are_a_clear_error():
+    scene = scenes.load("emccd-typical").replace(emitter={"photons": 1e7, "position": "fixed"})
+    counts, _ = simulate(scene, 1, seed=0)
+    assert counts.max() == 65535.0
+    with pytest.raises(ValueError, match="saturated"):
+        sample_posterior(counts[0], Model.from_scene(scene))
