@@ -134,6 +134,12 @@ class Posterior:
             show_titles=True,
         )
 
+    def trace(self):
+        """Trace and marginal density of every parameter, all walkers (ArviZ
+        ``plot_trace_dist``); the matplotlib figure."""
+        collection = az.plot_trace_dist(self.tree, compact=True, backend="matplotlib")
+        return collection.viz["figure"].values.item()
+
     # -------------------------------------------------------------------------------- files
 
     def save(self, path) -> Path:

@@ -14,6 +14,7 @@ stream, and the same seed gives the same draws.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import asdict, dataclass
 
 import emcee
@@ -84,6 +85,7 @@ def sample_posterior(
     truth=None,
     scene=None,
     start=None,
+    progress: bool | None = None,
 ) -> Posterior:
     """Sample the posterior of ``x0 y0 s_x s_y N b`` for one ROI with emcee.
 
@@ -103,6 +105,8 @@ def sample_posterior(
     start : array_like, shape (walkers, 6), optional
         Initial walkers in sampling coordinates (:meth:`Model.to_unconstrained`); default:
         around the maximum-likelihood fit, spread by its Laplace SDs.
+    progress : bool, optional
+        One line per chunk on stderr (steps, tau, ESS); default: when stderr is a terminal.
     """
     c = model.check_counts(counts)
     if c.ndim != 2:
@@ -129,6 +133,7 @@ def sample_posterior(
     state, previous, converged = z0, None, False
     tau = np.full(6, np.nan)
     burn = 0
+    show = progress or (progress is None and sys.stderr.isatty())
     while sampler.iteration < max_steps:
         state = sampler.run_mcmc(state, min(settings.chunk, max_steps - sampler.iteration))
         chain = sampler.get_chain()
@@ -142,9 +147,19 @@ def sample_posterior(
         stable = previous is not None and np.all(np.abs(tau - previous) < 0.1 * tau)
         enough = n >= settings.min_taus * tau.max() and np.all(walkers * n / tau >= ess)
         previous = tau
+        if show:
+            print(
+                f"\rsampling: {sampler.iteration} steps, tau max {tau.max():.1f}, "
+                f"min ESS {np.min(walkers * n / tau):.0f} (target {ess:g})",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
         if stable and enough:
             converged = True
             break
+    if show:
+        print(file=sys.stderr)
     thin = max(1, int(0.5 * tau.min()))
     draws = sampler.get_chain(discard=burn, thin=thin)  # (draws, walkers, 6) in z
     params = model.from_unconstrained(draws)

@@ -60,11 +60,18 @@ def test_same_seed_same_draws_and_independent_streams():
     assert a.equals(b) and not a.equals(c)
 
 
-def test_step_cap_is_flagged_not_hidden():
+def test_step_cap_is_flagged_not_hidden(capsys):
     post = sample_posterior(
-        np.zeros((15, 15)), gaussian_model(), seed=1, start=start(), ess=1e6, max_steps=600
+        np.zeros((15, 15)),
+        gaussian_model(),
+        seed=1,
+        start=start(),
+        ess=1e6,
+        max_steps=600,
+        progress=True,
     )
     assert not post.converged and post.info["steps"] == 600
+    assert "sampling: 600 steps" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -102,6 +109,7 @@ def test_result_file_is_self_describing(tmp_path):
     assert np.allclose(loaded.truth.to_numpy(), truth)
     figure = loaded.corner()
     assert len(figure.axes) == 36
+    assert len(loaded.trace().axes) >= 12  # a trace and a density per parameter
 
 
 def test_summary_interval_and_bad_input():
