@@ -30,3 +30,14 @@ def test_simulate_benchmark_quick():
     ideal = df[df["scene"] == "ideal"]
     assert np.allclose(ideal["throughput / ideal"], 1.0)
     assert "| scene" in simulate_benchmark.markdown(df, "python benchmarks/simulate.py --quick")
+
+
+def test_posterior_benchmark_quick():
+    import posterior as posterior_benchmark
+
+    costs, moves = posterior_benchmark.run(quick=True)
+    assert costs["converged"].all() and np.all(costs["min ess_bulk"] >= 400)
+    assert np.all(costs["time / MLE"] > 0) and set(moves["moves"]) == {"de-snooker", "stretch"}
+    assert "| tier" in posterior_benchmark.markdown(
+        costs, moves, "python benchmarks/posterior.py --quick"
+    )
