@@ -126,6 +126,14 @@ class Model:
                 f"got {c.shape}"
             )
         self.camera._check_counts(c)
+        flat = c.reshape(-1, self.roi * self.roi)
+        constant = np.all(flat == flat[:, :1], axis=1)
+        if np.any(constant):
+            raise BayespsfInputError(
+                f"counts: {int(constant.sum())} ROI(s) have the same value in every pixel "
+                f"(e.g. all {flat[np.argmax(constant), 0]:g}): an empty, dead or clipped ROI "
+                "carries no spot"
+            )
         cam = self.camera
         if isinstance(cam, EMCCD) and cam.readout_sd == 0 and np.any(c < cam.offset):
             raise BayespsfInputError(

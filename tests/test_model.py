@@ -49,7 +49,12 @@ def test_to_photons_and_variance():
 
 @pytest.mark.parametrize(
     "counts,match",
-    [(np.zeros((15, 14)), "shape"), (np.full((15, 15), np.nan), "finite"), (np.ones(3), "shape")],
+    [
+        (np.zeros((15, 14)), "shape"),
+        (np.full((15, 15), np.nan), "finite"),
+        (np.ones(3), "shape"),
+        (np.zeros((15, 15)), "same value"),
+    ],
 )
 def test_bad_rois_are_named(counts, match):
     with pytest.raises(ValueError, match=f"counts.*{match}"):

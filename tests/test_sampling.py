@@ -27,6 +27,9 @@ class GaussianModel(Model):
         return -0.5 * np.einsum("...i,ij,...j->...", d, PREC, d)
 
 
+DUMMY = np.arange(225.0).reshape(15, 15)  # counts the Gaussian target ignores (not constant)
+
+
 def gaussian_model():
     return GaussianModel.from_scene(scenes.load("ideal"))
 
@@ -40,7 +43,7 @@ def test_closed_form_posterior_mean_and_sd():
     # means within 5 Monte Carlo SEs (SE = sd / sqrt(ESS)), SDs within 5 SEs of an SD
     # (sd / sqrt(2 ESS)), in the sampling coordinates where the target is exactly Gaussian
     model = gaussian_model()
-    post = sample_posterior(np.zeros((15, 15)), model, seed=3, start=start(), ess=1000)
+    post = sample_posterior(DUMMY, model, seed=3, start=start(), ess=1000)
     assert post.converged
     z = model.to_unconstrained(post.draws().to_numpy())
     ess = post.summary()["ess_bulk"].to_numpy()
@@ -53,7 +56,7 @@ def test_closed_form_posterior_mean_and_sd():
 
 def test_same_seed_same_draws_and_independent_streams():
     model = gaussian_model()
-    counts = np.zeros((15, 15))
+    counts = DUMMY
     a = sample_posterior(counts, model, seed=5, start=start(), ess=100).draws()
     b = sample_posterior(counts, model, seed=5, start=start(), ess=100).draws()
     c = sample_posterior(counts, model, seed=6, start=start(), ess=100).draws()
@@ -62,7 +65,7 @@ def test_same_seed_same_draws_and_independent_streams():
 
 def test_step_cap_is_flagged_not_hidden(capsys):
     post = sample_posterior(
-        np.zeros((15, 15)),
+        DUMMY,
         gaussian_model(),
         seed=1,
         start=start(),
@@ -94,9 +97,7 @@ def test_result_file_is_self_describing(tmp_path):
     scene = scenes.load("paper-fig3")
     model = gaussian_model()
     truth = np.exp(MEAN) * [0, 0, 1, 1, 1, 0] + MEAN * [1, 1, 0, 0, 0, 1]
-    post = sample_posterior(
-        np.zeros((15, 15)), model, seed=2, start=start(), ess=100, truth=truth, scene=scene
-    )
+    post = sample_posterior(DUMMY, model, seed=2, start=start(), ess=100, truth=truth, scene=scene)
     path = post.save(tmp_path / "one.nc")
     plain = xr.open_datatree(path)  # no bayespsf needed to read it
     assert set(plain["posterior"].data_vars) == {"x0", "y0", "s_x", "s_y", "N", "b"}
@@ -113,7 +114,7 @@ def test_result_file_is_self_describing(tmp_path):
 
 
 def test_summary_interval_and_bad_input():
-    post = sample_posterior(np.zeros((15, 15)), gaussian_model(), seed=4, start=start(), ess=100)
+    post = sample_posterior(DUMMY, gaussian_model(), seed=4, start=start(), ess=100)
     s = post.summary()
     assert list(s.index) == ["x0", "y0", "s_x", "s_y", "N", "b"]
     expected = ["mean", "sd", "hdi68_lb", "hdi68_ub", "hdi95_lb", "hdi95_ub"]
@@ -126,11 +127,11 @@ def test_summary_interval_and_bad_input():
         post.interval(1.5)
     model = Model.from_scene(scenes.load("ideal"))
     with pytest.raises(ValueError, match="one ROI"):
-        sample_posterior(np.zeros((2, 15, 15)), model)
+        sample_posterior(np.stack([DUMMY, DUMMY]), model)
     with pytest.raises(ValueError, match="counts"):
-        sample_posterior(np.zeros((9, 9)), model)
+        sample_posterior(DUMMY[:9, :9], model)
     with pytest.raises(ValueError, match="seed"):
-        sample_posterior(np.zeros((15, 15)), model, seed=-1)
+        sample_posterior(DUMMY, model, seed=-1)
 
 
 def test_demo_runs(tmp_path):

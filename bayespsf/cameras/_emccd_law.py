@@ -183,10 +183,13 @@ def log_exact(t, lam, r):
 def log_and_score_exact(t, lam, r):
     """``log p`` and ``d log p / d lam`` of the law with readout ``r > 0``, for ``lam > 0``."""
     t, lam = np.broadcast_arrays(np.asarray(t, float), np.asarray(lam, float))
+    shape = t.shape
+    t, lam = t.ravel(), lam.ravel()  # the quadrature works on flat arrays
     log_atom = -lam + log_normal_pdf(t, r)
     log_j, ratio = log_convolved(t, lam, r, with_score=True)
     log_p = np.logaddexp(log_atom, log_j)
-    return log_p, np.exp(log_j - log_p) * ratio - np.exp(log_atom - log_p)
+    score = np.exp(log_j - log_p) * ratio - np.exp(log_atom - log_p)
+    return log_p.reshape(shape), score.reshape(shape)
 
 
 def score_high_gain(t, lam):
