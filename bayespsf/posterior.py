@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import arviz as az
 import numpy as np
 import pandas as pd
 import xarray as xr
@@ -34,6 +33,8 @@ class Posterior:
         cls, draws, tau=None, info=None, counts=None, model=None, truth=None, scene=None
     ):
         """From draws ``(chains, draws, 6)`` in the parameter order."""
+        import arviz as az  # imported on use: it takes a second and most commands never need it
+
         draws = np.asarray(draws, dtype=np.float64)
         data = {name: draws[..., k] for k, name in enumerate(PARAMETER_NAMES)}
         groups = {"posterior": data}
@@ -90,6 +91,8 @@ class Posterior:
     def summary(self) -> pd.DataFrame:
         """Mean, sd, 68% and 95% HDI bounds, ess_bulk, ess_tail, r_hat (over walkers: a
         heuristic), mcse of the mean, and tau, indexed by parameter."""
+        import arviz as az
+
         s68 = az.summary(self.tree, ci_kind="hdi", ci_prob=0.68, round_to="none")
         s95 = az.summary(self.tree, ci_kind="hdi", ci_prob=0.95, round_to="none")
         out = s68[["mean", "sd", "hdi68_lb", "hdi68_ub"]].join(
@@ -114,6 +117,8 @@ class Posterior:
             q.columns = ["lower", "upper"]
             return q
         if kind == "hdi":
+            import arviz as az
+
             s = az.summary(self.tree, ci_kind="hdi", ci_prob=prob, round_to="none")
             cols = [c for c in s.columns if c.startswith("hdi")]
             return s[cols].set_axis(["lower", "upper"], axis=1).loc[list(PARAMETER_NAMES)]
@@ -137,6 +142,8 @@ class Posterior:
     def trace(self):
         """Trace and marginal density of every parameter, all walkers (ArviZ
         ``plot_trace_dist``); the matplotlib figure."""
+        import arviz as az
+
         collection = az.plot_trace_dist(self.tree, compact=True, backend="matplotlib")
         return collection.viz["figure"].values.item()
 
