@@ -158,13 +158,16 @@ def fisher_matrix(model, params, method: str = "exact") -> np.ndarray:
     """
     mu, jac = model.expected_and_jacobian(np.asarray(params, float))
     camera = model.camera
-    if method == "exact":
-        info = camera.fisher_information(mu)
-    else:
-        try:
-            info = camera.fisher_information(mu, method=method)
-        except TypeError:
-            raise ValueError(f"{camera!r} has only the exact Fisher information") from None
+    if method not in camera.fisher_methods:
+        raise ValueError(
+            f"{camera!r} has no Fisher method {method!r} "
+            f"(it has {', '.join(camera.fisher_methods)})"
+        )
+    info = (
+        camera.fisher_information(mu)
+        if method == "exact"
+        else (camera.fisher_information(mu, method=method))
+    )
     return np.einsum("...ixy,...jxy,...xy->...ij", jac, jac, info)
 
 

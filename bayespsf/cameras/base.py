@@ -18,6 +18,8 @@ from bayespsf._checks import as_generator, broadcast_pair, finite_array, nonnega
 class Camera(ABC):
     """Base class: the law of a pixel's counts (ADU) given its expected photons."""
 
+    fisher_methods: tuple[str, ...] = ("exact",)  # what fisher_information(method=) accepts
+
     def log_likelihood(self, counts, expected) -> np.ndarray:
         """Element-wise log p(counts | expected), broadcasting ``counts`` against ``expected``.
 

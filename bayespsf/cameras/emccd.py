@@ -69,6 +69,8 @@ class EMCCD(Camera):
         One of :data:`TIERS`; see the module docstring.
     """
 
+    fisher_methods = FISHER_METHODS
+
     def __init__(
         self,
         gain: float,

@@ -377,6 +377,8 @@ class SCMOS(Camera):
     Nat. Methods 10, 653-658 (2013).
     """
 
+    fisher_methods = _FISHER_METHODS
+
     def __init__(
         self,
         gain_map: ArrayLike,
