@@ -199,7 +199,11 @@ class Model:
         out = self.log_prior(p) + z[..., LOG_PARAMETERS].sum(axis=-1)
         inside = np.isfinite(out)
         if inside.any():
-            lam = self.expected(p[inside])
+            # inside the prior's support the parameters are valid: skip the PSF's input checks
+            lam = (
+                psf.expected_counts_unchecked(p[inside], self.roi, self.pixel_size)
+                + self.clock_induced_charge
+            )
             out[inside] += self.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
         out[~np.isfinite(out)] = -np.inf
         return out

@@ -112,7 +112,12 @@ def expected_counts(params, roi: int, pixel_size: float) -> np.ndarray:
     Opt. Express 18 (2010)); its variance per axis tends to ``s0**2 + a**2 / 12`` (Eq. tophat).
     """
     roi, a = _check_geometry(roi, pixel_size)
-    p = _check_params(params)
+    return expected_counts_unchecked(_check_params(params), roi, a)
+
+
+def expected_counts_unchecked(p: np.ndarray, roi: int, a: float) -> np.ndarray:
+    """:func:`expected_counts` without input validation, for hot loops whose parameters are
+    already known to be valid (inside the prior's support)."""
     px, _ = _pixel_fractions(p[..., 0], p[..., 2], roi, a)
     py, _ = _pixel_fractions(p[..., 1], p[..., 3], roi, a)
     n = p[..., 4][..., None, None]
