@@ -1,6 +1,7 @@
 """bayespsf: Bayesian analysis of single fluorescent molecule images."""
 
 from bayespsf import cameras, psf, scenes, simulator, theory
+from bayespsf.batch import sample_many
 from bayespsf.estimators import fit_lsq, fit_mle
 from bayespsf.model import Model
 from bayespsf.posterior import Posterior
@@ -19,6 +20,7 @@ __all__ = [
     "fit_lsq",
     "fit_mle",
     "psf",
+    "sample_many",
     "sample_posterior",
     "scenes",
     "simulate",

@@ -1,0 +1,369 @@
+"""Posteriors for a stack of ROIs: in parallel, reproducible, resumable.
+
+:func:`sample_many` runs :func:`bayespsf.sample_posterior` on every ROI of a stack, on local
+processes (the default), in this process (``workers=1``), or on any
+``concurrent.futures.Executor``, including a Dask ``distributed`` cluster (pass a ``Client``, its
+``get_executor()``, or a scheduler address). Molecule ``i`` is sampled with the seed
+:func:`molecule_seed` ``(seed, i)``, so its result depends on ``seed`` and ``i`` only, never on
+the number of workers or the order in which they finish.
+
+The store (a folder) holds one self-describing result file per finished molecule
+(``molecule-000123.nc``, written atomically: a killed run leaves no half-written file), the run's
+``manifest.json`` (what the store was made for: a rerun with other data or settings is refused
+by name), and ``summary.csv``, one row per molecule: per parameter the posterior mean, SD,
+quantiles (the central 50/68/90/95% intervals), ESS, tau, and, when the truth is given, the
+truth and its rank among ``RANK_DRAWS`` near-independent posterior draws (the statistic of
+simulation-based calibration, Talts et al., arXiv:1804.06788). Each row is also stored in its
+molecule's file, so the table is rebuilt from the files when a run resumes.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import json
+import multiprocessing
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bayespsf.errors import BayespsfInputError
+from bayespsf.model import Model
+from bayespsf.psf import PARAMETER_NAMES
+
+QUANTILES = (0.025, 0.05, 0.16, 0.25, 0.5, 0.75, 0.84, 0.95, 0.975)
+RANK_DRAWS = 99  # ranks 0..99: a histogram of 100 equally likely values under calibration
+SAMPLER_OPTIONS = ("ess", "walkers", "max_steps", "moves")
+
+
+def molecule_seed(seed: int, index: int) -> int:
+    """The seed of molecule ``index`` in a run seeded with ``seed`` (NumPy ``SeedSequence``
+    of the pair, so nearby seeds and indices give unrelated streams)."""
+    state = np.random.SeedSequence([int(seed), int(index)]).generate_state(2, np.uint32)
+    return int(state[0]) << 32 | int(state[1])
+
+
+def quantile_column(name: str, q: float) -> str:
+    return f"{name}_q{1000 * q:04.0f}"
+
+
+def central_interval(prob: float) -> tuple[float, float]:
+    """The quantiles bounding the central ``prob`` interval (one of 0.5, 0.68, 0.9, 0.95)."""
+    low, high = round((1 - prob) / 2, 3), round((1 + prob) / 2, 3)
+    if low not in QUANTILES or high not in QUANTILES:
+        raise BayespsfInputError(f"prob must be one of 0.5, 0.68, 0.9, 0.95; got {prob!r}")
+    return low, high
+
+
+def molecule_row(posterior, index: int, seed: int) -> dict:
+    """The summary row of one molecule's posterior (see the module docstring)."""
+    chains = np.stack(
+        [posterior.tree["posterior"][n].values for n in PARAMETER_NAMES], axis=-1
+    )  # (walkers, draws, 6), draws thinned by tau/2
+    flat = chains.reshape(-1, 6)
+    info = posterior.info
+    tau = posterior.tau
+    row = {
+        "molecule": int(index),
+        "seed": int(seed),
+        "converged": bool(info.get("converged", False)),
+        "steps": int(info.get("steps", 0)),
+        "draws": int(flat.shape[0]),
+        "acceptance": float(info.get("acceptance", np.nan)),
+        "seconds": float(info.get("seconds", np.nan)),
+    }
+    quantiles = np.quantile(flat, QUANTILES, axis=0)
+    truth = posterior.truth
+    # every second thinned draw is ~tau apart: near-independent; RANK_DRAWS of them at random
+    spaced = chains[:, ::2].reshape(-1, 6)
+    pick = np.random.default_rng([seed, 1]).choice(len(spaced), RANK_DRAWS, replace=False)
+    steps_after_burn = info.get("steps", 0) - info.get("burn", 0)
+    for k, name in enumerate(PARAMETER_NAMES):
+        row[f"{name}_mean"] = float(flat[:, k].mean())
+        row[f"{name}_sd"] = float(flat[:, k].std(ddof=1))
+        for q, value in zip(QUANTILES, quantiles[:, k], strict=True):
+            row[quantile_column(name, q)] = float(value)
+        row[f"{name}_tau"] = float(tau[name])
+        row[f"{name}_ess"] = float(chains.shape[0] * steps_after_burn / tau[name])
+        if truth is not None:
+            row[f"{name}_truth"] = float(truth[name])
+            row[f"{name}_rank"] = int(np.sum(spaced[pick, k] < truth[name]))
+    return row
+
+
+def coverage(table: pd.DataFrame, prob: float) -> pd.DataFrame:
+    """Fraction of molecules whose central ``prob`` interval holds the truth, per parameter,
+    with its binomial standard error; needs the truth columns."""
+    low, high = central_interval(prob)
+    rows = []
+    for name in PARAMETER_NAMES:
+        truth = table[f"{name}_truth"].to_numpy()
+        inside = (table[quantile_column(name, low)] <= truth) & (
+            truth <= table[quantile_column(name, high)]
+        )
+        n = len(table)
+        p = float(inside.mean()) if n else np.nan
+        rows.append(
+            {"parameter": name, "nominal": prob, "coverage": p, "se": np.sqrt(p * (1 - p) / n)}
+        )
+    return pd.DataFrame(rows)
+
+
+# --------------------------------------------------------------------------------- workers
+
+
+def _sample_one(task):
+    """Worker side: one molecule's posterior and its summary row (picklable in and out)."""
+    from bayespsf.sampling import sample_posterior
+
+    index, counts, model, seed, truth, scene, options = task
+    started = time.perf_counter()
+    post = sample_posterior(counts, model, seed=seed, truth=truth, scene=scene, progress=False,
+                            **options)  # fmt: skip
+    info = dict(post.info, seconds=time.perf_counter() - started)
+    post.tree.attrs["sampler"] = json.dumps(info)
+    row = molecule_row(post, index, seed)
+    post.tree.attrs["summary_row"] = json.dumps(row)
+    return index, post, row
+
+
+def _executor(executor, workers):
+    """(executor, owned): what runs the tasks, and whether sample_many must shut it down."""
+    if executor is None:
+        workers = os.cpu_count() if workers is None else int(workers)
+        if workers < 1:
+            raise BayespsfInputError(f"workers must be >= 1, got {workers!r}")
+        if workers == 1:
+            return None, False
+        # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
+        # client, a progress monitor): then forkserver, which re-imports the main module
+        method = "fork" if threading.active_count() == 1 else "forkserver"
+        context = multiprocessing.get_context(method)
+        return cf.ProcessPoolExecutor(workers, mp_context=context), True
+    if workers is not None:
+        raise BayespsfInputError("give either executor or workers, not both")
+    if isinstance(executor, str):
+        from distributed import Client
+
+        client = Client(executor)
+        return _AddressExecutor(client), True
+    if hasattr(executor, "get_executor"):  # a dask.distributed.Client
+        return executor.get_executor(), False
+    if isinstance(executor, cf.Executor):
+        return executor, False
+    raise BayespsfInputError(
+        "executor must be None, a concurrent.futures.Executor, a dask.distributed Client or "
+        f"a scheduler address; got {type(executor).__name__}"
+    )
+
+
+class _AddressExecutor:
+    """The executor of a Client that sample_many made from a scheduler address (and closes)."""
+
+    def __init__(self, client):
+        self.client, self.inner = client, client.get_executor()
+
+    def submit(self, fn, *args):
+        return self.inner.submit(fn, *args)
+
+    def shutdown(self, wait=True, cancel_futures=False):
+        self.inner.shutdown(wait=wait)
+        self.client.close()
+
+
+# ----------------------------------------------------------------------------------- store
+
+
+class Store:
+    """A result folder: manifest, one NetCDF file per molecule, summary.csv."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    def molecule_path(self, index: int) -> Path:
+        return self.path / f"molecule-{index:06d}.nc"
+
+    def open(self, manifest: dict) -> None:
+        """Create the store, or check that an existing one was made for this run."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        file = self.path / "manifest.json"
+        if file.exists():
+            old = json.loads(file.read_text())
+            differ = [k for k in manifest if old.get(k) != manifest[k]]
+            if differ:
+                raise BayespsfInputError(
+                    f"store {self.path} was made for another run: {', '.join(differ)} differ "
+                    "(use a new store folder, or delete this one)"
+                )
+        else:
+            _atomic_write_text(file, json.dumps(manifest, indent=1))
+
+    def finished(self, n: int) -> dict[int, dict]:
+        """Summary rows of the molecules already in the store."""
+        from bayespsf.posterior import Posterior
+
+        rows = {}
+        for index in range(n):
+            path = self.molecule_path(index)
+            if path.exists():
+                rows[index] = json.loads(Posterior.load(path).tree.attrs["summary_row"])
+        return rows
+
+    def write(self, index: int, posterior) -> None:
+        path = self.molecule_path(index)
+        partial = path.with_suffix(".nc.partial")
+        posterior.save(partial)
+        os.replace(partial, path)
+
+    def write_summary(self, table: pd.DataFrame) -> None:
+        partial = self.path / "summary.csv.partial"
+        table.to_csv(partial, index=False)
+        os.replace(partial, self.path / "summary.csv")
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(text)
+    os.replace(partial, path)
+
+
+def _manifest(counts, model, seed, options, truths) -> dict:
+    digest = hashlib.sha256(np.ascontiguousarray(counts, dtype=np.float64).tobytes())
+    if truths is not None:
+        digest.update(np.ascontiguousarray(truths, dtype=np.float64).tobytes())
+    return {
+        "bayespsf": "sample_many store",
+        "molecules": int(counts.shape[0]),
+        "seed": int(seed),
+        "sampler": {k: options[k] for k in sorted(options)},
+        "model": repr(model),
+        "data sha256": digest.hexdigest(),
+    }
+
+
+# ------------------------------------------------------------------------------- the run
+
+
+def sample_many(
+    counts,
+    model: Model,
+    seed: int = 0,
+    executor=None,
+    workers: int | None = None,
+    store=None,
+    truths=None,
+    scene=None,
+    progress: bool | None = None,
+    **options,
+) -> pd.DataFrame:
+    """Sample the posterior of every ROI in ``counts``; return the summary table.
+
+    Parameters
+    ----------
+    counts : array_like, shape (n, roi, roi)
+        ROIs in ADU. Every ROI is validated before any sampling starts.
+    model : Model
+    seed : int
+        Molecule ``i`` uses :func:`molecule_seed` ``(seed, i)``: results do not depend on the
+        number of workers.
+    executor : optional
+        ``None`` (local processes), a ``concurrent.futures.Executor``, a Dask ``Client`` or a
+        scheduler address such as ``"tcp://10.0.0.5:8786"``.
+    workers : int, optional
+        Local processes when ``executor`` is None (default: all cores; 1 runs in this process).
+    store : path, optional
+        Result folder (see the module docstring). A rerun with the same store resumes: finished
+        molecules are read back, not sampled again.
+    truths : array_like, shape (n, 6), optional
+        True parameters (simulations): adds truth and SBC-rank columns.
+    scene : Scene, optional
+        Kept in each result file.
+    progress : bool, optional
+        A progress bar on stderr (default: when stderr is a terminal).
+    **options
+        ``ess``, ``walkers``, ``max_steps``, ``moves`` of :func:`sample_posterior`.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per molecule, sorted by molecule (see :func:`molecule_row`); also written to
+        ``store/summary.csv``.
+    """
+    unknown = sorted(set(options) - set(SAMPLER_OPTIONS))
+    if unknown:
+        raise BayespsfInputError(
+            f"unknown sampler option(s) {unknown}; sample_many takes {list(SAMPLER_OPTIONS)}"
+        )
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise BayespsfInputError(f"seed must be a non-negative integer, got {seed!r}")
+    stack = np.asarray(counts, dtype=np.float64)
+    if stack.ndim != 3:
+        raise BayespsfInputError(f"counts must be a stack (n, roi, roi), got shape {stack.shape}")
+    for i, roi in enumerate(stack):
+        try:
+            model.check_counts(roi)
+        except BayespsfInputError as error:
+            raise BayespsfInputError(f"molecule {i}: {error}") from None
+    n = stack.shape[0]
+    if truths is not None:
+        truths = np.asarray(truths, dtype=np.float64)
+        if truths.shape != (n, 6):
+            raise BayespsfInputError(f"truths must have shape ({n}, 6), got {truths.shape}")
+    rows: dict[int, dict] = {}
+    saver = None
+    if store is not None:
+        saver = Store(store)
+        saver.open(_manifest(stack, model, seed, options, truths))
+        rows = saver.finished(n)
+    todo = [i for i in range(n) if i not in rows]
+    tasks = (
+        (
+            i,
+            stack[i],
+            model,
+            molecule_seed(seed, i),
+            None if truths is None else truths[i],
+            scene,
+            options,
+        )
+        for i in todo
+    )
+    runner, owned = _executor(executor, workers)
+    show = progress or (progress is None and sys.stderr.isatty())
+    bar = _progress(n, len(rows), show)
+    try:
+        if runner is None:
+            results = map(_sample_one, tasks)
+        else:
+            futures = [runner.submit(_sample_one, task) for task in tasks]
+            results = (f.result() for f in cf.as_completed(futures))
+        for index, post, row in results:
+            if saver is not None:
+                saver.write(index, post)
+            rows[index] = row
+            bar.update(1)
+    finally:
+        bar.close()
+        if owned:
+            runner.shutdown(wait=True, cancel_futures=True)
+    table = pd.DataFrame([rows[i] for i in sorted(rows)])
+    if saver is not None:
+        saver.write_summary(table)
+    return table
+
+
+def _progress(total, done, show):
+    from tqdm import tqdm
+
+    class Bar(tqdm):
+        monitor_interval = 0  # no monitor thread: the next run may still fork its workers
+
+    return Bar(total=total, initial=done, disable=not show, unit="molecule", file=sys.stderr)
+
+
+__all__ = ["coverage", "molecule_row", "molecule_seed", "sample_many"]

@@ -1,0 +1,184 @@
+"""sample_many: identical results for any executor (serial, local processes, a Dask
+LocalCluster), a store that survives a killed run and resumes it, clear errors."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bayespsf import scenes, simulate
+from bayespsf.batch import (
+    QUANTILES,
+    coverage,
+    molecule_seed,
+    quantile_column,
+    sample_many,
+)
+from bayespsf.errors import BayespsfInputError
+from bayespsf.model import Model
+from bayespsf.psf import PARAMETER_NAMES
+
+# short capped runs: the tests are about plumbing and reproducibility, not convergence
+OPTIONS = {"max_steps": 400, "walkers": 12}
+N_MOLECULES = 4
+
+
+@pytest.fixture(scope="module")
+def stack():
+    scene = scenes.load("ideal")
+    counts, truth = simulate(scene, N_MOLECULES, seed=11)
+    return counts, truth[list(PARAMETER_NAMES)].to_numpy(float), Model.from_scene(scene)
+
+
+@pytest.fixture(scope="module")
+def serial(stack):
+    counts, truths, model = stack
+    return sample_many(counts, model, seed=3, workers=1, truths=truths, **OPTIONS)
+
+
+def without_timing(table):
+    return table.drop(columns=["seconds"]).reset_index(drop=True)
+
+
+def test_rows_columns_and_ranks(serial, stack):
+    _, truths, _ = stack
+    assert list(serial["molecule"]) == list(range(N_MOLECULES))
+    assert serial["seed"].nunique() == N_MOLECULES
+    for k, name in enumerate(PARAMETER_NAMES):
+        np.testing.assert_array_equal(serial[f"{name}_truth"], truths[:, k])
+        assert serial[f"{name}_rank"].between(0, 99).all()
+        qs = serial[[quantile_column(name, q) for q in QUANTILES]].to_numpy()
+        assert np.all(np.diff(qs, axis=1) >= 0)  # quantiles are ordered
+    assert not serial["converged"].any()  # the 400-step cap is flagged, never hidden
+
+
+def test_two_processes_give_identical_results(serial, stack):
+    counts, truths, model = stack
+    table = sample_many(counts, model, seed=3, workers=2, truths=truths, **OPTIONS)
+    pd.testing.assert_frame_equal(without_timing(table), without_timing(serial))
+
+
+def test_dask_local_cluster_gives_identical_results(serial, stack):
+    distributed = pytest.importorskip("distributed")  # a dependency: installed by pyproject
+    counts, truths, model = stack
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, dashboard_address=None, processes=True
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        by_client = sample_many(counts, model, seed=3, executor=client, truths=truths, **OPTIONS)
+        by_address = sample_many(
+            counts[:2], model, seed=3, executor=cluster.scheduler_address, **OPTIONS
+        )
+    pd.testing.assert_frame_equal(without_timing(by_client), without_timing(serial))
+    assert list(by_address["seed"]) == list(serial["seed"][:2])
+    np.testing.assert_array_equal(by_address["s_x_mean"], serial["s_x_mean"][:2])
+
+
+KILLED_RUN = """
+import sys
+import numpy as np
+from bayespsf import scenes, simulate
+from bayespsf.batch import sample_many
+from bayespsf.model import Model
+scene = scenes.load("ideal")
+counts, truth = simulate(scene, {n}, seed=11)
+truths = truth[["x0", "y0", "s_x", "s_y", "N", "b"]].to_numpy(float)
+sample_many(counts, Model.from_scene(scene), seed=3, workers=1, truths=truths,
+            store=sys.argv[1], max_steps={max_steps}, walkers={walkers})
+"""
+
+
+def test_killed_run_keeps_finished_molecules_and_resumes(serial, stack, tmp_path):
+    counts, truths, model = stack
+    store = tmp_path / "store"
+    script = KILLED_RUN.format(n=N_MOLECULES, **OPTIONS)
+    process = subprocess.Popen([sys.executable, "-c", script, str(store)])
+    deadline = time.monotonic() + 120
+    while not list(store.glob("molecule-*.nc")):
+        assert process.poll() is None, "the run ended before it could be killed"
+        assert time.monotonic() < deadline, "no molecule finished in 120 s"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    finished = {p.name: p.stat().st_mtime_ns for p in store.glob("molecule-*.nc")}
+    assert 1 <= len(finished) < N_MOLECULES
+    assert not (store / "summary.csv").exists()
+    table = sample_many(counts, model, seed=3, workers=1, truths=truths, store=store, **OPTIONS)
+    for name, mtime in finished.items():  # finished molecules were read back, not redone
+        assert (store / name).stat().st_mtime_ns == mtime
+    assert len(list(store.glob("molecule-*.nc"))) == N_MOLECULES
+    assert not list(store.glob("*.partial"))
+    pd.testing.assert_frame_equal(without_timing(table), without_timing(serial))
+    on_disk = pd.read_csv(store / "summary.csv")
+    np.testing.assert_allclose(on_disk["s_x_sd"], serial["s_x_sd"], rtol=1e-12)
+
+
+def test_store_made_for_another_run_is_refused(stack, tmp_path):
+    counts, _, model = stack
+    sample_many(counts[:1], model, seed=3, workers=1, store=tmp_path, **OPTIONS)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert manifest["molecules"] == 1
+    with pytest.raises(BayespsfInputError, match="seed"):
+        sample_many(counts[:1], model, seed=4, workers=1, store=tmp_path, **OPTIONS)
+    with pytest.raises(BayespsfInputError, match="data sha256"):
+        sample_many(counts[1:2], model, seed=3, workers=1, store=tmp_path, **OPTIONS)
+
+
+def test_bad_input_is_named(stack):
+    counts, truths, model = stack
+    bad = counts.copy()
+    bad[2, 3, 4] = np.nan
+    with pytest.raises(BayespsfInputError, match="molecule 2"):
+        sample_many(bad, model, workers=1)
+    with pytest.raises(BayespsfInputError, match="stack"):
+        sample_many(counts[0], model, workers=1)
+    with pytest.raises(BayespsfInputError, match="truths"):
+        sample_many(counts, model, workers=1, truths=truths[:2])
+    with pytest.raises(BayespsfInputError, match="thin"):
+        sample_many(counts, model, workers=1, thin=3)
+    with pytest.raises(BayespsfInputError, match="workers"):
+        sample_many(counts, model, workers=0)
+    with pytest.raises(BayespsfInputError, match="executor"):
+        sample_many(counts, model, executor=42)
+    with pytest.raises(BayespsfInputError, match="seed"):
+        sample_many(counts, model, seed=-1)
+
+
+def test_molecule_seeds_are_distinct_and_stable():
+    seeds = {molecule_seed(s, i) for s in range(20) for i in range(50)}
+    assert len(seeds) == 1000
+    assert molecule_seed(3, 7) == molecule_seed(3, 7)
+
+
+def test_coverage_counts_intervals_that_hold_the_truth():
+    rng = np.random.default_rng(0)
+    rows = {}
+    truth = rng.standard_normal(400)
+    for name in PARAMETER_NAMES:
+        rows[f"{name}_truth"] = truth
+        # central 68% interval of N(0, 1): +-0.9945; the truth is N(0, 1), so coverage ~0.68
+        rows[quantile_column(name, 0.16)] = np.full(400, -0.9945)
+        rows[quantile_column(name, 0.84)] = np.full(400, 0.9945)
+    table = coverage(pd.DataFrame(rows), 0.68)
+    expected = np.mean(np.abs(truth) <= 0.9945)
+    np.testing.assert_allclose(table["coverage"], expected)
+    np.testing.assert_allclose(table["se"], np.sqrt(expected * (1 - expected) / 400))
+    with pytest.raises(BayespsfInputError, match="prob"):
+        coverage(pd.DataFrame(rows), 0.8)
+
+
+def test_store_path_is_not_required_to_exist(stack, tmp_path):
+    counts, _, model = stack
+    store = Path(tmp_path) / "a" / "b"
+    sample_many(counts[:1], model, seed=3, workers=1, store=store, **OPTIONS)
+    assert (store / "molecule-000000.nc").exists()
+    assert os.path.getsize(store / "summary.csv") > 0
