@@ -40,6 +40,18 @@ def _log_prior_1d(spec: dict, x: np.ndarray) -> np.ndarray:
         return np.where(x >= 0, -0.5 * (x / spec["scale"]) ** 2, -np.inf)  # half-normal
 
 
+def _sample_prior_1d(spec: dict, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` independent draws from one parameter's prior (the law of :func:`_log_prior_1d`)."""
+    kind = spec["kind"]
+    if kind == "uniform":
+        return rng.uniform(spec["low"], spec["high"], n)
+    if kind == "log-uniform":
+        return np.exp(rng.uniform(np.log(spec["low"]), np.log(spec["high"]), n))
+    if kind == "normal":
+        return rng.normal(spec["mean"], spec["sd"], n)
+    return np.abs(rng.normal(0.0, spec["scale"], n))  # half-normal
+
+
 def camera_from_scene(scene: Scene, likelihood: str | None = None) -> Camera:
     """The camera law a scene declares, with the likelihood tier ``likelihood`` (or the scene's
     ``camera.likelihood``, or the default: ``table`` for EMCCD, ``exact`` for sCMOS)."""
@@ -187,6 +199,16 @@ class Model:
         for k, name in enumerate(PARAMETER_NAMES):
             total = total + _log_prior_1d(self.prior[name], p[..., k])
         return total
+
+    def sample_prior(self, n: int, rng) -> np.ndarray:
+        """``n`` parameter vectors ``(n, 6)`` drawn from the prior (simulation-based
+        calibration draws its truths so); ``rng`` is a Generator or an integer seed."""
+        if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
+            raise BayespsfInputError(f"n must be a non-negative integer, got {n!r}")
+        rng = np.random.default_rng(rng)
+        return np.column_stack(
+            [_sample_prior_1d(self.prior[name], int(n), rng) for name in PARAMETER_NAMES]
+        )
 
     def log_posterior(self, z, counts) -> np.ndarray:
         """Log posterior in sampling coordinates ``z`` (..., 6), up to a constant: log prior +

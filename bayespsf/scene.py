@@ -531,7 +531,8 @@ class Scene:
         Path(path).write_text(self.dumps())
 
     def replace(self, **sections: Mapping) -> Scene:
-        """A new scene with some keys changed: ``scene.replace(geometry={"pixel_size": 50.0})``.
+        """A new scene with some keys changed: ``scene.replace(geometry={"pixel_size": 50.0})``;
+        ``prior={"N": {...}}`` replaces whole priors of the parameters it names.
 
         Keys that no longer apply after the change (e.g. ``background.sd`` when the kind becomes
         'poisson') are dropped, and priors that were the defaults of the old geometry are
@@ -540,8 +541,12 @@ class Scene:
         d = self.to_dict()
         old_geometry = dict(d["geometry"])
         for section, changes in sections.items():
+            if section == "prior":
+                continue
             if section not in SCHEMA:
-                raise SceneError(f"no scene table {section!r}; tables: {', '.join(SCHEMA)}")
+                raise SceneError(
+                    f"no scene table {section!r}; tables: {', '.join([*SCHEMA, 'prior'])}"
+                )
             d[section] = _drop_inapplicable(section, {**d[section], **changes}, set(changes))
         if d["optics"]["psf"] == "airy" and "emitter" not in sections:
             d["emitter"] = {k: v for k, v in d["emitter"].items() if k not in ("s0x", "s0y")}
@@ -550,6 +555,7 @@ class Scene:
             for name, spec in d["prior"].items()
             if spec != default_prior(name, old_geometry)
         }
+        d["prior"].update(sections.get("prior", {}))
         return Scene.from_dict(d)
 
     def __getattr__(self, name: str):
