@@ -132,19 +132,24 @@ def _sample_one(task):
     return index, post, row
 
 
+def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
+    """A pool of local worker processes (default: one per core) to pass to several
+    :func:`sample_many` runs, so that workers and their cached EMCCD tables are reused."""
+    workers = os.cpu_count() if workers is None else int(workers)
+    if workers < 1:
+        raise BayespsfInputError(f"workers must be >= 1, got {workers!r}")
+    # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
+    # client, a progress monitor): then forkserver, which re-imports the main module
+    method = "fork" if threading.active_count() == 1 else "forkserver"
+    return cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method))
+
+
 def _executor(executor, workers):
     """(executor, owned): what runs the tasks, and whether sample_many must shut it down."""
     if executor is None:
-        workers = os.cpu_count() if workers is None else int(workers)
-        if workers < 1:
-            raise BayespsfInputError(f"workers must be >= 1, got {workers!r}")
         if workers == 1:
             return None, False
-        # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
-        # client, a progress monitor): then forkserver, which re-imports the main module
-        method = "fork" if threading.active_count() == 1 else "forkserver"
-        context = multiprocessing.get_context(method)
-        return cf.ProcessPoolExecutor(workers, mp_context=context), True
+        return local_executor(workers), True
     if workers is not None:
         raise BayespsfInputError("give either executor or workers, not both")
     if isinstance(executor, str):
@@ -366,4 +371,4 @@ def _progress(total, done, show):
     return Bar(total=total, initial=done, disable=not show, unit="molecule", file=sys.stderr)
 
 
-__all__ = ["coverage", "molecule_row", "molecule_seed", "sample_many"]
+__all__ = ["coverage", "local_executor", "molecule_row", "molecule_seed", "sample_many"]

@@ -521,6 +521,10 @@ class Scene:
 
         return thaw(self._data)
 
+    def __reduce__(self):
+        """Pickle as the normalised dict (scenes travel to worker processes and Dask)."""
+        return Scene.from_dict, (self.to_dict(),)
+
     def dumps(self) -> str:
         """The scene as TOML text (every default written out)."""
         import tomli_w

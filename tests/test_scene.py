@@ -990,3 +990,10 @@ def test_unknown_shipped_scene():
         match=re.escape("no shipped scene 'nope'; shipped: " + ", ".join(SHIPPED)),
     ):
         scenes.load("nope")
+
+
+def test_scene_pickles_to_an_equal_scene():
+    import pickle
+
+    scene = scenes.load("paper-fig2")
+    assert pickle.loads(pickle.dumps(scene)) == scene

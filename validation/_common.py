@@ -36,3 +36,65 @@ def write(out: Path, stem: str, table, text: str, command: str, started: float) 
     (out / f"{stem}.md").write_text(
         f"{text}\n\nCommand: `{command}`; wall time {seconds:.0f} s on {machine()}.\n"
     )
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """--workers / --scheduler / --store: where the posteriors run and where they are kept."""
+    p.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")
+    p.add_argument("--scheduler", default=None, help="a Dask scheduler address (a cluster)")
+    p.add_argument(
+        "--store", type=Path, default=None, help="keep every posterior here; a rerun resumes"
+    )
+    return p
+
+
+class Runner:
+    """Runs sample_many for each point of a study on one pool of workers (or a Dask cluster)."""
+
+    def __init__(self, args, study: str):
+        from bayespsf.batch import local_executor
+
+        self.args, self.study = args, study
+        if args.scheduler is not None:
+            self.executor = args.scheduler
+            self.pool = None
+        elif args.workers == 1:
+            self.executor = self.pool = None
+        else:
+            self.executor = self.pool = local_executor(args.workers)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+    def posteriors(self, point: str, counts, model, truths, seed: int, scene=None, **options):
+        from bayespsf.batch import sample_many
+
+        store = None if self.args.store is None else self.args.store / self.study / point
+        print(f"  {point}: {len(counts)} posteriors", flush=True)
+        return sample_many(
+            counts,
+            model,
+            seed=seed,
+            executor=self.executor,
+            workers=1 if self.executor is None else None,
+            store=store,
+            truths=truths,
+            scene=scene,
+            **options,
+        )
+
+
+def sd_and_error(x) -> tuple[float, float]:
+    """Sample SD and its Monte Carlo standard error ``sd / sqrt(2 (n - 1))`` (normal data)."""
+    x = np.asarray(x, dtype=np.float64)
+    sd = float(x.std(ddof=1))
+    return sd, sd / np.sqrt(2 * (x.size - 1))
+
+
+def mean_and_error(x) -> tuple[float, float]:
+    x = np.asarray(x, dtype=np.float64)
+    return float(x.mean()), float(x.std(ddof=1) / np.sqrt(x.size))
