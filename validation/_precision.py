@@ -11,8 +11,8 @@ each with its Monte Carlo standard error.
 from __future__ import annotations
 
 import numpy as np
-
 from _common import mean_and_error, sd_and_error
+
 from bayespsf import simulate, theory
 from bayespsf.batch import coverage
 from bayespsf.estimators import fit_lsq, fit_mle

@@ -22,14 +22,14 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import pandas as pd  # noqa: E402
+import matplotlib.pyplot as plt
+import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import Runner, add_run_arguments, parser, write  # noqa: E402
-from _precision import plot_panel, point, summary_columns  # noqa: E402
+from _common import Runner, add_run_arguments, parser, write
+from _precision import plot_panel, point, summary_columns
 
-from bayespsf import scenes  # noqa: E402
+from bayespsf import scenes
 
 PHOTONS = (100, 200, 500, 1000, 2000, 5000)
 SCENES = ("paper-fig2", "paper-fig3")
