@@ -200,6 +200,17 @@ class Model:
             total = total + _log_prior_1d(self.prior[name], p[..., k])
         return total
 
+    def prior_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper ends of each parameter's prior support (infinite where unbounded)."""
+        low, high = np.full(6, -np.inf), np.full(6, np.inf)
+        for k, name in enumerate(PARAMETER_NAMES):
+            spec = self.prior[name]
+            if spec["kind"] in ("uniform", "log-uniform"):
+                low[k], high[k] = spec["low"], spec["high"]
+            elif spec["kind"] == "half-normal":
+                low[k] = 0.0
+        return low, high
+
     def sample_prior(self, n: int, rng) -> np.ndarray:
         """``n`` parameter vectors ``(n, 6)`` drawn from the prior (simulation-based
         calibration draws its truths so); ``rng`` is a Generator or an integer seed."""

@@ -14,6 +14,7 @@ stream, and the same seed gives the same draws.
 
 from __future__ import annotations
 
+import itertools
 import sys
 from dataclasses import asdict, dataclass
 
@@ -49,7 +50,11 @@ def _moves(name: str):
 
 
 def _start(counts, model, walkers, rng):
-    """Walkers around the MLE, spread by its Laplace SDs (in sampling coordinates)."""
+    """Walkers around the MLE, spread by its Laplace SDs (in sampling coordinates).
+
+    A centre outside the prior's support (an informative prior that excludes the MLE) is
+    moved to its edge; walkers that cannot be placed near it are drawn from the prior.
+    """
     fit = fit_mle(counts, model).iloc[0]
     names = list(PARAMETER_NAMES)
     if fit["converged"]:
@@ -59,12 +64,17 @@ def _start(counts, model, walkers, rng):
         centre = start_values(model.to_photons(counts[None]), model)[0]
         sd = np.array([model.pixel_size / 4] * 2 + [0.1 * centre[2], 0.1 * centre[3]])
         sd = np.concatenate([sd, [0.1 * centre[4], 0.1 * centre[5] + 0.1]])
+    low, high = model.prior_bounds()  # the support includes its ends
+    centre = np.clip(centre, low, high)
     z0 = model.to_unconstrained(centre)
     dz = sd / np.array([1.0, 1.0, centre[2], centre[3], centre[4], 1.0])
+    proposals = itertools.chain(
+        (z0 + 0.5 * dz * rng.standard_normal((walkers, 6)) for _ in range(100)),
+        (model.to_unconstrained(model.sample_prior(walkers, rng)) for _ in range(100)),
+    )
     out = np.empty((walkers, 6))
     filled = 0
-    for _ in range(1000):
-        trial = z0 + 0.5 * dz * rng.standard_normal((walkers, 6))
+    for trial in proposals:
         ok = trial[np.isfinite(model.log_posterior(trial, counts))]
         take = min(len(ok), walkers - filled)
         out[filled : filled + take] = ok[:take]

@@ -177,3 +177,21 @@ def test_saturated_pixels_are_a_clear_error():
     assert counts.max() == 65535.0
     with pytest.raises(ValueError, match="saturated"):
         sample_posterior(counts[0], Model.from_scene(scene))
+
+
+def test_prior_that_excludes_the_mle_still_starts_inside_it():
+    # data with s0 = 130 nm and a prior that allows only 150-200 nm and a 20 nm box around the
+    # centre: the walkers start inside the support and every draw stays there
+    scene = scenes.load("ideal")
+    counts, _ = simulate(scene, 1, seed=4)
+    narrow = scene.replace(
+        prior={
+            "s_x": {"kind": "log-uniform", "low": 150.0, "high": 200.0},
+            "x0": {"kind": "uniform", "low": 60.0, "high": 80.0},
+        }
+    )
+    post = sample_posterior(counts[0], Model.from_scene(narrow), seed=1, max_steps=1000)
+    draws = post.draws()
+    assert draws["s_x"].between(150.0, 200.0).all()
+    assert draws["x0"].between(60.0, 80.0).all()
+    assert np.all(np.isfinite(draws.to_numpy()))

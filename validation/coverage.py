@@ -1,0 +1,202 @@
+"""Calibration of the posterior: simulation-based calibration and interval coverage per camera
+and likelihood tier, including deliberately mismatched pairs.
+
+For each configuration (a camera that makes the data, a likelihood tier that reads them):
+truths drawn from the prior below, one image per truth from the camera's exact law
+(`Camera.sample`: Poisson photons, then the EM register / readout / ADC gain of the camera), a
+posterior per image. Simulation-based calibration (Talts, Betancourt, Simpson, Vehtari &
+Gelman, arXiv:1804.06788): the rank of each truth among 99 near-independent posterior draws is
+uniform on 0..99 exactly when the posterior is calibrated; ranks are binned in 10 bins and
+tested for uniformity (chi-square, 9 degrees of freedom). Central-interval coverage at
+50/68/90/95% with binomial standard errors. Writes coverage.{csv,md} (one row per
+configuration and parameter), coverage_ranks.png and coverage_intervals.png.
+
+Prior (all configurations): x0, y0 uniform over the central pixel; s_x, s_y log-uniform on
+[100, 180] nm; N log-uniform on [300, 3000] photons; b uniform on [2, 20] photons per pixel.
+
+    python validation/coverage.py [--quick] [--workers K | --scheduler ADDRESS]
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _common import Runner, add_run_arguments, parser, write
+
+from bayespsf import scenes
+from bayespsf.batch import RANK_DRAWS, coverage
+from bayespsf.model import Model, camera_from_scene
+from bayespsf.psf import PARAMETER_NAMES
+
+BINS = 10
+LEVELS = (0.5, 0.68, 0.9, 0.95)
+EMCCD_LOW_GAIN = {"gain": 50.0, "readout_sd": 50.0}  # readout = gain: high-gain's worst case
+
+# (label, shipped scene whose camera makes the data, camera overrides, tier that reads them)
+CONFIGURATIONS = (
+    ("photon counting / poisson", "ideal", {}, None),
+    ("EMCCD G200 r50 / table", "emccd-typical", {}, "table"),
+    ("EMCCD G200 r50 / high-gain (mismatched)", "emccd-typical", {}, "high-gain"),
+    ("EMCCD G200 r50 / gaussian (mismatched)", "emccd-typical", {}, "gaussian"),
+    ("EMCCD G50 r50 / table", "emccd-typical", EMCCD_LOW_GAIN, "table"),
+    ("EMCCD G50 r50 / high-gain (mismatched)", "emccd-typical", EMCCD_LOW_GAIN, "high-gain"),
+    ("paper's camera (M = 1) / exact", "paper-fig3", {}, "exact"),
+    ("sCMOS / exact", "scmos-typical", {}, "exact"),
+    ("sCMOS / huang", "scmos-typical", {}, "huang"),
+)
+
+
+def prior(scene) -> dict:
+    half = 0.5 * scene.geometry["pixel_size"]
+    return {
+        "x0": {"kind": "uniform", "low": -half, "high": half},
+        "y0": {"kind": "uniform", "low": -half, "high": half},
+        "s_x": {"kind": "log-uniform", "low": 100.0, "high": 180.0},
+        "s_y": {"kind": "log-uniform", "low": 100.0, "high": 180.0},
+        "N": {"kind": "log-uniform", "low": 300.0, "high": 3000.0},
+        "b": {"kind": "uniform", "low": 2.0, "high": 20.0},
+    }
+
+
+def data(scene, molecules: int, seed: int):
+    """Truths from the prior and one image each from the camera's exact law."""
+    rng = np.random.default_rng(seed)
+    truths = Model.from_scene(scene).sample_prior(molecules, rng)
+    camera = camera_from_scene(scene, "exact" if scene.camera["kind"] != "photon" else None)
+    expected = Model.from_scene(scene).expected(truths)
+    return camera.sample(expected, rng), truths
+
+
+def uniformity(ranks: np.ndarray) -> float:
+    """p-value of the chi-square test of the binned ranks against uniform."""
+    counts = np.bincount(ranks * BINS // (RANK_DRAWS + 1), minlength=BINS)
+    return float(stats.chisquare(counts).pvalue)
+
+
+def run(args, configurations, molecules: int, options) -> tuple[pd.DataFrame, dict]:
+    rows, ranks = [], {}
+    with Runner(args, "coverage") as runner:
+        for k, (label, name, camera, tier) in enumerate(configurations):
+            print(label, flush=True)
+            base = scenes.load(name)
+            scene = base.replace(camera=camera) if camera else base
+            scene = scene.replace(prior=prior(scene))
+            counts, truths = data(scene, molecules, seed=1000 + k)
+            model = Model.from_scene(scene, likelihood=tier)
+            table = runner.posteriors(
+                f"config{k}", counts, model, truths, seed=k, scene=scene, **options
+            )
+            ranks[label] = table
+            levels = {p: coverage(table, p).set_index("parameter") for p in LEVELS}
+            for name_ in PARAMETER_NAMES:
+                row = {"configuration": label, "parameter": name_, "molecules": len(table)}
+                row["not converged"] = int((~table["converged"]).sum())
+                for p in LEVELS:
+                    row[f"coverage {p:.0%}"] = levels[p].loc[name_, "coverage"]
+                    row[f"coverage {p:.0%} err"] = levels[p].loc[name_, "se"]
+                row["SBC uniformity p"] = uniformity(table[f"{name_}_rank"].to_numpy())
+                rows.append(row)
+    return pd.DataFrame(rows), ranks
+
+
+def rank_figure(ranks: dict, path: Path) -> None:
+    labels = list(ranks)
+    fig, axes = plt.subplots(len(labels), 6, figsize=(13, 1.5 * len(labels) + 0.6),
+                             sharex=True, squeeze=False)  # fmt: skip
+    for i, label in enumerate(labels):
+        table = ranks[label]
+        n = len(table)
+        # 99% band of one bin's count under uniformity (binomial n, 1/BINS)
+        low, high = stats.binom(n, 1 / BINS).ppf([0.005, 0.995])
+        for j, name in enumerate(PARAMETER_NAMES):
+            ax = axes[i, j]
+            ax.axhspan(low, high, color="0.85")
+            ax.hist(table[f"{name}_rank"], bins=BINS, range=(0, RANK_DRAWS + 1), color="C0")
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(name)
+        axes[i, 0].set_ylabel(label, rotation=0, ha="right", fontsize=7)
+    fig.suptitle("SBC rank histograms (grey: 99% band for one bin under calibration)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def interval_figure(table: pd.DataFrame, path: Path) -> None:
+    fig, axes = plt.subplots(1, 6, figsize=(14, 3.6), sharey=True)
+    nominal = np.array(LEVELS)
+    for ax, name in zip(axes, PARAMETER_NAMES, strict=True):
+        part = table[table["parameter"] == name]
+        for k, (_, row) in enumerate(part.iterrows()):
+            actual = np.array([row[f"coverage {p:.0%}"] for p in LEVELS])
+            err = np.array([row[f"coverage {p:.0%} err"] for p in LEVELS])
+            ax.errorbar(nominal + 0.004 * k, actual - nominal, yerr=err, fmt="o-", ms=3,
+                        label=row["configuration"])  # fmt: skip
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_title(name)
+        ax.set_xlabel("nominal")
+    axes[0].set_ylabel("actual - nominal coverage")
+    axes[-1].legend(fontsize=6, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def main(argv=None):
+    args = add_run_arguments(parser(__doc__)).parse_args(argv)
+    started = time.perf_counter()
+    molecules = 4 if args.quick else 160
+    options = {"max_steps": 1000} if args.quick else {}
+    configurations = CONFIGURATIONS[:2] + CONFIGURATIONS[3:4] if args.quick else CONFIGURATIONS
+    table, ranks = run(args, configurations, molecules, options)
+    stem = "coverage" + ("_quick" if args.quick else "")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rank_figure(ranks, args.out / f"{stem}_ranks.png")
+    interval_figure(table, args.out / f"{stem}_intervals.png")
+    # z-scores against each level's binomial SE under calibration, sqrt(p (1 - p) / n)
+    z = np.max(
+        [np.abs(table[f"coverage {p:.0%}"] - p) / np.sqrt(p * (1 - p) / table["molecules"])
+         for p in LEVELS], axis=0)  # fmt: skip
+    worst = table.assign(z=z)
+    verdict = worst.groupby("configuration", sort=False).agg(
+        **{
+            "worst |coverage - nominal| / SE0": ("z", "max"),
+            "smallest SBC p": ("SBC uniformity p", "min"),
+            "coverage 68% of s_x": ("coverage 68%", lambda c: c.iloc[2]),
+            "coverage 95% of s_x": ("coverage 95%", lambda c: c.iloc[2]),
+        }
+    )
+    text = (
+        f"# Calibration per camera and likelihood tier ({molecules} molecules each)\n\n"
+        "## Summary\n\n"
+        + verdict.reset_index().to_markdown(index=False, floatfmt=".3g")
+        + f"\n\nWith {len(PARAMETER_NAMES)} parameters, 4 levels and "
+        f"{len(configurations)} configurations, a calibrated posterior still shows some "
+        "|coverage - nominal| / SE0 near 3 (SE0: the binomial SE at the nominal level) and "
+        "some SBC p below 0.01 by chance; a mismatched "
+        "likelihood shows itself as several such values for one configuration.\n\n"
+        "## Every parameter\n\n"
+        + table.to_markdown(index=False, floatfmt=".3g")
+        + f"\n\nFigures: [{stem}_ranks.png]({stem}_ranks.png) (rank histograms), "
+        f"[{stem}_intervals.png]({stem}_intervals.png) (coverage minus nominal, binomial "
+        "SEs)."
+    )
+    command = "python validation/coverage.py" + (" --quick" if args.quick else "")
+    write(args.out, stem, table, text, command, started)
+    print(text)
+    return table
+
+
+if __name__ == "__main__":
+    main()
