@@ -1,5 +1,5 @@
-"""Every validation script runs in --quick mode and writes its table (numbers are not asserted
-here: the scripts' own claims are tested where the code they exercise is)."""
+"""Every validation script runs in --quick mode and writes its table and figure (numbers are
+not asserted here: the scripts' own claims are tested where the code they exercise is)."""
 
 import importlib.util
 from pathlib import Path
@@ -17,5 +17,5 @@ def test_quick_run_writes_its_results(script, tmp_path):
     table = module.main(["--quick", "--out", str(tmp_path)])
     assert len(table) > 0 and not table.isna().all().any()
     written = {p.suffix for p in tmp_path.iterdir()}
-    assert {".csv", ".md"} <= written
+    assert {".csv", ".md", ".png"} <= written
     assert "Command: `python validation/" in next(tmp_path.glob("*.md")).read_text()

@@ -28,8 +28,9 @@ CAMERA = {"kind": "emccd", "gain": 100.0, "readout_sd": 30.0, "offset": 100.0, "
 TRUE_M = 20.0
 
 
-def run(movies: int, frames=(100, 500), photons=(2000.0, 60.0)) -> pd.DataFrame:
-    rows = []
+def run(movies: int, frames=(100, 500), photons=(2000.0, 60.0)):
+    """The table, and the single-movie estimates of M per (N, frames)."""
+    rows, estimates = [], {}
     for n_photons in photons:
         scene = Scene.from_dict(
             {
@@ -42,6 +43,7 @@ def run(movies: int, frames=(100, 500), photons=(2000.0, 60.0)) -> pd.DataFrame:
         for n_frames in frames:
             results = [calibrate_gain(simulate(scene, n_frames, seed=k)[0]) for k in range(movies)]
             m = np.array([r.adu_per_photon for r in results])
+            estimates[(n_photons, n_frames)] = m
             rows.append(
                 {
                     "N": n_photons,
@@ -54,26 +56,41 @@ def run(movies: int, frames=(100, 500), photons=(2000.0, 60.0)) -> pd.DataFrame:
                     "spread (SD) %": 100 * m.std(ddof=1) / TRUE_M,
                 }
             )
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows), estimates
+
+
+def figure(estimates: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(estimates), figsize=(3.2 * len(estimates), 3), sharey=True)
+    for ax, ((n_photons, n_frames), m) in zip(np.atleast_1d(axes), estimates.items(), strict=True):
+        ax.hist(m, bins=20, color="C0")
+        ax.axvline(TRUE_M, color="k", lw=1)
+        ax.set_title(f"N = {n_photons:g}, {n_frames} frames", fontsize=9)
+        ax.set_xlabel("M (ADU per photon)")
+    fig.suptitle("Single-movie gain estimates (Eq. photonConv); line: the truth", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
 
 
 def main(argv=None):
     args = parser(__doc__).parse_args(argv)
     started = time.perf_counter()
-    table = run(5 if args.quick else 200, (100,) if args.quick else (100, 500))
+    table, estimates = run(5 if args.quick else 200, (100,) if args.quick else (100, 500))
+    stem = "gain_calibration" + ("_quick" if args.quick else "")
+    args.out.mkdir(parents=True, exist_ok=True)
+    figure(estimates, args.out / f"{stem}.png")
     text = (
         f"# Gain calibration (Eq. photonConv): true M = {TRUE_M:g} ADU per photon\n\n"
         + table.to_markdown(index=False, floatfmt=".3g")
+        + f"\n\nFigure: [{stem}.png]({stem}.png), the single-movie estimates."
     )
     command = "python validation/gain_calibration.py" + (" --quick" if args.quick else "")
-    write(
-        args.out,
-        "gain_calibration" + ("_quick" if args.quick else ""),
-        table,
-        text,
-        command,
-        started,
-    )
+    write(args.out, stem, table, text, command, started)
     print(text)
     return table
 
