@@ -26,22 +26,42 @@ DEFAULT_TIER = {"emccd": "table", "scmos": "exact"}
 LOG_PARAMETERS = [2, 3, 4]  # s_x, s_y, N are sampled in log space
 
 
-def _log_prior_1d(spec: dict, x: np.ndarray) -> np.ndarray:
-    """Log density (up to a constant) of one parameter's prior; -inf outside its support."""
-    kind = spec["kind"]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        if kind == "uniform":
-            return np.where((x >= spec["low"]) & (x <= spec["high"]), 0.0, -np.inf)
-        if kind == "log-uniform":
-            inside = (x >= spec["low"]) & (x <= spec["high"])
-            return np.where(inside, -np.log(np.where(inside, x, 1.0)), -np.inf)
-        if kind == "normal":
-            return -0.5 * ((x - spec["mean"]) / spec["sd"]) ** 2
-        return np.where(x >= 0, -0.5 * (x / spec["scale"]) ** 2, -np.inf)  # half-normal
+class _PriorTerms:
+    """The prior table as arrays, so that the log prior of many walkers is a few array passes.
+
+    Up to a constant: uniform 0, log-uniform ``-log x``, normal ``-(x - mean)^2 / (2 sd^2)``,
+    half-normal ``-x^2 / (2 scale^2)``; ``-inf`` outside the support.
+    """
+
+    def __init__(self, prior: dict):
+        specs = [prior[name] for name in PARAMETER_NAMES]
+        kinds = np.array([spec["kind"] for spec in specs])
+        self.low, self.high = np.full(6, -np.inf), np.full(6, np.inf)
+        self.centre, self.scale = np.zeros(6), np.ones(6)
+        for k, spec in enumerate(specs):
+            if spec["kind"] in ("uniform", "log-uniform"):
+                self.low[k], self.high[k] = spec["low"], spec["high"]
+            elif spec["kind"] == "normal":
+                self.centre[k], self.scale[k] = spec["mean"], spec["sd"]
+            else:
+                self.low[k], self.scale[k] = 0.0, spec["scale"]
+        self.log_uniform = np.flatnonzero(kinds == "log-uniform")
+        self.quadratic = np.flatnonzero((kinds == "normal") | (kinds == "half-normal"))
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        inside = np.all((p >= self.low) & (p <= self.high), axis=-1)
+        total = np.zeros(p.shape[:-1])
+        if self.log_uniform.size:
+            safe = np.where(inside[..., None], p[..., self.log_uniform], 1.0)
+            total -= np.log(safe).sum(axis=-1)
+        if self.quadratic.size:
+            q = self.quadratic
+            total -= 0.5 * (((p[..., q] - self.centre[q]) / self.scale[q]) ** 2).sum(axis=-1)
+        return np.where(inside, total, -np.inf)
 
 
 def _sample_prior_1d(spec: dict, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` independent draws from one parameter's prior (the law of :func:`_log_prior_1d`)."""
+    """``n`` independent draws from one parameter's prior (the law of :class:`_PriorTerms`)."""
     kind = spec["kind"]
     if kind == "uniform":
         return rng.uniform(spec["low"], spec["high"], n)
@@ -106,6 +126,7 @@ class Model:
         ]
         self.clock_induced_charge = float(clock_induced_charge)
         self.saturation = float(saturation)
+        self._prior_terms = _PriorTerms(self.prior)
 
     @classmethod
     def from_scene(cls, scene: Scene, likelihood: str | None = None) -> Model:
@@ -193,23 +214,13 @@ class Model:
         return p
 
     def log_prior(self, params) -> np.ndarray:
-        """Log prior density of ``params`` (..., 6) up to a constant; -inf outside its support."""
-        p = np.asarray(params, dtype=np.float64)
-        total = np.zeros(p.shape[:-1])
-        for k, name in enumerate(PARAMETER_NAMES):
-            total = total + _log_prior_1d(self.prior[name], p[..., k])
-        return total
+        """Log prior density of ``params`` (..., 6) up to a constant; -inf outside its support
+        (and for NaN)."""
+        return self._prior_terms(np.asarray(params, dtype=np.float64))
 
     def prior_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper ends of each parameter's prior support (infinite where unbounded)."""
-        low, high = np.full(6, -np.inf), np.full(6, np.inf)
-        for k, name in enumerate(PARAMETER_NAMES):
-            spec = self.prior[name]
-            if spec["kind"] in ("uniform", "log-uniform"):
-                low[k], high[k] = spec["low"], spec["high"]
-            elif spec["kind"] == "half-normal":
-                low[k] = 0.0
-        return low, high
+        return self._prior_terms.low.copy(), self._prior_terms.high.copy()
 
     def sample_prior(self, n: int, rng) -> np.ndarray:
         """``n`` parameter vectors ``(n, 6)`` drawn from the prior (simulation-based

@@ -96,3 +96,35 @@ def test_sample_prior_follows_every_prior_kind():
     np.testing.assert_array_equal(model.sample_prior(5, 7), model.sample_prior(5, 7))
     with pytest.raises(BayespsfInputError, match="n must"):
         model.sample_prior(-1, 0)
+
+
+def test_log_prior_is_the_sum_of_the_marginal_log_densities():
+    # against scipy.stats log densities: equal up to one constant inside the support (to 1e-12),
+    # -inf outside any parameter's support and for NaN
+    from scipy import stats
+
+    prior = {
+        "x0": {"kind": "uniform", "low": -50.0, "high": 50.0},
+        "y0": {"kind": "normal", "mean": 3.0, "sd": 20.0},
+        "s_x": {"kind": "log-uniform", "low": 90.0, "high": 180.0},
+        "N": {"kind": "log-uniform", "low": 200.0, "high": 5000.0},
+        "b": {"kind": "half-normal", "scale": 10.0},
+    }
+    model = Model.from_scene(scenes.load("ideal").replace(prior=prior))
+    s_y = model.prior["s_y"]  # the scene's default for s_y: log-uniform
+    laws = [
+        stats.uniform(-50, 100),
+        stats.norm(3, 20),
+        stats.loguniform(90, 180),
+        stats.loguniform(s_y["low"], s_y["high"]),
+        stats.loguniform(200, 5000),
+        stats.halfnorm(scale=10),
+    ]
+    draws = model.sample_prior(500, 3).reshape(50, 10, 6)  # leading batch dimensions
+    reference = sum(law.logpdf(draws[..., k]) for k, law in enumerate(laws))
+    difference = model.log_prior(draws) - reference
+    np.testing.assert_allclose(difference, difference.flat[0], atol=1e-12)
+    outside = draws[0].copy()
+    outside[0, 0], outside[1, 2], outside[2, 5], outside[3, 4] = 60.0, 80.0, -1.0, np.nan
+    lp = model.log_prior(outside)
+    assert np.all(lp[:4] == -np.inf) and np.all(np.isfinite(lp[4:]))
