@@ -2,29 +2,17 @@
 
 from __future__ import annotations
 
-import platform
-import re
 from pathlib import Path
 
-import numpy as np
+from bayespsf._report import machine
+from bayespsf._report import write_section as _write_section
 
 README = Path(__file__).with_name("README.md")
 
 
-def machine() -> str:
-    import os
-
-    return (
-        f"{platform.machine()}, {os.cpu_count()} cores, "
-        f"Python {platform.python_version()}, numpy {np.__version__}"
-    )
-
-
 def write_section(name: str, body: str) -> None:
     """Replace the text between ``<!-- name:start -->`` and ``<!-- name:end -->``."""
-    text = README.read_text()
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    pattern = re.compile(re.escape(start) + ".*?" + re.escape(end), re.S)
-    if not pattern.search(text):
-        raise SystemExit(f"{README} has no section {start} ... {end}")
-    README.write_text(pattern.sub(lambda _: f"{start}\n{body.strip()}\n{end}", text))
+    _write_section(README, name, body)
+
+
+__all__ = ["README", "machine", "write_section"]

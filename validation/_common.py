@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
+
+from bayespsf._report import machine, write_section
 
 RESULTS = Path(__file__).with_name("results")
 
@@ -19,23 +20,19 @@ def parser(doc: str) -> argparse.ArgumentParser:
     return p
 
 
-def machine() -> str:
-    import os
-
-    return (
-        f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-        f"numpy {np.__version__}"
-    )
-
-
-def write(out: Path, stem: str, table, text: str, command: str, started: float) -> None:
-    """Write ``stem.csv`` and ``stem.md`` (the table, the command, the wall time, the machine)."""
+def write(out: Path, stem: str, table, text: str, command: str, started: float,
+          summary: str | None = None) -> None:  # fmt: skip
+    """Write ``stem.csv`` and ``stem.md`` (the table, the command, the wall time, the machine);
+    a full run into the default folder also puts ``summary`` into validation/README.md's
+    section ``stem``."""
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / f"{stem}.csv", index=False)
     seconds = time.perf_counter() - started
-    (out / f"{stem}.md").write_text(
-        f"{text}\n\nCommand: `{command}`; wall time {seconds:.0f} s on {machine()}.\n"
-    )
+    footer = f"Command: `{command}`; wall time {seconds:.0f} s on {machine()}."
+    (out / f"{stem}.md").write_text(f"{text}\n\n{footer}\n")
+    if summary is not None and out.resolve() == RESULTS.resolve():
+        link = f"Full table: [results/{stem}.md](results/{stem}.md). {footer}"
+        write_section(RESULTS.parent / "README.md", stem, f"{summary.strip()}\n\n{link}")
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:

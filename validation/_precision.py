@@ -53,6 +53,7 @@ def point(scene, images: int, mle_images: int, posteriors: int, seed: int, runne
         label, counts[:posteriors], model, true[:posteriors], seed=seed, scene=scene, **options
     )
     row["posteriors"] = len(post)
+    row["posterior CPU s"] = float(post["seconds"].sum())
     row["posteriors not converged"] = int((~post["converged"]).sum())
     for q in QUANTITIES:
         k = PARAMETER_NAMES.index(q)

@@ -193,7 +193,14 @@ def main(argv=None):
         "SEs)."
     )
     command = "python validation/coverage.py" + (" --quick" if args.quick else "")
-    write(args.out, stem, table, text, command, started)
+    cpu = sum(t["seconds"].sum() for t in ranks.values()) / 3600
+    summary = (
+        verdict.reset_index().to_markdown(index=False, floatfmt=".3g")
+        + f"\n\n![rank histograms](results/{stem}_ranks.png)\n"
+        f"![coverage](results/{stem}_intervals.png)\n\nPosterior CPU time: {cpu:.2f} "
+        f"core-hours for {sum(len(t) for t in ranks.values())} posteriors."
+    )
+    write(args.out, stem, table, text, command, started, summary)
     print(text)
     return table
 

@@ -90,7 +90,10 @@ def main(argv=None):
         + f"\n\nFigure: [{stem}.png]({stem}.png), the single-movie estimates."
     )
     command = "python validation/gain_calibration.py" + (" --quick" if args.quick else "")
-    write(args.out, stem, table, text, command, started)
+    summary = table.to_markdown(index=False, floatfmt=".3g") + (
+        f"\n\n![gain estimates](results/{stem}.png)"
+    )
+    write(args.out, stem, table, text, command, started, summary)
     print(text)
     return table
 

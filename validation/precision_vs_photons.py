@@ -99,7 +99,17 @@ def main(argv=None):
         "calibration on well-specified data."
     )
     command = "python validation/precision_vs_photons.py" + (" --quick" if args.quick else "")
-    write(args.out, stem, table, text, command, started)
+    summary = table[
+        ["scene", "N", "s_x pixel sum (Eq. pesum) / closed", "s_x CRLB / closed",
+         "s_x LSQ SD / closed", "s_x MLE SD / closed", "s_x posterior SD (mean) / closed",
+         "s_x coverage 68%", "s_x coverage 95%"]
+    ].to_markdown(index=False, floatfmt=".3g")  # fmt: skip
+    summary += (
+        f"\n\n![precision against N]({'results/' + stem}.png)\n\nPosterior CPU time: "
+        f"{table['posterior CPU s'].sum() / 3600:.2f} core-hours for {table['posteriors'].sum()} "
+        "posteriors."
+    )
+    write(args.out, stem, table, text, command, started, summary)
     print(text)
     return table
 

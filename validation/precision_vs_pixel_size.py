@@ -140,7 +140,13 @@ def main(argv=None):
         "truncated Gaussian (variance ~1)."
     )
     command = "python validation/precision_vs_pixel_size.py" + (" --quick" if args.quick else "")
-    write(args.out, stem, table, text, command, started)
+    summary = (
+        claims.to_markdown(index=False)
+        + f"\n\n![precision against pixel size](results/{stem}.png)\n\nPosterior CPU time: "
+        f"{table['posterior CPU s'].sum() / 3600:.2f} core-hours for {table['posteriors'].sum()} "
+        "posteriors."
+    )
+    write(args.out, stem, table, text, command, started, summary)
     print(text)
     return table
 
