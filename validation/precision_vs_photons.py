@@ -95,8 +95,8 @@ def main(argv=None):
         f"[{stem}.csv]({stem}.csv). SDs are of estimate minus truth; errors of SDs are "
         "sd/sqrt(2(n-1)); coverage errors are binomial. The model assumes a Poisson background "
         "(variance <b>); the scenes draw the paper's truncated Gaussian (variance sigma_b^2 < "
-        "<b>), so the posterior is slightly misspecified on these scenes: see coverage.md for "
-        "calibration on well-specified data."
+        "<b>), so the posterior is slightly misspecified on these scenes: see "
+        "posterior_coverage.md for calibration on well-specified data."
     )
     command = "python validation/precision_vs_photons.py" + (" --quick" if args.quick else "")
     summary = table[
