@@ -100,6 +100,11 @@ def coverage(table: pd.DataFrame, prob: float) -> pd.DataFrame:
     """Fraction of molecules whose central ``prob`` interval holds the truth, per parameter,
     with its binomial standard error; needs the truth columns."""
     low, high = central_interval(prob)
+    missing = [f"{n}_truth" for n in PARAMETER_NAMES if f"{n}_truth" not in table]
+    if missing or len(table) == 0:
+        raise BayespsfInputError(
+            f"coverage needs a table with molecules and truth columns (missing: {missing})"
+        )
     rows = []
     for name in PARAMETER_NAMES:
         truth = table[f"{name}_truth"].to_numpy()
@@ -107,7 +112,7 @@ def coverage(table: pd.DataFrame, prob: float) -> pd.DataFrame:
             truth <= table[quantile_column(name, high)]
         )
         n = len(table)
-        p = float(inside.mean()) if n else np.nan
+        p = float(inside.mean())
         rows.append(
             {"parameter": name, "nominal": prob, "coverage": p, "se": np.sqrt(p * (1 - p) / n)}
         )
@@ -247,6 +252,8 @@ def _manifest(counts, model, seed, options, truths) -> dict:
         "seed": int(seed),
         "sampler": {k: options[k] for k in sorted(options)},
         "model": repr(model),
+        "prior": model.prior,
+        "clock-induced charge": model.clock_induced_charge,
         "data sha256": digest.hexdigest(),
     }
 

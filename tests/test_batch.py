@@ -131,6 +131,11 @@ def test_store_made_for_another_run_is_refused(stack, tmp_path):
         sample_many(counts[:1], model, seed=4, workers=1, store=tmp_path, **OPTIONS)
     with pytest.raises(BayespsfInputError, match="data sha256"):
         sample_many(counts[1:2], model, seed=3, workers=1, store=tmp_path, **OPTIONS)
+    narrow = Model.from_scene(
+        scenes.load("ideal").replace(prior={"N": {"kind": "log-uniform", "low": 10, "high": 1e5}})
+    )
+    with pytest.raises(BayespsfInputError, match="prior"):
+        sample_many(counts[:1], narrow, seed=3, workers=1, store=tmp_path, **OPTIONS)
 
 
 def test_bad_input_is_named(stack):
@@ -174,6 +179,8 @@ def test_coverage_counts_intervals_that_hold_the_truth():
     np.testing.assert_allclose(table["se"], np.sqrt(expected * (1 - expected) / 400))
     with pytest.raises(BayespsfInputError, match="prob"):
         coverage(pd.DataFrame(rows), 0.8)
+    with pytest.raises(BayespsfInputError, match="x0_truth"):
+        coverage(pd.DataFrame(rows).drop(columns="x0_truth"), 0.68)
 
 
 def test_store_path_is_not_required_to_exist(stack, tmp_path):
