@@ -162,6 +162,6 @@ if full.exists():
         "s_x posterior SD (mean) / closed",
         "s_x coverage 68%",
     ]
-    display(pd.read_csv(full)[columns].round(3))  # noqa: F821 (IPython's display)
+    print(pd.read_csv(full)[columns].round(3).to_string(index=False))
 else:
     print("run `python validation/precision_vs_photons.py` for the full study")

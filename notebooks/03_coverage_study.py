@@ -98,8 +98,14 @@ rows = []
 for tier, table in tables.items():
     for p in (0.5, 0.68, 0.9, 0.95):
         c = coverage(table, p).set_index("parameter")
-        rows.append({"likelihood": tier, "nominal": p, **c["coverage"].round(2).to_dict(),
-                     "SE": round(float(np.sqrt(p * (1 - p) / MOLECULES)), 2)})
+        rows.append(
+            {
+                "likelihood": tier,
+                "nominal": p,
+                **c["coverage"].round(2).to_dict(),
+                "SE": round(float(np.sqrt(p * (1 - p) / MOLECULES)), 2),
+            }
+        )
 result = pd.DataFrame(rows)
 narrow = 2 * stats.norm.cdf(stats.norm.ppf(0.5 + result["nominal"] / 2) / np.sqrt(2)) - 1
 result["expected if √2 too narrow"] = np.where(result["likelihood"] == "poisson", narrow, np.nan)

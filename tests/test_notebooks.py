@@ -10,7 +10,8 @@ import pytest
 from nbclient import NotebookClient
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("[0-9]*.py"))
-SMALL = {"ESS": "100", "MOLECULES": "8", "IMAGES": "60"}  # budgets the tests use (the notebooks' first cell)
+# budgets the tests use (set in each notebook's first cell)
+SMALL = {"ESS": "100", "MOLECULES": "8", "IMAGES": "60"}
 
 
 def shrink(source: str) -> str:
