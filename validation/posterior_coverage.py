@@ -166,7 +166,7 @@ def interval_figure(table: pd.DataFrame, path: Path) -> None:
 def main(argv=None):
     args = add_run_arguments(parser(__doc__)).parse_args(argv)
     started = time.perf_counter()
-    molecules = 4 if args.quick else 120
+    molecules = 4 if args.quick else 100
     options = {"max_steps": 1000} if args.quick else {}
     configurations = CONFIGURATIONS[:2] + CONFIGURATIONS[3:4] if args.quick else CONFIGURATIONS
     table, ranks = run(args, configurations, molecules, options)

@@ -30,10 +30,10 @@ from _precision import plot_panel, point, summary_columns
 
 from bayespsf import scenes, theory
 
-RATIOS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.66, 0.73, 0.8, 0.9, 1.0, 1.18, 1.4, 1.7, 2.0, 2.5)
+RATIOS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.73, 0.8, 0.9, 1.0, 1.18, 1.5, 2.0, 2.5)
 S0 = 120.0
 PAPER_THEORY_OPTIMUM, PAPER_SIMULATED_OPTIMUM = 1.18, 0.73
-FULL = {"images": 2000, "mle_images": 1000, "posteriors": 60}
+FULL = {"images": 2000, "mle_images": 500, "posteriors": 40}
 QUICK = {"images": 40, "mle_images": 10, "posteriors": 3}
 
 
