@@ -115,5 +115,5 @@ result.round(2)
 # The exact law's coverage should sit within about two SEs of nominal; the Poisson law's
 # falls towards the last column for N, whose information the excess noise halves (and by a
 # smaller amount for the other parameters). `validation/posterior_coverage.py` runs this study
-# for every camera and likelihood tier with 120 molecules each; its results are in
+# for every camera and likelihood tier with 100 molecules each; its results are in
 # `validation/README.md`.
