@@ -71,7 +71,7 @@ def main(argv=None):
     started = time.perf_counter()
     sizes = QUICK if args.quick else FULL
     options = {"max_steps": 1000} if args.quick else {}
-    photons = PHOTONS[2:4] if args.quick else PHOTONS
+    photons = PHOTONS[2:3] if args.quick else PHOTONS
     table = run(args, photons, sizes, options)
     stem = "precision_vs_photons" + ("_quick" if args.quick else "")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -94,7 +94,7 @@ def main(argv=None):
     started = time.perf_counter()
     sizes = QUICK if args.quick else FULL
     options = {"max_steps": 1000} if args.quick else {}
-    ratios = (0.5, 0.73, 1.4) if args.quick else RATIOS
+    ratios = (0.5, 1.4) if args.quick else RATIOS
     table = run(args, ratios, sizes, options)
     stem = "precision_vs_pixel_size" + ("_quick" if args.quick else "")
     args.out.mkdir(parents=True, exist_ok=True)
