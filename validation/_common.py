@@ -35,6 +35,23 @@ def write(out: Path, stem: str, table, text: str, command: str, started: float,
         write_section(RESULTS.parent / "README.md", stem, f"{summary.strip()}\n\n{link}")
 
 
+def study(doc: str, argv, name: str, posteriors: bool = True):
+    """Parse a study script's arguments: (args, start time, output stem)."""
+    p = parser(doc)
+    args = (add_run_arguments(p) if posteriors else p).parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    return args, time.perf_counter(), name + ("_quick" if args.quick else "")
+
+
+def finish(args, name: str, table, text: str, started: float, summary: str | None = None):
+    """Write a study's results (see :func:`write`), print them, return the table."""
+    command = f"python validation/{name}.py" + (" --quick" if args.quick else "")
+    stem = name + ("_quick" if args.quick else "")
+    write(args.out, stem, table, text, command, started, summary)
+    print(text)
+    return table
+
+
 def add_run_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """--workers / --scheduler / --store: where the posteriors run and where they are kept."""
     p.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")

@@ -12,7 +12,6 @@ and the spread of single-movie estimates.
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ from bayespsf import Scene, simulate
 from bayespsf.calibration import calibrate_gain
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import parser, write
+from _common import finish, study
 
 CAMERA = {"kind": "emccd", "gain": 100.0, "readout_sd": 30.0, "offset": 100.0, "e_per_adu": 5.0}
 TRUE_M = 20.0
@@ -78,24 +77,18 @@ def figure(estimates: dict, path: Path) -> None:
 
 
 def main(argv=None):
-    args = parser(__doc__).parse_args(argv)
-    started = time.perf_counter()
+    args, started, stem = study(__doc__, argv, "gain_calibration", posteriors=False)
     table, estimates = run(5 if args.quick else 200, (100,) if args.quick else (100, 500))
-    stem = "gain_calibration" + ("_quick" if args.quick else "")
-    args.out.mkdir(parents=True, exist_ok=True)
     figure(estimates, args.out / f"{stem}.png")
     text = (
         f"# Gain calibration (Eq. photonConv): true M = {TRUE_M:g} ADU per photon\n\n"
         + table.to_markdown(index=False, floatfmt=".3g")
         + f"\n\nFigure: [{stem}.png]({stem}.png), the single-movie estimates."
     )
-    command = "python validation/gain_calibration.py" + (" --quick" if args.quick else "")
     summary = table.to_markdown(index=False, floatfmt=".3g") + (
         f"\n\n![gain estimates](results/{stem}.png)"
     )
-    write(args.out, stem, table, text, command, started, summary)
-    print(text)
-    return table
+    return finish(args, "gain_calibration", table, text, started, summary)
 
 
 if __name__ == "__main__":

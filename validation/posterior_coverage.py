@@ -20,7 +20,6 @@ Prior (all configurations): x0, y0 uniform over the central pixel; s_x, s_y log-
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import matplotlib
@@ -32,7 +31,7 @@ import pandas as pd
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import Runner, add_run_arguments, parser, write
+from _common import Runner, finish, study
 
 from bayespsf import scenes, simulate
 from bayespsf.batch import RANK_DRAWS, coverage
@@ -164,14 +163,11 @@ def interval_figure(table: pd.DataFrame, path: Path) -> None:
 
 
 def main(argv=None):
-    args = add_run_arguments(parser(__doc__)).parse_args(argv)
-    started = time.perf_counter()
+    args, started, stem = study(__doc__, argv, "posterior_coverage")
     molecules = 4 if args.quick else 100
     options = {"max_steps": 1000} if args.quick else {}
     configurations = CONFIGURATIONS[:1] + CONFIGURATIONS[3:4] if args.quick else CONFIGURATIONS
     table, ranks = run(args, configurations, molecules, options)
-    stem = "posterior_coverage" + ("_quick" if args.quick else "")
-    args.out.mkdir(parents=True, exist_ok=True)
     rank_figure(ranks, args.out / f"{stem}_ranks.png")
     interval_figure(table, args.out / f"{stem}_intervals.png")
     # z-scores against each level's binomial SE under calibration, sqrt(p (1 - p) / n)
@@ -205,7 +201,6 @@ def main(argv=None):
         f"[{stem}_intervals.png]({stem}_intervals.png) (coverage minus nominal, binomial "
         "SEs)."
     )
-    command = "python validation/posterior_coverage.py" + (" --quick" if args.quick else "")
     cpu = sum(t["seconds"].sum() for t in ranks.values()) / 3600
     summary = (
         verdict.reset_index().to_markdown(index=False, floatfmt=".3g")
@@ -213,9 +208,7 @@ def main(argv=None):
         f"![coverage](results/{stem}_intervals.png)\n\nPosterior CPU time: {cpu:.2f} "
         f"core-hours for {sum(len(t) for t in ranks.values())} posteriors."
     )
-    write(args.out, stem, table, text, command, started, summary)
-    print(text)
-    return table
+    return finish(args, "posterior_coverage", table, text, started, summary)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ centroiderror. Ratios to Eq. sigma2dp3 stand beside the paper's "pixel sum ~15% 
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import matplotlib
@@ -26,7 +25,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import Runner, add_run_arguments, parser, write
+from _common import Runner, finish, study
 from _precision import plot_panel, point, summary_columns
 
 from bayespsf import scenes
@@ -67,14 +66,11 @@ def figure(table: pd.DataFrame, path: Path) -> None:
 
 
 def main(argv=None):
-    args = add_run_arguments(parser(__doc__)).parse_args(argv)
-    started = time.perf_counter()
+    args, started, stem = study(__doc__, argv, "precision_vs_photons")
     sizes = QUICK if args.quick else FULL
     options = {"max_steps": 1000} if args.quick else {}
     photons = PHOTONS[2:3] if args.quick else PHOTONS
     table = run(args, photons, sizes, options)
-    stem = "precision_vs_photons" + ("_quick" if args.quick else "")
-    args.out.mkdir(parents=True, exist_ok=True)
     figure(table, args.out / f"{stem}.png")
     sections = []
     for q, paper in (
@@ -98,7 +94,6 @@ def main(argv=None):
         "<b>), so the posterior is slightly misspecified on these scenes: see "
         "posterior_coverage.md for calibration on well-specified data."
     )
-    command = "python validation/precision_vs_photons.py" + (" --quick" if args.quick else "")
     summary = table[
         ["scene", "N", "s_x pixel sum (Eq. pesum) / closed", "s_x CRLB / closed",
          "s_x LSQ SD / closed", "s_x MLE SD / closed", "s_x posterior SD (mean) / closed",
@@ -109,9 +104,7 @@ def main(argv=None):
         f"{table['posterior CPU s'].sum() / 3600:.2f} core-hours for {table['posteriors'].sum()} "
         "posteriors."
     )
-    write(args.out, stem, table, text, command, started, summary)
-    print(text)
-    return table
+    return finish(args, "precision_vs_photons", table, text, started, summary)
 
 
 if __name__ == "__main__":

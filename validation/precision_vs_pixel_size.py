@@ -14,7 +14,6 @@ Writes precision_vs_pixel_size.{csv,md,png}.
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import matplotlib
@@ -25,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import Runner, add_run_arguments, parser, write
+from _common import Runner, finish, study
 from _precision import plot_panel, point, summary_columns
 
 from bayespsf import scenes, theory
@@ -90,14 +89,11 @@ def figure(table: pd.DataFrame, path: Path) -> None:
 
 
 def main(argv=None):
-    args = add_run_arguments(parser(__doc__)).parse_args(argv)
-    started = time.perf_counter()
+    args, started, stem = study(__doc__, argv, "precision_vs_pixel_size")
     sizes = QUICK if args.quick else FULL
     options = {"max_steps": 1000} if args.quick else {}
     ratios = (0.5, 1.4) if args.quick else RATIOS
     table = run(args, ratios, sizes, options)
-    stem = "precision_vs_pixel_size" + ("_quick" if args.quick else "")
-    args.out.mkdir(parents=True, exist_ok=True)
     figure(table, args.out / f"{stem}.png")
     ours = theory.optimal_pixel_ratio(500.0, 1.0, 4.0)
     below = table[table["a/s0"] < PAPER_THEORY_OPTIMUM]
@@ -139,16 +135,13 @@ def main(argv=None):
         "The model assumes a Poisson background (variance <b> = 4); the scene draws the paper's "
         "truncated Gaussian (variance ~1)."
     )
-    command = "python validation/precision_vs_pixel_size.py" + (" --quick" if args.quick else "")
     summary = (
         claims.to_markdown(index=False)
         + f"\n\n![precision against pixel size](results/{stem}.png)\n\nPosterior CPU time: "
         f"{table['posterior CPU s'].sum() / 3600:.2f} core-hours for {table['posteriors'].sum()} "
         "posteriors."
     )
-    write(args.out, stem, table, text, command, started, summary)
-    print(text)
-    return table
+    return finish(args, "precision_vs_pixel_size", table, text, started, summary)
 
 
 if __name__ == "__main__":
