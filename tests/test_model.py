@@ -67,9 +67,8 @@ def test_negative_photon_counts_rejected():
         Model.from_scene(scenes.load("ideal")).check_counts(-np.ones((15, 15)))
 
 
-def test_sample_prior_follows_every_prior_kind():
-    # Kolmogorov-Smirnov against each kind's exact CDF (scipy.stats), 20 000 draws: a correct
-    # sampler fails at the 1e-4 level once in 10^4 runs per parameter
+def every_prior_kind():
+    """A model with every prior kind, and the scipy.stats law of each parameter."""
     from scipy import stats
 
     prior = {
@@ -80,8 +79,6 @@ def test_sample_prior_follows_every_prior_kind():
         "N": {"kind": "log-uniform", "low": 200.0, "high": 5000.0},
         "b": {"kind": "half-normal", "scale": 10.0},
     }
-    model = Model.from_scene(scenes.load("ideal").replace(prior=prior))
-    draws = model.sample_prior(20_000, 1)
     laws = [
         stats.uniform(-50, 100),
         stats.norm(3, 20),
@@ -90,6 +87,16 @@ def test_sample_prior_follows_every_prior_kind():
         stats.loguniform(200, 5000),
         stats.halfnorm(scale=10),
     ]
+    return Model.from_scene(scenes.load("ideal").replace(prior=prior)), laws
+
+
+def test_sample_prior_follows_every_prior_kind():
+    # Kolmogorov-Smirnov against each kind's exact CDF (scipy.stats), 20 000 draws: a correct
+    # sampler fails at the 1e-4 level once in 10^4 runs per parameter
+    from scipy import stats
+
+    model, laws = every_prior_kind()
+    draws = model.sample_prior(20_000, 1)
     for k, law in enumerate(laws):
         assert stats.kstest(draws[:, k], law.cdf).pvalue > 1e-4
     assert np.all(np.isfinite(model.log_prior(draws)))
@@ -101,25 +108,7 @@ def test_sample_prior_follows_every_prior_kind():
 def test_log_prior_is_the_sum_of_the_marginal_log_densities():
     # against scipy.stats log densities: equal up to one constant inside the support (to 1e-12),
     # -inf outside any parameter's support and for NaN
-    from scipy import stats
-
-    prior = {
-        "x0": {"kind": "uniform", "low": -50.0, "high": 50.0},
-        "y0": {"kind": "normal", "mean": 3.0, "sd": 20.0},
-        "s_x": {"kind": "log-uniform", "low": 90.0, "high": 180.0},
-        "N": {"kind": "log-uniform", "low": 200.0, "high": 5000.0},
-        "b": {"kind": "half-normal", "scale": 10.0},
-    }
-    model = Model.from_scene(scenes.load("ideal").replace(prior=prior))
-    s_y = model.prior["s_y"]  # the scene's default for s_y: log-uniform
-    laws = [
-        stats.uniform(-50, 100),
-        stats.norm(3, 20),
-        stats.loguniform(90, 180),
-        stats.loguniform(s_y["low"], s_y["high"]),
-        stats.loguniform(200, 5000),
-        stats.halfnorm(scale=10),
-    ]
+    model, laws = every_prior_kind()
     draws = model.sample_prior(500, 3).reshape(50, 10, 6)  # leading batch dimensions
     reference = sum(law.logpdf(draws[..., k]) for k, law in enumerate(laws))
     difference = model.log_prior(draws) - reference
