@@ -32,7 +32,7 @@ from bayespsf import scenes, theory
 RATIOS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.73, 0.8, 0.9, 1.0, 1.18, 1.5, 2.0, 2.5)
 S0 = 120.0
 PAPER_THEORY_OPTIMUM, PAPER_SIMULATED_OPTIMUM = 1.18, 0.73
-FULL = {"images": 2000, "mle_images": 500, "posteriors": 40}
+FULL = {"images": 2000, "mle_images": 500, "posteriors": 30}
 QUICK = {"images": 40, "mle_images": 10, "posteriors": 3}
 
 
