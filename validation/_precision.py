@@ -71,6 +71,13 @@ def point(scene, images: int, mle_images: int, posteriors: int, seed: int, runne
             c = coverage(post, prob).set_index("parameter").loc[q]
             row[f"{q} coverage {prob:.0%}"] = c["coverage"]
             row[f"{q} coverage {prob:.0%} err"] = c["se"]
+    # the background: the model's Poisson law against the scene's (often narrower) law
+    row["b posterior-mean bias"], row["b posterior-mean bias err"] = mean_and_error(
+        post["b_mean"] - post["b_truth"]
+    )
+    row["b posterior SD (mean)"] = float(post["b_sd"].mean())
+    c = coverage(post, 0.68).set_index("parameter").loc["b"]
+    row["b coverage 68%"], row["b coverage 68% err"] = c["coverage"], c["se"]
     closed = row["s_x closed (Eq. sigma2dp3)"]
     for column in ("s_x pixel sum (Eq. pesum)", "s_x CRLB", "s_x LSQ SD", "s_x MLE SD",
                    "s_x posterior SD (mean)", "s_x posterior-mean SD"):  # fmt: skip
