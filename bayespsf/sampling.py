@@ -81,7 +81,23 @@ def _start(counts, model, walkers, rng):
         filled += take
         if filled == walkers:
             return out, bool(fit["converged"])
+    _explain_no_support(counts, model, centre)
     raise RuntimeError("could not place the walkers inside the prior's support")
+
+
+def _explain_no_support(counts, model, centre) -> None:
+    """Name the pixels the likelihood tier gives zero density, if that is why no walker fits."""
+    lam = model.expected(centre)
+    per_pixel = model.camera._log_likelihood(counts, lam)
+    bad = np.argwhere(~np.isfinite(per_pixel))
+    if bad.size:
+        where = ", ".join(f"({r}, {c}) = {counts[r, c]:.6g} ADU" for r, c in bad[:5])
+        tier = getattr(model.camera, "likelihood", "")
+        raise BayespsfInputError(
+            f"the {tier!r} likelihood gives zero density to {len(bad)} pixel(s) of this ROI at "
+            f"every parameter value tried (row, column: {where}); they lie outside the tier's "
+            "support: use a tier with full support (e.g. 'exact')"
+        )
 
 
 def sample_posterior(

@@ -195,3 +195,17 @@ def test_prior_that_excludes_the_mle_still_starts_inside_it():
     assert draws["s_x"].between(150.0, 200.0).all()
     assert draws["x0"].between(60.0, 80.0).all()
     assert np.all(np.isfinite(draws.to_numpy()))
+
+
+def test_roi_outside_a_tiers_support_is_named():
+    # the huang tier has no density where counts + readout variance < 0 (no clipping): a
+    # pixel 10 readout SDs below the offset makes every parameter value impossible
+    from bayespsf.errors import BayespsfInputError
+
+    scene = scenes.load("scmos-typical")
+    counts, _ = simulate(scene, 1, seed=6)
+    roi = counts[0].copy()
+    roi[2, 3] = scene.camera["offset"] - 10 * np.sqrt(scene.camera["variance"])
+    model = Model.from_scene(scene, likelihood="huang")
+    with pytest.raises(BayespsfInputError, match=r"'huang' likelihood .*\(2, 3\)"):
+        sample_posterior(roi, model, seed=0, max_steps=500)

@@ -56,13 +56,14 @@ class Camera(ABC):
 
     def _score(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
         """Central difference of the log-likelihood (step 1e-5 of lam + 1e-3), forward
-        difference where lam is smaller than the step. Cameras with a closed form override."""
+        difference where lam is smaller than the step. Cameras with a closed form override.
+        NaN where the count has zero density at both ends (outside the tier's support)."""
         h = 1e-5 * (expected + 1e-3)
         low = np.maximum(expected - h, 0.0)
         high = expected + h
-        return (self._log_likelihood(counts, high) - self._log_likelihood(counts, low)) / (
-            high - low
-        )
+        up, down = self._log_likelihood(counts, high), self._log_likelihood(counts, low)
+        with np.errstate(invalid="ignore"):  # -inf - -inf: no density, no derivative
+            return (up - down) / (high - low)
 
     def variance(self, expected) -> np.ndarray:
         """Variance of the counts, in ADU^2, given expected photons (its exact second moment)."""
