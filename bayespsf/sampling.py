@@ -100,6 +100,17 @@ def _explain_no_support(counts, model, centre) -> None:
         )
 
 
+def _autocorrelation_time(segment):
+    """emcee's integrated autocorrelation time of each parameter over the walkers that moved,
+    and the number of walkers that did not move at all in some coordinate (stuck, e.g. in a
+    local mode of a multimodal posterior: the run cannot be called converged)."""
+    moving = np.all(np.ptp(segment, axis=0) > 0, axis=-1)
+    stuck = int((~moving).sum())
+    if moving.sum() < 2:
+        return np.full(segment.shape[-1], np.nan), stuck
+    return emcee.autocorr.integrated_time(segment[:, moving], tol=0), stuck
+
+
 def sample_posterior(
     counts,
     model: Model,
@@ -158,7 +169,7 @@ def sample_posterior(
     sampler.random_state = np.random.RandomState(np.random.MT19937(emcee_seq)).get_state()
     state, previous, converged = z0, None, False
     tau = np.full(6, np.nan)
-    burn = 0
+    burn, stuck = 0, 0
     show = progress or (progress is None and sys.stderr.isatty())
     while sampler.iteration < max_steps:
         state = sampler.run_mcmc(state, min(settings.chunk, max_steps - sampler.iteration))
@@ -168,10 +179,11 @@ def sample_posterior(
             if np.all(np.isfinite(tau))
             else (chain.shape[0] // 3)
         )
-        tau = emcee.autocorr.integrated_time(chain[burn:], tol=0)
+        tau, stuck = _autocorrelation_time(chain[burn:])
         n = chain.shape[0] - burn
         stable = previous is not None and np.all(np.abs(tau - previous) < 0.1 * tau)
         enough = n >= settings.min_taus * tau.max() and np.all(walkers * n / tau >= ess)
+        enough = enough and stuck == 0
         previous = tau
         if show:
             print(
@@ -186,7 +198,7 @@ def sample_posterior(
             break
     if show:
         print(file=sys.stderr)
-    thin = max(1, int(0.5 * tau.min()))
+    thin = max(1, int(0.5 * np.nanmin(tau))) if np.any(np.isfinite(tau)) else 1
     draws = sampler.get_chain(discard=burn, thin=thin)  # (draws, walkers, 6) in z
     params = model.from_unconstrained(draws)
     acceptance = float(np.mean(sampler.acceptance_fraction))
@@ -198,6 +210,7 @@ def sample_posterior(
             "steps": int(sampler.iteration),
             "burn": burn,
             "thin": thin,
+            "stuck_walkers": stuck,
             "converged": bool(converged and mle_ok),
             "mle_converged": mle_ok,
             "acceptance": acceptance,

@@ -209,3 +209,17 @@ def test_roi_outside_a_tiers_support_is_named():
     model = Model.from_scene(scene, likelihood="huang")
     with pytest.raises(BayespsfInputError, match=r"'huang' likelihood .*\(2, 3\)"):
         sample_posterior(roi, model, seed=0, max_steps=500)
+
+
+def test_a_stuck_walker_is_counted_not_a_warning():
+    # a walker that never moves (a local mode) has no autocorrelation function: it is left out
+    # of tau (which stays finite, from the others) and counted, so the run cannot converge
+    from bayespsf.sampling import _autocorrelation_time
+
+    rng = np.random.default_rng(2)
+    segment = np.cumsum(rng.standard_normal((400, 16, 6)), axis=0) * 0.01
+    segment[:, 5, :] = 3.0
+    tau, stuck = _autocorrelation_time(segment)
+    assert stuck == 1 and np.all(np.isfinite(tau))
+    tau, stuck = _autocorrelation_time(np.ones((50, 16, 6)))
+    assert stuck == 16 and np.all(np.isnan(tau))
