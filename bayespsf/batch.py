@@ -214,14 +214,19 @@ class Store:
             _atomic_write_text(file, json.dumps(manifest, indent=1))
 
     def finished(self, n: int) -> dict[int, dict]:
-        """Summary rows of the molecules already in the store."""
-        from bayespsf.posterior import Posterior
+        """Summary rows of the molecules already in the store (read from the files' attributes,
+        without loading their draws)."""
+        import xarray as xr
 
         rows = {}
         for index in range(n):
             path = self.molecule_path(index)
             if path.exists():
-                rows[index] = json.loads(Posterior.load(path).tree.attrs["summary_row"])
+                tree = xr.open_datatree(path)
+                try:
+                    rows[index] = json.loads(tree.attrs["summary_row"])
+                finally:
+                    tree.close()
         return rows
 
     def write(self, index: int, posterior) -> None:
