@@ -185,10 +185,11 @@ def main(argv=None):
             "ROIs it cannot score": ("ROIs the tier cannot score", "first"),
             "worst |coverage - nominal| / SE0": ("z", "max"),
             "smallest SBC p": ("SBC uniformity p", "min"),
-            "coverage 68% of s_x": ("coverage 68%", lambda c: c.iloc[2]),
-            "coverage 95% of s_x": ("coverage 95%", lambda c: c.iloc[2]),
         }
     )
+    s_x = table[table["parameter"] == "s_x"].set_index("configuration")
+    verdict["coverage 68% of s_x"] = s_x["coverage 68%"]
+    verdict["coverage 95% of s_x"] = s_x["coverage 95%"]
     text = (
         f"# Calibration per camera and likelihood tier ({molecules} molecules each)\n\n"
         "## Summary\n\n"
