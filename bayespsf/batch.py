@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import hashlib
+import inspect
 import json
 import multiprocessing
 import os
@@ -247,6 +248,16 @@ def _atomic_write_text(path: Path, text: str) -> None:
     os.replace(partial, path)
 
 
+def _resolved_sampler_settings(options: dict) -> dict:
+    """Every sampler setting a run uses, defaults included, so that a store made under other
+    defaults (another bayespsf version) is refused rather than resumed with mixed results."""
+    from bayespsf.sampling import Settings, sample_posterior
+
+    defaults = inspect.signature(sample_posterior).parameters
+    resolved = {k: options.get(k, defaults[k].default) for k in SAMPLER_OPTIONS}
+    return {**resolved, "chunk": Settings.chunk, "min_taus": Settings.min_taus}
+
+
 def _manifest(counts, model, seed, options, truths) -> dict:
     digest = hashlib.sha256(np.ascontiguousarray(counts, dtype=np.float64).tobytes())
     if truths is not None:
@@ -255,7 +266,7 @@ def _manifest(counts, model, seed, options, truths) -> dict:
         "bayespsf": "sample_many store",
         "molecules": int(counts.shape[0]),
         "seed": int(seed),
-        "sampler": {k: options[k] for k in sorted(options)},
+        "sampler": _resolved_sampler_settings(options),
         "model": repr(model),
         "prior": model.prior,
         "clock-induced charge": model.clock_induced_charge,

@@ -255,8 +255,10 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
     ranges (a fit ending on a bound is flagged), with the analytic gradient
     (PSF Jacobian times the camera's per-pixel score). With ``laplace``, ``sd_<p>`` columns are
     the square roots of the diagonal of the inverse observed information (the Hessian of
-    -log L by differences of the analytic gradient). Not converged: the optimiser failed, a
-    width ran away beyond the ROI, or the Hessian is not positive definite (SDs then NaN).
+    -log L by differences of the analytic gradient), and ``attrs["covariance"]`` holds the full
+    inverse information of every ROI, shape ``(n, 6, 6)`` (NaN where not converged). Not
+    converged: the optimiser failed, a width ran away beyond the ROI, or the Hessian is not
+    positive definite (SDs then NaN).
 
     Parameters
     ----------
@@ -285,7 +287,8 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
     bounds += [(np.log(1e-3), np.log(1e9)), (0.0, 1e7)]
     limit = roi * a
     rows = []
-    for image, p0 in zip(stack, starts, strict=True):
+    covariances = np.full((len(stack), 6, 6), np.nan)
+    for i, (image, p0) in enumerate(zip(stack, starts, strict=True)):
         u0 = _to_internal(p0, a)
         # precondition by the expected information at the start, so that a unit step is about
         # one standard deviation in every coordinate (L-BFGS-B's first step has unit length)
@@ -317,6 +320,7 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
                     cov = np.linalg.inv(_hessian(image, model, p))
                     if np.all(np.diag(cov) > 0) and np.all(np.linalg.eigvalsh(cov) > 0):
                         sd = np.sqrt(np.diag(cov))
+                        covariances[i] = cov
                     else:
                         ok, message = False, "observed information not positive definite"
                 except np.linalg.LinAlgError:
@@ -324,7 +328,10 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
             row.update({f"sd_{name}": v for name, v in zip(PARAMETER_NAMES, sd, strict=True)})
         row.update(converged=ok, message=message)
         rows.append(row)
-    return _frame(rows)
+    frame = _frame(rows)
+    if laplace:
+        frame.attrs["covariance"] = covariances
+    return frame
 
 
 def _on_bound(u, bounds) -> bool:

@@ -26,7 +26,7 @@ from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
 
 # short capped runs: the tests are about plumbing and reproducibility, not convergence
-OPTIONS = {"max_steps": 400, "walkers": 12}
+OPTIONS = {"max_steps": 60, "walkers": 12}
 N_MOLECULES = 4
 
 
@@ -56,7 +56,7 @@ def test_rows_columns_and_ranks(serial, stack):
         assert serial[f"{name}_rank"].between(0, 99).all()
         qs = serial[[quantile_column(name, q) for q in QUANTILES]].to_numpy()
         assert np.all(np.diff(qs, axis=1) >= 0)  # quantiles are ordered
-    assert not serial["converged"].any()  # the 400-step cap is flagged, never hidden
+    assert not serial["converged"].any()  # the 60-step cap is flagged, never hidden
 
 
 def test_two_processes_give_identical_results(serial, stack):
@@ -136,6 +136,12 @@ def test_store_made_for_another_run_is_refused(stack, tmp_path):
     )
     with pytest.raises(BayespsfInputError, match="prior"):
         sample_many(counts[:1], narrow, seed=3, workers=1, store=tmp_path, **OPTIONS)
+    # the manifest holds every sampler setting, defaults included: a store made with other
+    # moves (or under another version's defaults) is refused, not resumed with mixed results
+    assert manifest["sampler"]["moves"] == "laplace-de" and manifest["sampler"]["ess"] == 400
+    with pytest.raises(BayespsfInputError, match="sampler"):
+        sample_many(counts[:1], model, seed=3, workers=1, store=tmp_path, moves="stretch",
+                    **OPTIONS)  # fmt: skip
 
 
 def test_bad_input_is_named(stack):

@@ -151,3 +151,14 @@ def test_gain_calibration_bad_movies():
         calibrate_gain(np.zeros((2, 11, 11)))
     with pytest.raises(ValueError, match="movie"):
         calibrate_gain(np.ones((10, 11, 11)))  # nothing brighter than the background
+
+
+def test_laplace_covariance_is_kept_with_the_sds():
+    scene = scenes.load("emccd-typical")
+    counts, _ = simulate(scene, 2, seed=4)
+    fits = fit_mle(counts, Model.from_scene(scene))
+    cov = fits.attrs["covariance"]
+    assert cov.shape == (2, 6, 6)
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2))
+    sds = fits[[f"sd_{c}" for c in COLUMNS]].to_numpy()
+    np.testing.assert_allclose(np.sqrt(np.diagonal(cov, axis1=1, axis2=2)), sds, rtol=1e-12)
