@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 from scipy import optimize
 
+from bayespsf._threads import one_blas_thread
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES, pixel_centres
 
@@ -248,6 +249,7 @@ def _hessian(counts, model, p):
     return 0.5 * (h + h.T)
 
 
+@one_blas_thread
 def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFrame:
     """Maximum likelihood under the model's camera law (any tier), with the Laplace SDs.
 

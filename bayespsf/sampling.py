@@ -32,6 +32,7 @@ from dataclasses import asdict, dataclass
 import emcee
 import numpy as np
 
+from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle, start_values
 from bayespsf.model import Model
@@ -194,6 +195,7 @@ def _next_chunk(steps: int, burn: int, tau, settings: Settings) -> int:
     return int(np.clip(1.1 * (burn + needed) - steps, settings.chunk, max(steps, settings.chunk)))
 
 
+@one_blas_thread
 def sample_posterior(
     counts,
     model: Model,
