@@ -1,0 +1,48 @@
+"""`bayespsf bench --quick`: the accuracy-time frontier runs end to end and measures what the
+physics says it must (the run takes ~40 s on one core; no timing is asserted)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bayespsf import cli
+
+
+@pytest.fixture(scope="module")
+def frontier(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    assert cli.main(["bench", "--quick", "--workers", "1", "--out", str(out)]) == 0
+    return out, pd.read_csv(out / "frontier-summary.csv"), pd.read_csv(out / "frontier.csv")
+
+
+def test_files_and_columns(frontier):
+    out, summary, rows = frontier
+    assert (out / "frontier.png").stat().st_size > 0
+    assert "Which tier" in (out / "frontier.md").read_text()
+    assert set(summary["method"]) == {"MLE + CRLB", "Laplace", "posterior"}
+    assert set(summary.loc[summary["method"] == "posterior", "tier"]) == {
+        "table", "high-gain", "gaussian", "poisson"
+    }  # fmt: skip
+    assert np.all(rows["time / MLE"] > 0) and np.all(rows["MLE seconds"] > 0)
+
+
+def test_reference_is_the_exact_law(frontier):
+    # the table is within 4e-5 of the exact log density per pixel: importance weights to the
+    # exact law change the reference SD by far less than its Monte Carlo error (~1%)
+    _, _, rows = frontier
+    assert np.all(np.abs(rows["ref exact correction"]) < 1e-4)
+
+
+def test_tiers_err_as_their_approximations_predict(frontier):
+    _, summary, _ = frontier
+    post = summary[summary["method"] == "posterior"].set_index(["level", "tier", "ESS target"])
+    err = post["SD error (RMS)"]
+    # the accurate tier against the reference: Monte Carlo error only; SD of the relative SD
+    # error ~ sqrt(1/(2*2000) + 1/(2*4000)) = 1.9% at the ESS these runs reach, so 6% is 3 SDs
+    assert np.all(err.xs("table", level="tier") < 0.06)
+    # the Poisson tier ignores the EM register's excess noise (variance 2 lam, not lam), so its
+    # posterior is too narrow by about 1/sqrt(2): an SD error near 0.29
+    assert np.all(err.xs("poisson", level="tier") > 0.2)
+    # at N = 5000 the Gaussian approximations (CRLB at the MLE, Laplace) are within 6% too
+    cheap = summary[(summary["method"] != "posterior") & (summary["level"] == "high")]
+    assert np.all(cheap["SD error (RMS)"] < 0.06)
