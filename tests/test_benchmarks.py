@@ -37,7 +37,11 @@ def test_posterior_benchmark_quick():
 
     costs, moves = posterior_benchmark.run(quick=True)
     assert costs["converged"].all() and np.all(costs["min ess_bulk"] >= 400)
-    assert np.all(costs["time / MLE"] > 0) and set(moves["moves"]) == {"de-snooker", "stretch"}
+    assert np.all(costs["time / MLE"] > 0) and set(moves["moves"]) == {
+        "laplace-de",
+        "de-snooker",
+        "stretch",
+    }
     assert "| tier" in posterior_benchmark.markdown(
         costs, moves, "python benchmarks/posterior.py --quick"
     )
