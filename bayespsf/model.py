@@ -103,6 +103,11 @@ class Model:
         Mean spurious electrons per pixel (EMCCD), added to the expected photoelectrons.
     saturation
         The ADC's full scale in ADU (0: none); ROIs with saturated pixels are rejected.
+    pixel_model
+        ``"integrated"`` (default): the spot integrated over each pixel, as the camera records
+        it. ``"sampled"``: the Gaussian density at pixel centres times the pixel area, the
+        paper's Eq. A3.1 and the model of many fitters; it is biased (its width tends to
+        ``sqrt(s0**2 + a**2 / 12)``, Eq. tophat) and is offered to measure that bias.
     """
 
     def __init__(
@@ -113,8 +118,10 @@ class Model:
         prior: dict | None = None,
         clock_induced_charge: float = 0.0,
         saturation: float = 0.0,
+        pixel_model: str = "integrated",
     ):
         psf.pixel_centres(roi, pixel_size)  # validates the geometry
+        self.pixel_model = psf._check_pixel_model(pixel_model)
         if not isinstance(camera, Camera):
             raise BayespsfInputError(f"camera must be a bayespsf camera, got {camera!r}")
         self.roi = int(roi)
@@ -129,7 +136,9 @@ class Model:
         self._prior_terms = _PriorTerms(self.prior)
 
     @classmethod
-    def from_scene(cls, scene: Scene, likelihood: str | None = None) -> Model:
+    def from_scene(
+        cls, scene: Scene, likelihood: str | None = None, pixel_model: str = "integrated"
+    ) -> Model:
         """The model of a scene: its geometry, camera (tier ``likelihood``), prior and CIC."""
         cam = scene.camera
         return cls(
@@ -139,15 +148,19 @@ class Model:
             scene.prior,
             cam.get("clock_induced_charge", 0.0),
             cam.get("saturation", 0.0),
+            pixel_model,
         )
 
     def expected(self, params) -> np.ndarray:
         """Expected photoelectrons per pixel ``(..., roi, roi)`` (PSF, background and CIC)."""
-        return psf.expected_counts(params, self.roi, self.pixel_size) + self.clock_induced_charge
+        spot = psf.sampled_gaussian if self.pixel_model == "sampled" else psf.expected_counts
+        return spot(params, self.roi, self.pixel_size) + self.clock_induced_charge
 
     def expected_and_jacobian(self, params):
         """Expected photoelectrons and their derivatives ``(..., 6, roi, roi)``."""
-        mu, jac = psf.expected_counts_and_jacobian(params, self.roi, self.pixel_size)
+        mu, jac = psf.expected_counts_and_jacobian(
+            params, self.roi, self.pixel_size, self.pixel_model
+        )
         return mu + self.clock_induced_charge, jac
 
     def check_counts(self, counts) -> np.ndarray:
@@ -245,7 +258,9 @@ class Model:
         if inside.any():
             # inside the prior's support the parameters are valid: skip the PSF's input checks
             lam = (
-                psf.expected_counts_unchecked(p[inside], self.roi, self.pixel_size)
+                psf.expected_counts_unchecked(
+                    p[inside], self.roi, self.pixel_size, self.pixel_model
+                )
                 + self.clock_induced_charge
             )
             out[inside] += self.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
@@ -253,7 +268,11 @@ class Model:
         return out
 
     def __repr__(self) -> str:
-        return f"Model(roi={self.roi}, pixel_size={self.pixel_size:g}, camera={self.camera!r})"
+        sampled = ", pixel_model='sampled'" if self.pixel_model == "sampled" else ""
+        return (
+            f"Model(roi={self.roi}, pixel_size={self.pixel_size:g}, camera={self.camera!r}"
+            f"{sampled})"
+        )
 
 
 __all__ = ["PARAMETER_NAMES", "Model", "camera_from_scene"]

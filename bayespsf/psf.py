@@ -45,6 +45,14 @@ def _check_geometry(roi, pixel_size) -> tuple[int, float]:
     return int(roi), a
 
 
+def _check_pixel_model(pixel_model) -> str:
+    if pixel_model not in PIXEL_MODELS:
+        raise BayespsfInputError(
+            f"pixel_model must be one of {', '.join(PIXEL_MODELS)}; got {pixel_model!r}"
+        )
+    return pixel_model
+
+
 def _check_params(params) -> np.ndarray:
     p = finite_array("params", params)
     if p.ndim == 0 or p.shape[-1] != 6:
@@ -115,18 +123,42 @@ def expected_counts(params, roi: int, pixel_size: float) -> np.ndarray:
     return expected_counts_unchecked(_check_params(params), roi, a)
 
 
-def expected_counts_unchecked(p: np.ndarray, roi: int, a: float) -> np.ndarray:
-    """:func:`expected_counts` without input validation, for hot loops whose parameters are
-    already known to be valid (inside the prior's support)."""
-    px, _ = _pixel_fractions(p[..., 0], p[..., 2], roi, a)
-    py, _ = _pixel_fractions(p[..., 1], p[..., 3], roi, a)
+PIXEL_MODELS = ("integrated", "sampled")
+
+
+def _axis(centre, width, roi: int, a: float, pixel_model: str, derivatives: bool):
+    """One axis of the separable spot: the fraction of the spot's photons in each pixel
+    ``(..., roi)`` and, with ``derivatives``, its derivatives by the centre and the width.
+
+    ``integrated``: the 1-D Gaussian's probability mass in each pixel (:func:`_pixel_fractions`).
+    ``sampled``: its density at the pixel centre times ``a`` (the paper's Eq. A3.1), with
+    ``d/dcentre = m z / w`` and ``d/dwidth = m (z**2 - 1) / w`` for ``z = (c - centre) / w``.
+    """
+    if pixel_model == "integrated":
+        mass, z = _pixel_fractions(centre, width, roi, a)
+        return (mass, *_fraction_derivatives(z, width)) if derivatives else (mass,)
+    w = width[..., None]
+    z = ((np.arange(roi) - (roi - 1) / 2.0) * a - centre[..., None]) / w
+    mass = (a * _INV_SQRT_2PI) * np.exp(-0.5 * z * z) / w
+    return (mass, mass * z / w, mass * (z * z - 1.0) / w) if derivatives else (mass,)
+
+
+def expected_counts_unchecked(
+    p: np.ndarray, roi: int, a: float, pixel_model: str = "integrated"
+) -> np.ndarray:
+    """:func:`expected_counts` (or, with ``pixel_model="sampled"``, :func:`sampled_gaussian`)
+    without input validation, for hot loops whose parameters are already known to be valid
+    (inside the prior's support)."""
+    (px,) = _axis(p[..., 0], p[..., 2], roi, a, pixel_model, False)
+    (py,) = _axis(p[..., 1], p[..., 3], roi, a, pixel_model, False)
     n = p[..., 4][..., None, None]
     b = p[..., 5][..., None, None]
     return n * py[..., :, None] * px[..., None, :] + b
 
 
-def expected_counts_and_jacobian(params, roi: int, pixel_size: float):
-    """Expected counts and their analytic derivatives with respect to all six parameters.
+def expected_counts_and_jacobian(params, roi: int, pixel_size: float, pixel_model="integrated"):
+    """Expected counts and their analytic derivatives with respect to all six parameters
+    (``pixel_model="sampled"``: of :func:`sampled_gaussian`).
 
     Returns
     -------
@@ -143,10 +175,9 @@ def expected_counts_and_jacobian(params, roi: int, pixel_size: float):
     """
     roi, a = _check_geometry(roi, pixel_size)
     p = _check_params(params)
-    px, zx = _pixel_fractions(p[..., 0], p[..., 2], roi, a)
-    py, zy = _pixel_fractions(p[..., 1], p[..., 3], roi, a)
-    dpx_dx0, dpx_ds = _fraction_derivatives(zx, p[..., 2])
-    dpy_dy0, dpy_ds = _fraction_derivatives(zy, p[..., 3])
+    _check_pixel_model(pixel_model)
+    px, dpx_dx0, dpx_ds = _axis(p[..., 0], p[..., 2], roi, a, pixel_model, True)
+    py, dpy_dy0, dpy_ds = _axis(p[..., 1], p[..., 3], roi, a, pixel_model, True)
     n = p[..., 4][..., None, None]
     profile = py[..., :, None] * px[..., None, :]
     jac = np.empty((*p.shape[:-1], 6, roi, roi))
@@ -177,9 +208,4 @@ def sampled_gaussian(params, roi: int, pixel_size: float) -> np.ndarray:
     are derived from. Same shapes as :func:`expected_counts`.
     """
     roi, a = _check_geometry(roi, pixel_size)
-    p = _check_params(params)
-    c = pixel_centres(roi, a)
-    gx = np.exp(-0.5 * ((c - p[..., 0, None]) / p[..., 2, None]) ** 2)
-    gy = np.exp(-0.5 * ((c - p[..., 1, None]) / p[..., 3, None]) ** 2)
-    amp = p[..., 4] * a * a / (2.0 * np.pi * p[..., 2] * p[..., 3])
-    return amp[..., None, None] * gy[..., :, None] * gx[..., None, :] + p[..., 5][..., None, None]
+    return expected_counts_unchecked(_check_params(params), roi, a, "sampled")

@@ -45,3 +45,18 @@ def test_posterior_benchmark_quick():
     assert "| tier" in posterior_benchmark.markdown(
         costs, moves, "python benchmarks/posterior.py --quick"
     )
+
+
+def test_pixel_model_benchmark_quick():
+    # deterministic parts: on a noiseless pixel-integrated spot the integrated model's MLE
+    # recovers s0 and the sampled model's converges to the pixel-convolved width, Eq. tophat's
+    # sqrt(s0^2 + a^2/12) up to its O((a/s0)^4) error (1e-4 at a/s0 = 0.5; 0.5% at 2)
+    import pixel_model
+
+    df = pixel_model.run(quick=True).set_index("a/s0")
+    assert np.allclose(df["integrated: noiseless limit / s0"], 1.0, atol=1e-4)
+    tophat = df["Eq. tophat sqrt(1 + (a/s0)^2/12)"]
+    assert abs(df.loc[0.5, "sampled: noiseless limit / s0"] / tophat[0.5] - 1) < 1e-4
+    assert abs(df.loc[2.0, "sampled: noiseless limit / s0"] / tophat[2.0] - 1) < 0.01
+    assert np.all(df["log-posterior cost sampled / integrated"] > 0)
+    assert "| a/s0" in pixel_model.markdown(df.reset_index(), "python benchmarks/pixel_model.py")

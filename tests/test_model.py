@@ -117,3 +117,24 @@ def test_log_prior_is_the_sum_of_the_marginal_log_densities():
     outside[0, 0], outside[1, 2], outside[2, 5], outside[3, 4] = 60.0, 80.0, -1.0, np.nan
     lp = model.log_prior(outside)
     assert np.all(lp[:4] == -np.inf) and np.all(np.isfinite(lp[4:]))
+
+
+def test_sampled_pixel_model_is_eq_a31_everywhere():
+    # expected counts, the posterior's hot path and the MLE's Jacobian all use Eq. A3.1
+    from bayespsf import psf
+
+    scene = scenes.load("emccd-typical")
+    model = Model.from_scene(scene, pixel_model="sampled")
+    p = np.array([[12.0, -7.0, 120.0, 140.0, 900.0, 8.0], [0.0, 30.0, 100.0, 90.0, 400.0, 3.0]])
+    want = psf.sampled_gaussian(p, 15, 100.0) + model.clock_induced_charge
+    np.testing.assert_allclose(model.expected(p), want, rtol=1e-14)
+    np.testing.assert_allclose(model.expected_and_jacobian(p)[0], want, rtol=1e-14)
+    counts, _ = simulate(scene, 1, seed=2)
+    c = model.check_counts(counts[0])
+    lp = model.log_posterior(model.to_unconstrained(p), c)
+    direct = model.camera._log_likelihood(c, want).sum(axis=(-2, -1))
+    direct += model.log_prior(p) + np.log(p[:, 2:5]).sum(axis=1)
+    np.testing.assert_allclose(lp, direct, rtol=1e-12)
+    assert "sampled" in repr(model) and "sampled" not in repr(Model.from_scene(scene))
+    with pytest.raises(ValueError, match="pixel_model"):
+        Model.from_scene(scene, pixel_model="centre")
