@@ -39,7 +39,7 @@ from bayespsf.psf import PARAMETER_NAMES
 
 QUANTILES = (0.025, 0.05, 0.16, 0.25, 0.5, 0.75, 0.84, 0.95, 0.975)
 RANK_DRAWS = 99  # ranks 0..99: a histogram of 100 equally likely values under calibration
-SAMPLER_OPTIONS = ("ess", "walkers", "max_steps", "moves")
+SAMPLER_OPTIONS = ("ess", "walkers", "max_steps", "moves", "method")
 
 
 def molecule_seed(seed: int, index: int) -> int:
@@ -73,6 +73,7 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
         "molecule": int(index),
         "seed": int(seed),
         "converged": bool(info.get("converged", False)),
+        "method": "importance" if "khat" in info else "mcmc",
         "steps": int(info.get("steps", 0)),
         "draws": int(flat.shape[0]),
         "acceptance": float(info.get("acceptance", np.nan)),
@@ -81,7 +82,8 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
     quantiles = np.quantile(flat, QUANTILES, axis=0)
     truth = posterior.truth
     # every second thinned draw is ~tau apart: near-independent; RANK_DRAWS of them at random
-    spaced = chains[:, ::2].reshape(-1, 6)
+    # (importance draws, resampled from independent proposals, are independent already)
+    spaced = flat if "khat" in info else chains[:, ::2].reshape(-1, 6)
     pick = np.random.default_rng([seed, 1]).choice(len(spaced), RANK_DRAWS, replace=False)
     steps_after_burn = info.get("steps", 0) - info.get("burn", 0)
     for k, name in enumerate(PARAMETER_NAMES):
@@ -90,7 +92,9 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
         for q, value in zip(QUANTILES, quantiles[:, k], strict=True):
             row[quantile_column(name, q)] = float(value)
         row[f"{name}_tau"] = float(tau[name])
-        row[f"{name}_ess"] = float(chains.shape[0] * steps_after_burn / tau[name])
+        row[f"{name}_ess"] = float(
+            info["ess"] if "khat" in info else chains.shape[0] * steps_after_burn / tau[name]
+        )
         if truth is not None:
             row[f"{name}_truth"] = float(truth[name])
             row[f"{name}_rank"] = int(np.sum(spaced[pick, k] < truth[name]))
@@ -314,7 +318,7 @@ def sample_many(
     progress : bool, optional
         A progress bar on stderr (default: when stderr is a terminal).
     **options
-        ``ess``, ``walkers``, ``max_steps``, ``moves`` of :func:`sample_posterior`.
+        ``ess``, ``walkers``, ``max_steps``, ``moves``, ``method`` of :func:`sample_posterior`.
 
     Returns
     -------

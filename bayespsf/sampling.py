@@ -35,6 +35,7 @@ import numpy as np
 from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle, start_values
+from bayespsf.importance import CHAINS, KHAT_MAX, importance_draws, systematic_resample
 from bayespsf.model import Model
 from bayespsf.posterior import Posterior
 from bayespsf.psf import PARAMETER_NAMES
@@ -51,6 +52,7 @@ class Settings:
     max_steps: int = 50_000
     min_taus: float = 50.0
     moves: str = "laplace-de"  # see MOVES and _moves
+    method: str = "mcmc"  # or "importance" (bayespsf.importance), MCMC where k-hat is high
 
 
 MOVES = ("laplace-de", "de-snooker", "stretch")
@@ -186,6 +188,37 @@ def _autocorrelation_time(segment):
     return integrated_time(segment[:, moving]), stuck
 
 
+def _importance(counts, model, proposal, mle_ok, settings, seed_sequence):
+    """({"draws", "info"}, None) from importance sampling, or (None, why not)."""
+    if proposal is None:
+        return None, "no Laplace proposal (the MLE did not converge, or a start was given)"
+    draw_seq, resample_seq = seed_sequence.spawn(2)
+    z, weights, khat = importance_draws(
+        counts,
+        model,
+        proposal,
+        settings.ess,
+        int(50 * settings.ess),
+        np.random.RandomState(np.random.MT19937(draw_seq)),
+    )
+    achieved = 1.0 / np.sum(weights * weights)
+    if khat > KHAT_MAX or achieved < settings.ess:
+        return None, f"k-hat {khat:.2f}, ESS {achieved:.0f} of {len(z)} draws: MCMC used"
+    n = CHAINS * int(achieved // CHAINS)
+    index = systematic_resample(weights, n, np.random.default_rng(resample_seq))
+    params = model.from_unconstrained(z[index]).reshape(CHAINS, n // CHAINS, 6)
+    info = {
+        **asdict(settings),
+        "draws_scored": len(z),
+        "khat": khat,
+        "ess": float(achieved),
+        "converged": bool(mle_ok),
+        "mle_converged": bool(mle_ok),
+        "stuck_walkers": 0,
+    }
+    return {"draws": params, "info": info}, None
+
+
 def _next_chunk(steps: int, burn: int, tau, settings: Settings) -> int:
     """Steps to add so that the chain reaches the predicted length (``min_taus`` tau and the
     ESS target after burn-in, plus 10%), at least ``settings.chunk``, at most doubling it."""
@@ -208,6 +241,7 @@ def sample_posterior(
     scene=None,
     start=None,
     progress: bool | None = None,
+    method: str = "mcmc",
 ) -> Posterior:
     """Sample the posterior of ``x0 y0 s_x s_y N b`` for one ROI with emcee.
 
@@ -229,6 +263,11 @@ def sample_posterior(
         around the maximum-likelihood fit, spread by its Laplace SDs.
     progress : bool, optional
         One line per chunk on stderr (steps, tau, ESS); default: when stderr is a terminal.
+    method : {"mcmc", "importance"}
+        ``importance``: Pareto-smoothed importance sampling from the Laplace proposal
+        (:mod:`bayespsf.importance`) when its k-hat is <= 0.7 and the ESS target is reached
+        within 50 x ``ess`` draws; otherwise (and without a converged MLE, or with ``start``)
+        the emcee run, with the reason in ``info["importance"]``.
     """
     c = model.check_counts(counts)
     if c.ndim != 2:
@@ -242,7 +281,11 @@ def sample_posterior(
         raise BayespsfInputError(f"walkers must be an even number >= 12, got {walkers!r}")
     if moves not in MOVES:
         raise BayespsfInputError(f"moves must be one of {', '.join(MOVES)}; got {moves!r}")
-    settings = Settings(int(seed), int(walkers), float(ess), 50, int(max_steps), 50.0, moves)
+    if method not in ("mcmc", "importance"):
+        raise BayespsfInputError(f"method must be 'mcmc' or 'importance'; got {method!r}")
+    settings = Settings(
+        int(seed), int(walkers), float(ess), 50, int(max_steps), 50.0, moves, method
+    )
     start_seq, emcee_seq = np.random.SeedSequence(seed).spawn(2)
     proposal = None
     if start is None:
@@ -251,6 +294,19 @@ def sample_posterior(
         z0, mle_ok = np.array(start, dtype=np.float64), True
         if z0.shape != (walkers, 6):
             raise BayespsfInputError(f"start must have shape ({walkers}, 6), got {z0.shape}")
+    fallback = None
+    if method == "importance":
+        result, fallback = _importance(c, model, proposal, mle_ok, settings, emcee_seq)
+        if result is not None:
+            return Posterior.from_draws(
+                result["draws"],
+                tau=np.ones(6),
+                info=result["info"],
+                counts=c,
+                model=model,
+                truth=truth,
+                scene=scene,
+            )
     sampler = emcee.EnsembleSampler(
         walkers, 6, model.log_posterior, args=(c,), vectorize=True, moves=_moves(moves, proposal)
     )
@@ -301,6 +357,7 @@ def sample_posterior(
             "converged": bool(converged and mle_ok),
             "mle_converged": mle_ok,
             "acceptance": acceptance,
+            **({} if fallback is None else {"importance": fallback}),
         },
         counts=c,
         model=model,

@@ -19,7 +19,7 @@ def test_files_and_columns(frontier):
     out, summary, rows = frontier
     assert (out / "frontier.png").stat().st_size > 0
     assert "Which tier" in (out / "frontier.md").read_text()
-    assert set(summary["method"]) == {"MLE + CRLB", "Laplace", "posterior"}
+    assert set(summary["method"]) == {"MLE + CRLB", "Laplace", "posterior", "importance"}
     assert set(summary.loc[summary["method"] == "posterior", "tier"]) == {
         "table", "high-gain", "gaussian", "poisson"
     }  # fmt: skip
@@ -40,6 +40,8 @@ def test_tiers_err_as_their_approximations_predict(frontier):
     # the accurate tier against the reference: Monte Carlo error only; SD of the relative SD
     # error ~ sqrt(1/(2*2000) + 1/(2*4000)) = 1.9% at the ESS these runs reach, so 6% is 3 SDs
     assert np.all(err.xs("table", level="tier") < 0.06)
+    importance = summary[summary["method"] == "importance"]
+    assert np.all(importance["SD error (RMS)"] < 0.06)
     # the Poisson tier ignores the EM register's excess noise (variance 2 lam, not lam), so its
     # posterior is too narrow by about 1/sqrt(2): an SD error near 0.29
     assert np.all(err.xs("poisson", level="tier") > 0.2)

@@ -40,13 +40,21 @@ def study(doc: str, argv, name: str, posteriors: bool = True):
     p = parser(doc)
     args = (add_run_arguments(p) if posteriors else p).parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    return args, time.perf_counter(), name + ("_quick" if args.quick else "")
+    return args, time.perf_counter(), _stem(args, name)
+
+
+def _stem(args, name: str) -> str:
+    """Output stem: ``name``, ``_importance`` for importance-sampled posteriors, ``_quick``."""
+    importance = getattr(args, "method", "mcmc") == "importance"
+    return name + ("_importance" if importance else "") + ("_quick" if args.quick else "")
 
 
 def finish(args, name: str, table, text: str, started: float, summary: str | None = None):
     """Write a study's results (see :func:`write`), print them, return the table."""
     command = f"python validation/{name}.py" + (" --quick" if args.quick else "")
-    stem = name + ("_quick" if args.quick else "")
+    if getattr(args, "method", "mcmc") != "mcmc":
+        command += f" --method {args.method}"
+    stem = _stem(args, name)
     write(args.out, stem, table, text, command, started, summary)
     print(text)
     return table
@@ -58,6 +66,12 @@ def add_run_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--scheduler", default=None, help="a Dask scheduler address (a cluster)")
     p.add_argument(
         "--store", type=Path, default=None, help="keep every posterior here; a rerun resumes"
+    )
+    p.add_argument(
+        "--method",
+        choices=("mcmc", "importance"),
+        default="mcmc",
+        help="posterior by emcee (default) or by Laplace importance sampling (PSIS)",
     )
     return p
 
@@ -87,7 +101,9 @@ class Runner:
     def posteriors(self, point: str, counts, model, truths, seed: int, scene=None, **options):
         from bayespsf.batch import sample_many
 
-        store = None if self.args.store is None else self.args.store / self.study / point
+        method = getattr(self.args, "method", "mcmc")
+        study = self.study + ("_importance" if method == "importance" else "")
+        store = None if self.args.store is None else self.args.store / study / point
         print(f"  {point}: {len(counts)} posteriors", flush=True)
         return sample_many(
             counts,
@@ -98,7 +114,7 @@ class Runner:
             store=store,
             truths=truths,
             scene=scene,
-            **options,
+            **({"method": method} | options),
         )
 
 
