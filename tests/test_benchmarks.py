@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -60,3 +61,17 @@ def test_pixel_model_benchmark_quick():
     assert abs(df.loc[2.0, "sampled: noiseless limit / s0"] / tophat[2.0] - 1) < 0.01
     assert np.all(df["log-posterior cost sampled / integrated"] > 0)
     assert "| a/s0" in pixel_model.markdown(df.reset_index(), "python benchmarks/pixel_model.py")
+
+
+def test_hot_path_benchmark_quick():
+    import hot_path
+
+    parts, call, floor, psis = hot_path.main(["--quick"])
+    stages = parts[parts["stage"] != "total"]
+    assert stages["seconds"].sum() == pytest.approx(parts["seconds"].iloc[-1], rel=1e-9)
+    assert np.all(stages["seconds"] >= 0)
+    # the compiled PSF probe computes the same spot as the NumPy one (near the centre)
+    gap = call.set_index("part").loc["numba PSF max relative difference from NumPy"]
+    assert float(gap.iloc[0]) < 1e-12
+    assert np.all(floor["steps/s with a free log-probability"] > 0)
+    assert np.all(psis["Pareto k-hat"] <= 0.7) and np.all(psis["ESS"] >= 400)
