@@ -113,10 +113,11 @@ def _fit(args) -> int:
             scene=scene,
             progress=True,
             ess=args.ess,
+            method=args.method,
         )
         for _, row in table.iterrows():
             print(
-                f"ROI {row['molecule']}: converged {row['converged']}, "
+                f"ROI {row['molecule']} ({row['method']}): converged {row['converged']}, "
                 f"s_x = {row['s_x_mean']:.4g} +- {row['s_x_sd']:.3g} nm"
             )
         print(f"wrote {out / 'summary.csv'} and {len(table)} result files")
@@ -208,6 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("--likelihood", default=None, help="likelihood tier (default: the scene's)")
     fit.add_argument("--ess", type=float, default=400.0, help="ESS per parameter (default 400)")
+    fit.add_argument(
+        "--method",
+        choices=("mcmc", "importance"),
+        default="mcmc",
+        help="emcee (default) or Laplace importance sampling (PSIS; MCMC where k-hat > 0.7)",
+    )
     fit.add_argument(
         "--seed", type=int, default=0, help="run seed (ROI k uses molecule_seed(seed, k))"
     )
