@@ -15,4 +15,11 @@ def write_section(name: str, body: str) -> None:
     _write_section(README, name, body)
 
 
-__all__ = ["README", "machine", "write_section"]
+def publish(name: str, text: str, quick: bool) -> None:
+    """Print a benchmark's markdown; a full run also writes it into its README section."""
+    print(text)
+    if not quick:
+        write_section(name, text)
+
+
+__all__ = ["README", "machine", "publish", "write_section"]

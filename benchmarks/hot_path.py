@@ -223,11 +223,9 @@ def main(argv=None):
         + psis.describe().loc[["mean", "min", "50%", "max"]].drop(columns="molecule")
         .to_markdown(floatfmt=".3g")
     )  # fmt: skip
-    print(text)
-    if not args.quick:
-        from _report import write_section
+    from _report import publish
 
-        write_section("hot_path", text)
+    publish("hot_path", text, args.quick)
     return parts, call, floor, psis
 
 

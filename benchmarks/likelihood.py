@@ -105,11 +105,9 @@ def main():
     df = run(args.quick)
     command = "python benchmarks/likelihood.py" + (" --quick" if args.quick else "")
     text = markdown(df, command)
-    print(text)
-    if not args.quick:
-        from _report import write_section
+    from _report import publish
 
-        write_section("likelihood", text)
+    publish("likelihood", text, args.quick)
     return df
 
 

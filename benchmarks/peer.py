@@ -355,11 +355,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     command = "python benchmarks/peer.py" + (" --quick" if args.quick else "")
     command += f" --chains {args.chains}" if args.chains != 1 else ""
     text = markdown(df, command)
-    print(text)
-    if not args.quick:
-        from _report import write_section
+    from _report import publish
 
-        write_section("peer", text)
+    publish("peer", text, args.quick)
     return df
 
 

@@ -110,11 +110,9 @@ def main(argv=None) -> pd.DataFrame:
     args = parser.parse_args(argv)
     df = run(args.quick)
     text = markdown(df, "python benchmarks/pixel_model.py" + (" --quick" if args.quick else ""))
-    print(text)
-    if not args.quick:
-        from _report import write_section
+    from _report import publish
 
-        write_section("pixel_model", text)
+    publish("pixel_model", text, args.quick)
     return df
 
 

@@ -100,11 +100,9 @@ def main():
     costs, moves = run(args.quick)
     command = "python benchmarks/posterior.py" + (" --quick" if args.quick else "")
     text = markdown(costs, moves, command)
-    print(text)
-    if not args.quick:
-        from _report import write_section
+    from _report import publish
 
-        write_section("posterior", text)
+    publish("posterior", text, args.quick)
     return costs, moves
 
 
