@@ -236,22 +236,28 @@ def frontier(plan: Plan = FULL, workers: int | None = None, progress=print) -> p
 
 
 def summarise(rows: pd.DataFrame) -> pd.DataFrame:
-    """Per photon level, method, tier and ESS target: median time / MLE, the RMS error of the
-    posterior SD of s_x against the reference, the RMS offset of its mean (reference SDs), the
-    68% / 95% coverage of the true s_x with its binomial SE, and the median ESS reached."""
+    """Per photon level, method, tier and ESS target: median time / MLE, the median absolute
+    and the RMS error of the posterior SD of s_x against the reference and the RMS offset of
+    its mean (reference SDs), over the molecules whose reference converged (a dim molecule's
+    heavy-tailed posterior can defeat the reference run: those are counted, not compared), the
+    68% / 95% coverage of the true s_x with its binomial SE (all molecules), and the median ESS
+    reached."""
     keys = ["level", "N", "method", "tier", "ESS target"]
     ok = rows[np.isfinite(rows["sd"])]
 
     def one(g):
         n = len(g)
         c68, c95 = g["covers 68%"].mean(), g["covers 95%"].mean()
+        compared = g[g["ref converged"].astype(bool)]
         return pd.Series(
             {
                 "molecules": n,
+                "reference converged": len(compared),
                 "time / MLE": g["time / MLE"].median(),
                 "seconds": g["seconds"].median(),
-                "SD error (RMS)": np.sqrt(np.mean(g["sd error"] ** 2)),
-                "mean offset (RMS, ref SDs)": np.sqrt(np.mean(g["mean offset"] ** 2)),
+                "SD error (median |.|)": np.median(np.abs(compared["sd error"])),
+                "SD error (RMS)": np.sqrt(np.mean(compared["sd error"] ** 2)),
+                "mean offset (RMS, ref SDs)": np.sqrt(np.mean(compared["mean offset"] ** 2)),
                 "coverage 68%": c68,
                 "coverage 68% SE": np.sqrt(0.68 * 0.32 / n),
                 "coverage 95%": c95,
@@ -276,7 +282,7 @@ def which_tier(summary: pd.DataFrame) -> pd.DataFrame:
         row = {"method": method, "tier": tier}
         for _, r in g.iterrows():
             row[f"time / MLE ({r['level']})"] = r["time / MLE"]
-            row[f"SD error ({r['level']})"] = r["SD error (RMS)"]
+            row[f"SD error ({r['level']})"] = r["SD error (median |.|)"]
         for level in (68, 95):
             pooled = np.sum(g[f"coverage {level}%"] * g["molecules"]) / n
             row[f"coverage {level}%"] = pooled
@@ -299,11 +305,11 @@ def figure(summary: pd.DataFrame, path) -> None:
             g = g.sort_values("ESS target")
             label = tier if method == "posterior" else f"{tier}, importance (PSIS)"
             style = "o-" if method == "posterior" else "s--"
-            ax.plot(g["time / MLE"], g["SD error (RMS)"], style, color=f"C{i}", label=label)
+            ax.plot(g["time / MLE"], g["SD error (median |.|)"], style, color=f"C{i}", label=label)
             for _, r in g.iterrows():
                 ax.annotate(
                     f"{r['ESS target']:g}",
-                    (r["time / MLE"], r["SD error (RMS)"]),
+                    (r["time / MLE"], r["SD error (median |.|)"]),
                     fontsize=6,
                     xytext=(2, 2),
                     textcoords="offset points",
@@ -311,13 +317,18 @@ def figure(summary: pd.DataFrame, path) -> None:
         for marker, method in (("s", "MLE + CRLB"), ("D", "Laplace")):
             g = part[part["method"] == method]
             ax.plot(
-                g["time / MLE"], g["SD error (RMS)"], marker, color="k", mfc="none", label=method
+                g["time / MLE"],
+                g["SD error (median |.|)"],
+                marker,
+                color="k",
+                mfc="none",
+                label=method,
             )
         ax.set(
             xscale="log",
             yscale="log",
             xlabel="time per molecule / one MLE fit",
-            ylabel="RMS error of the SD of s_x",
+            ylabel="median |error| of the SD of s_x",
             title=f"{level} N ({part['N'].iloc[0]:g})",
         )
         ax.grid(True, which="both", lw=0.3)

@@ -6,6 +6,7 @@ benchmarks/README.md.
 
     python benchmarks/frontier.py [--workers K]   # full run (~20 minutes on 2 cores)
     python benchmarks/frontier.py --quick         # = bayespsf bench --quick, to a temp folder
+    python benchmarks/frontier.py --from-csv      # tables and figure again from frontier.csv
 """
 
 from __future__ import annotations
@@ -23,8 +24,18 @@ def main(argv=None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="small run, print only")
     parser.add_argument("--workers", type=int, default=None, help="local processes")
+    parser.add_argument(
+        "--from-csv",
+        action="store_true",
+        help="rebuild tables and figure from results/frontier.csv",
+    )
     args = parser.parse_args(argv)
-    rows = bench.frontier(bench.QUICK if args.quick else bench.FULL, workers=args.workers)
+    if args.from_csv:
+        import pandas as pd
+
+        rows = pd.read_csv(RESULTS / "frontier.csv")
+    else:
+        rows = bench.frontier(bench.QUICK if args.quick else bench.FULL, workers=args.workers)
     command = "python benchmarks/frontier.py" + (" --quick" if args.quick else "")
     out = Path(tempfile.mkdtemp(prefix="frontier-")) if args.quick else RESULTS
     text = bench.report(rows, out, command)
