@@ -254,8 +254,12 @@ def sample_posterior(
         Seeds the walkers' start and emcee's random stream.
     ess : float
         Effective sample size to reach on every parameter (default 400).
-    walkers, max_steps, moves
-        Ensemble size; step cap (a capped run is flagged ``converged = False``); emcee moves.
+    walkers : int
+        Ensemble size (even, >= 12; default 32).
+    max_steps : int
+        Step cap; a capped run is flagged ``converged = False``.
+    moves : {"laplace-de", "de-snooker", "stretch"}
+        emcee moves (module docstring); default ``laplace-de``.
     truth, scene
         Optional true parameters and scene, kept in the result (corner plot truths, file).
     start : array_like, shape (walkers, 6), optional
