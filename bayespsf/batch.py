@@ -1,10 +1,10 @@
 """Posteriors for a stack of ROIs: in parallel, reproducible, resumable.
 
-:func:`sample_many` runs :func:`bayespsf.sample_posterior` on every ROI of a stack, on local
+``sample_many`` runs ``bayespsf.sample_posterior`` on every ROI of a stack, on local
 processes (the default), in this process (``workers=1``), or on any
 ``concurrent.futures.Executor``, including a Dask ``distributed`` cluster (pass a ``Client``, its
 ``get_executor()``, or a scheduler address). Molecule ``i`` is sampled with the seed
-:func:`molecule_seed` ``(seed, i)``, so its result depends on ``seed`` and ``i`` only, never on
+``molecule_seed`` ``(seed, i)``, so its result depends on ``seed`` and ``i`` only, never on
 the number of workers or the order in which they finish.
 
 The store (a folder) holds one self-describing result file per finished molecule
@@ -144,7 +144,7 @@ def _sample_one(task):
 
 def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     """A pool of local worker processes (default: one per core) to pass to several
-    :func:`sample_many` runs, so that workers and their cached EMCCD tables are reused."""
+    ``sample_many`` runs, so that workers and their cached EMCCD tables are reused."""
     workers = os.cpu_count() if workers is None else int(workers)
     if workers < 1:
         raise BayespsfInputError(f"workers must be >= 1, got {workers!r}")
@@ -301,7 +301,7 @@ def sample_many(
         ROIs in ADU. Every ROI is validated before any sampling starts.
     model : Model
     seed : int
-        Molecule ``i`` uses :func:`molecule_seed` ``(seed, i)``: results do not depend on the
+        Molecule ``i`` uses ``molecule_seed`` ``(seed, i)``: results do not depend on the
         number of workers.
     executor : optional
         ``None`` (local processes), a ``concurrent.futures.Executor``, a Dask ``Client`` or a
@@ -318,12 +318,12 @@ def sample_many(
     progress : bool, optional
         A progress bar on stderr (default: when stderr is a terminal).
     **options
-        ``ess``, ``walkers``, ``max_steps``, ``moves``, ``method`` of :func:`sample_posterior`.
+        ``ess``, ``walkers``, ``max_steps``, ``moves``, ``method`` of ``sample_posterior``.
 
     Returns
     -------
     pandas.DataFrame
-        One row per molecule, sorted by molecule (see :func:`molecule_row`); also written to
+        One row per molecule, sorted by molecule (see ``molecule_row``); also written to
         ``store/summary.csv``.
     """
     unknown = sorted(set(options) - set(SAMPLER_OPTIONS))

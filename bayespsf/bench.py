@@ -120,7 +120,7 @@ def _reference(counts, scene, plan, seed):
 
 
 def molecule(task) -> list[dict]:
-    """Every method on one ROI: the rows of :func:`frontier` for it."""
+    """Every method on one ROI: the rows of ``frontier`` for it."""
     level, n_photons, k, counts, truth, scene, plan = task
     seed = int(np.random.SeedSequence([plan.seed, n_photons, k]).generate_state(1)[0])
     table = Model.from_scene(scene, likelihood="table")

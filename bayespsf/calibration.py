@@ -25,7 +25,7 @@ from bayespsf.errors import BayespsfInputError
 
 @dataclass(frozen=True)
 class GainCalibration:
-    """Result of :func:`calibrate_gain` (ADU per photon and what it was computed from)."""
+    """Result of ``calibrate_gain`` (ADU per photon and what it was computed from)."""
 
     adu_per_photon: float
     pixel_estimates: np.ndarray  # Eq. photonConv of each pixel used

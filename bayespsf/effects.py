@@ -3,11 +3,11 @@
 A batch carries the per-image truth (``x0 y0 s_x s_y N b`` and any drawn extras) and the pixel
 values at their current *stage*: ``expected`` photons, integer ``photoelectrons``, amplified
 ``electrons`` or ``adu``. Each effect states the stage it reads and the stage it leaves, whether
-it draws random numbers, and does one thing. :mod:`bayespsf.simulate` builds the list of
+it draws random numbers, and does one thing. ``bayespsf.simulate`` builds the list of
 effects from exactly what a scene declares.
 
 The camera laws' own ``sample`` methods (``bayespsf.cameras``) use the same primitives
-(:func:`gamma_register`, :func:`add_normal`), so the simulator and the likelihood describe one
+(``gamma_register``, ``add_normal``), so the simulator and the likelihood describe one
 camera.
 """
 

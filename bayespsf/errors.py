@@ -1,6 +1,6 @@
 """Exceptions raised by bayespsf.
 
-Every error raised for bad input is a :class:`ValueError` subclass whose message names the
+Every error raised for bad input is a ``ValueError`` subclass whose message names the
 offending argument (or scene key) and the allowed range, so ``except ValueError`` keeps working.
 """
 

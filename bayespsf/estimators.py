@@ -107,7 +107,7 @@ def fit_lsq(counts, model: Model) -> pd.DataFrame:
     """The paper's fit: unweighted least squares of Eq. gauss2dfxn to counts in photons.
 
     As in DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010) (MATLAB ``lsqcurvefit``):
-    counts are converted to photons with the camera's mean gain (:meth:`Model.to_photons`) and
+    counts are converted to photons with the camera's mean gain (``Model.to_photons``) and
     fitted by a trust-region least squares (scipy ``least_squares``, analytic Jacobian) of the
     sampled Gaussian with amplitude f0 and constant background. Its widths estimate the
     pixelated width (Eq. tophat), not s0. Not converged: the optimiser failed, a width ran
@@ -132,7 +132,7 @@ def fit_lsq(counts, model: Model) -> pd.DataFrame:
 
 
 def lsq_first_order(model: Model, params):
-    """First-order prediction of :func:`fit_lsq`: its limit and its covariance.
+    """First-order prediction of ``fit_lsq``: its limit and its covariance.
 
     The limit is the least-squares fit of Eq. gauss2dfxn to the noise-free expected image (in
     photons): the sampled Gaussian that best matches the pixel-integrated spot. The covariance
@@ -267,7 +267,7 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
     counts : array_like, shape (..., roi, roi)
     model : Model
     start : array_like, shape (..., 6), optional
-        Starting parameters; default :func:`start_values` of the counts in photons.
+        Starting parameters; default ``start_values`` of the counts in photons.
     """
     c = model.check_counts(counts)
     stack = c.reshape(-1, model.roi, model.roi)
@@ -345,5 +345,5 @@ def _on_bound(u, bounds) -> bool:
 
 
 def fit_laplace(counts, model: Model, start=None) -> pd.DataFrame:
-    """The Laplace approximation: :func:`fit_mle` with its ``sd_<p>`` columns."""
+    """The Laplace approximation: ``fit_mle`` with its ``sd_<p>`` columns."""
     return fit_mle(counts, model, start=start, laplace=True)

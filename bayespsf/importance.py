@@ -7,7 +7,7 @@ all scored in one vectorised log-posterior call. The importance ratios
 ``pi(z) / g(z)`` are Pareto-smoothed (PSIS; Vehtari, Simpson, Gelman, Yao & Gabry, JMLR 25
 (2024), as implemented in ``arviz_stats``), and their Pareto shape k-hat says whether the
 estimate can be trusted: below 0.7 the smoothed estimates converge at a usable rate, above it
-they do not, and the molecule is sampled by MCMC instead (:func:`bayespsf.sample_posterior`
+they do not, and the molecule is sampled by MCMC instead (``bayespsf.sample_posterior``
 does this when ``method="importance"``; the result says which method made it).
 
 Draws are added in batches until the effective sample size of the smoothed weights,
@@ -38,7 +38,7 @@ def psis(log_ratio: np.ndarray) -> tuple[np.ndarray, float]:
 
 def importance_draws(counts, model, proposal, ess: float, max_draws: int, random):
     """Weighted draws until the smoothed weights' ESS reaches ``ess`` (or k-hat exceeds
-    :data:`KHAT_MAX`, or ``max_draws`` are scored); ``random`` is a NumPy RandomState.
+    ``KHAT_MAX``, or ``max_draws`` are scored); ``random`` is a NumPy RandomState.
 
     Returns ``(z, weights, khat)``, ``z`` in sampling coordinates.
     """

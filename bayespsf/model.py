@@ -1,7 +1,7 @@
 """The inference model: geometry, camera law (one likelihood tier) and prior of one molecule.
 
-Built from the same scene as the simulator (:meth:`Model.from_scene`), or from geometry and a
-camera for real data. It maps parameters ``x0 y0 s_x s_y N b`` (:data:`PARAMETER_NAMES`) to
+Built from the same scene as the simulator (``Model.from_scene``), or from geometry and a
+camera for real data. It maps parameters ``x0 y0 s_x s_y N b`` (``PARAMETER_NAMES``) to
 expected photons per pixel and scores counts under the camera law, vectorised over leading
 batch dimensions (walkers, molecules).
 
@@ -61,7 +61,7 @@ class _PriorTerms:
 
 
 def _sample_prior_1d(spec: dict, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` independent draws from one parameter's prior (the law of :class:`_PriorTerms`)."""
+    """``n`` independent draws from one parameter's prior (the law of ``_PriorTerms``)."""
     kind = spec["kind"]
     if kind == "uniform":
         return rng.uniform(spec["low"], spec["high"], n)
@@ -95,7 +95,7 @@ class Model:
     roi, pixel_size
         Odd ROI side in pixels; pixel size in nm.
     camera
-        A :class:`bayespsf.cameras.Camera` (its ``likelihood`` tier is the model's).
+        A ``bayespsf.cameras.Camera`` (its ``likelihood`` tier is the model's).
     prior
         The ``[prior]`` table of a scene (kind and parameters per parameter); ``None`` takes
         the scene defaults for this geometry.
@@ -207,7 +207,7 @@ class Model:
         return (np.asarray(counts, dtype=np.float64) - offset) * per_adu
 
     def photon_variance(self, lam) -> np.ndarray:
-        """Variance of :meth:`to_photons` of a pixel with ``lam`` expected photoelectrons."""
+        """Variance of ``to_photons`` of a pixel with ``lam`` expected photoelectrons."""
         per_adu, _ = self.camera.photons_per_adu()
         return self.camera.variance(lam) * np.asarray(per_adu) ** 2
 
@@ -249,7 +249,7 @@ class Model:
         """Log posterior in sampling coordinates ``z`` (..., 6), up to a constant: log prior +
         log |Jacobian| (the log of s_x, s_y, N) + log-likelihood. Vectorised over walkers; the
         likelihood is evaluated only where the prior is finite. ``counts`` must already be
-        validated (:meth:`check_counts`)."""
+        validated (``check_counts``)."""
         z = np.asarray(z, dtype=np.float64)
         with np.errstate(over="ignore"):  # exp overflow -> inf -> outside the prior's support
             p = self.from_unconstrained(z)

@@ -5,7 +5,7 @@ The draws live in an ArviZ 1.x ``xarray.DataTree`` (group ``posterior``, dims
 ``r_hat`` over walkers is a heuristic; the sampler's own convergence test uses emcee's
 integrated autocorrelation time, reported here as ``tau`` (in steps, before thinning).
 
-A result file (NetCDF, :meth:`Posterior.save`) holds the draws, the observed counts (group
+A result file (NetCDF, ``Posterior.save``) holds the draws, the observed counts (group
 ``observed_data``) and, as attributes, the sampler settings, tau, the camera, the scene (TOML)
 and the truth when known: it is self-describing and opens in plain ArviZ or xarray.
 """

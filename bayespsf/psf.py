@@ -3,7 +3,7 @@
 Conventions (DESIGN.md): positions and widths in nm; x runs along columns (last axis), y along
 rows; (0, 0) is the centre of the ROI's central pixel, so pixel ``k`` of an odd ROI of size ``R``
 has its centre at ``(k - (R - 1) / 2) * pixel_size``. Parameters always come in the order
-``x0, y0, s_x, s_y, N, b`` (:data:`PARAMETER_NAMES`): N is the spot's total photons on the
+``x0, y0, s_x, s_y, N, b`` (``PARAMETER_NAMES``): N is the spot's total photons on the
 infinite plane and b the background photons per pixel.
 
 The expected count of pixel (i, j) is ``N * Py[i] * Px[j] + b`` where ``Px[j]`` is the
@@ -130,7 +130,7 @@ def _axis(centre, width, roi: int, a: float, pixel_model: str, derivatives: bool
     """One axis of the separable spot: the fraction of the spot's photons in each pixel
     ``(..., roi)`` and, with ``derivatives``, its derivatives by the centre and the width.
 
-    ``integrated``: the 1-D Gaussian's probability mass in each pixel (:func:`_pixel_fractions`).
+    ``integrated``: the 1-D Gaussian's probability mass in each pixel (``_pixel_fractions``).
     ``sampled``: its density at the pixel centre times ``a`` (the paper's Eq. A3.1), with
     ``d/dcentre = m z / w`` and ``d/dwidth = m (z**2 - 1) / w`` for ``z = (c - centre) / w``.
     """
@@ -146,7 +146,7 @@ def _axis(centre, width, roi: int, a: float, pixel_model: str, derivatives: bool
 def expected_counts_unchecked(
     p: np.ndarray, roi: int, a: float, pixel_model: str = "integrated"
 ) -> np.ndarray:
-    """:func:`expected_counts` (or, with ``pixel_model="sampled"``, :func:`sampled_gaussian`)
+    """``expected_counts`` (or, with ``pixel_model="sampled"``, ``sampled_gaussian``)
     without input validation, for hot loops whose parameters are already known to be valid
     (inside the prior's support)."""
     (px,) = _axis(p[..., 0], p[..., 2], roi, a, pixel_model, False)
@@ -158,7 +158,7 @@ def expected_counts_unchecked(
 
 def expected_counts_and_jacobian(params, roi: int, pixel_size: float, pixel_model="integrated"):
     """Expected counts and their analytic derivatives with respect to all six parameters
-    (``pixel_model="sampled"``: of :func:`sampled_gaussian`).
+    (``pixel_model="sampled"``: of ``sampled_gaussian``).
 
     Returns
     -------
@@ -205,7 +205,7 @@ def sampled_gaussian(params, roi: int, pixel_size: float) -> np.ndarray:
 
     ``N a**2 / (2 pi s_x s_y) exp(-(x - x0)**2 / (2 s_x**2) - (y - y0)**2 / (2 s_y**2)) + b``;
     the pixel model the closed forms of DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010)
-    are derived from. Same shapes as :func:`expected_counts`.
+    are derived from. Same shapes as ``expected_counts``.
     """
     roi, a = _check_geometry(roi, pixel_size)
     return expected_counts_unchecked(_check_params(params), roi, a, "sampled")

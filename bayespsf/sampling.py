@@ -2,7 +2,7 @@
 
 Moves (``laplace-de``, the default): 80% of steps propose for every walker an independent
 draw from a Student-t built from the Laplace approximation at the MLE
-(:class:`IndependenceMove`), 15% a differential-evolution move and 5% a DE-snooker move
+(``IndependenceMove``), 15% a differential-evolution move and 5% a DE-snooker move
 (ter Braak & Vrugt, Stat. Comput. 18 (2008)). On the near-Gaussian posteriors of bright
 molecules the independence proposals are accepted ~70% of the time and the autocorrelation time
 is ~2-3 steps, against ~20-25 for DE moves alone (``de-snooker``) and ~60 for emcee's stretch
@@ -12,7 +12,7 @@ approximation is poor (dim molecules, heavy tails). Without a converged MLE fit 
 
 Convergence (Foreman-Mackey et al., PASP 125 (2013); Goodman & Weare 2010): after each chunk
 the integrated autocorrelation time tau of every parameter is estimated from the chain after
-burn-in (emcee's estimator, Sokal's window: :func:`integrated_time`); chunks start at 50 steps
+burn-in (emcee's estimator, Sokal's window: ``integrated_time``); chunks start at 50 steps
 and are sized to reach the predicted length; the run stops when every tau changed by < 10%
 since the previous chunk, the chain is >= ``min_taus`` tau long, and every parameter's
 effective sample size ``walkers * (steps - burn) / tau`` reaches ``ess``. A run that hits
@@ -100,7 +100,7 @@ def _moves(name: str, proposal: IndependenceMove | None):
 
 def _start(counts, model, walkers, rng):
     """Walkers around the MLE, spread by its Laplace SDs (in sampling coordinates), and the
-    Laplace proposal of :class:`IndependenceMove` (``None`` if the fit failed).
+    Laplace proposal of ``IndependenceMove`` (``None`` if the fit failed).
 
     A centre outside the prior's support (an informative prior that excludes the MLE) is
     moved to its edge; walkers that cannot be placed near it are drawn from the prior.
@@ -263,13 +263,13 @@ def sample_posterior(
     truth, scene
         Optional true parameters and scene, kept in the result (corner plot truths, file).
     start : array_like, shape (walkers, 6), optional
-        Initial walkers in sampling coordinates (:meth:`Model.to_unconstrained`); default:
+        Initial walkers in sampling coordinates (``Model.to_unconstrained``); default:
         around the maximum-likelihood fit, spread by its Laplace SDs.
     progress : bool, optional
         One line per chunk on stderr (steps, tau, ESS); default: when stderr is a terminal.
     method : {"mcmc", "importance"}
         ``importance``: Pareto-smoothed importance sampling from the Laplace proposal
-        (:mod:`bayespsf.importance`) when its k-hat is <= 0.7 and the ESS target is reached
+        (``bayespsf.importance``) when its k-hat is <= 0.7 and the ESS target is reached
         within 50 x ``ess`` draws; otherwise (and without a converged MLE, or with ``start``)
         the emcee run, with the reason in ``info["importance"]``.
     """

@@ -4,10 +4,10 @@ A scene declares the geometry, the emitter, the optics, the background, the came
 prior. The simulator applies exactly the effects it declares (no key, no effect) and the
 inference model is built from the same scene, so the two cannot drift apart.
 
-Every key, with its unit, default and allowed range, is listed in :data:`SCHEMA`;
+Every key, with its unit, default and allowed range, is listed in ``SCHEMA``;
 ``docs/scenes.md``'s tables are generated from it (``bayespsf schema``) and a test keeps the two
 identical. Unknown keys, keys that the declared kind does not use, wrong types and values out of
-range raise :class:`SceneError` naming the key and the allowed range.
+range raise ``SceneError`` naming the key and the allowed range.
 """
 
 from __future__ import annotations
@@ -455,8 +455,8 @@ def _freeze(d: Mapping) -> MappingProxyType:
 class Scene:
     """A validated scene. Sections are read-only mappings: ``scene.emitter["photons"]``.
 
-    Build with :meth:`load` (TOML file), :meth:`loads` (TOML text) or :meth:`from_dict`;
-    :meth:`to_dict` returns the normalised dict (every default filled in), and
+    Build with ``load`` (TOML file), ``loads`` (TOML text) or ``from_dict``;
+    ``to_dict`` returns the normalised dict (every default filled in), and
     ``Scene.from_dict(scene.to_dict()) == scene`` exactly.
     """
 
@@ -632,7 +632,7 @@ def _check_consistency(d: Mapping) -> None:
 
 
 def schema_markdown() -> str:
-    """docs/scenes.md's key tables, generated from :data:`SCHEMA`."""
+    """docs/scenes.md's key tables, generated from ``SCHEMA``."""
     lines = []
     for section, keys in SCHEMA.items():
         lines += [

@@ -9,11 +9,11 @@ Photon paths, chosen from what the scene declares: Poisson pixel counts from the
 (fast); a multinomial over the pixels when each image emits exactly N photons; photon-by-photon
 binning (the paper's method) when photons carry their own width (``width_jitter``).
 
-Reproducibility: images are simulated in blocks of :func:`block_size` images (a function of the
+Reproducibility: images are simulated in blocks of ``block_size`` images (a function of the
 scene only); block ``k`` draws from ``Generator(PCG64(SeedSequence(seed, spawn_key=(k,))))``.
 Whole blocks are always simulated, so image ``i`` depends on ``seed`` and ``i`` only: the same
 seed gives the same images for any ``n`` (a shorter run is a prefix of a longer one), in chunks
-of any size (:func:`simulate_chunks`, for runs larger than memory) and on any machine. The
+of any size (``simulate_chunks``, for runs larger than memory) and on any machine. The
 working memory is one block.
 """
 
@@ -178,7 +178,7 @@ def simulate_chunks(scene: Scene, n: int, seed: int, chunk_size: int = 16_384):
     """Yield ``(counts, truth)`` for consecutive chunks of at most ``chunk_size`` images.
 
     Memory is bounded by the chunk; the images (and the truth rows, indexed by image number)
-    are those of :func:`simulate` whatever the chunk size.
+    are those of ``simulate`` whatever the chunk size.
     """
     roi = _check_run(scene, n, seed, chunk_size)
     steps = build_pipeline(scene)

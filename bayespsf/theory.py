@@ -124,7 +124,7 @@ def optimal_pixel_ratio(N, sigma_b, b_mean, quantity: str = "width"):
 
 
 def optimal_pixel_ratio_numeric(N, sigma_b, b_mean, quantity: str = "width") -> float:
-    """Cross-check of :func:`optimal_pixel_ratio` by bounded scalar minimisation (scalars)."""
+    """Cross-check of ``optimal_pixel_ratio`` by bounded scalar minimisation (scalars)."""
     formula = {"width": delta_s_analytic, "centroid": delta_x_analytic}[quantity]
     result = optimize.minimize_scalar(
         lambda ratio: formula(N, 1.0, 1.0, ratio, sigma_b, b_mean),
@@ -207,7 +207,7 @@ def crlb(scene_or_model, params=None, method: str = "exact", free: str = "all") 
 
 
 def scene_params(scene) -> np.ndarray:
-    """The declared spot of a scene as parameters ``x0 y0 s_x s_y N b`` (see :func:`crlb`)."""
+    """The declared spot of a scene as parameters ``x0 y0 s_x s_y N b`` (see ``crlb``)."""
     from bayespsf.simulator import build_pipeline
 
     truth = build_pipeline(scene)[0]  # EmitterTruth: the declared values, without randomness

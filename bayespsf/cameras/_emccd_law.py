@@ -12,7 +12,7 @@ photoelectrons ``n ~ Poisson(lam)``; the EM register turns ``n >= 1`` into ``Gam
 
 (the sum over n >= 1 of Poisson-weighted Gamma densities). With readout the density is
 ``exp(-lam) phi_r(t) + J(t)`` with ``J(t) = integral_0^inf f(u) phi_r(t - u) du``, which has no
-closed form; :func:`log_convolved` computes it by Gauss-Legendre quadrature on windows placed
+closed form; ``log_convolved`` computes it by Gauss-Legendre quadrature on windows placed
 around the integrand's mode (the integrand is log-concave in u, so it has one mode and the
 windows carry all but ``exp(-_DROP)`` of its mass).
 """
@@ -43,7 +43,7 @@ def log_0f1_2(w):
 
 
 def dlog_0f1_2(w, *, second: bool = False):
-    """First derivative of :func:`log_0f1_2`, ``R(w) = I0(z) / (sqrt(w) I1(z)) - 1/w`` with
+    """First derivative of ``log_0f1_2``, ``R(w) = I0(z) / (sqrt(w) I1(z)) - 1/w`` with
     ``z = 2 sqrt w``; with ``second``, also ``R'(w) = (1 - (I0/I1)^2) / w + 1 / w^2`` (negative:
     ``log_0f1_2`` is concave). Taylor series near 0, where the Bessel forms cancel.
     """

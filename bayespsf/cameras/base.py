@@ -35,7 +35,7 @@ class Camera(ABC):
     def sample(self, expected, rng) -> np.ndarray:
         """Counts in ADU drawn from the law, same shape as ``expected``.
 
-        ``rng`` is a :class:`numpy.random.Generator` or an integer seed.
+        ``rng`` is a ``numpy.random.Generator`` or an integer seed.
         """
         lam = nonnegative_array("expected", expected)
         return self._sample(lam, as_generator(rng))

@@ -15,7 +15,7 @@ Likelihood tiers (``likelihood=``), each a trade of accuracy for time (see bench
     mpmath: the reference. Without readout it is the closed form below, exactly.
 ``"table"``
     The exact law precomputed once per ``readout_sd / gain`` on a grid of log lam and a
-    sqrt-like count coordinate and interpolated bicubically (:mod:`._emccd_table`); exact
+    sqrt-like count coordinate and interpolated bicubically (``._emccd_table``); exact
     quadrature outside the grid. Without readout it is the closed form, like ``"exact"``.
 ``"high-gain"``
     The closed form ``exp(-lam - x/G) sqrt(lam / (x G)) I1(2 sqrt(lam x / G)) / G`` for the
@@ -66,7 +66,7 @@ class EMCCD(Camera):
     e_per_adu : float
         Electrons per ADU (the A/D conversion factor), > 0.
     likelihood : str
-        One of :data:`TIERS`; see the module docstring.
+        One of ``TIERS``; see the module docstring.
     """
 
     fisher_methods = FISHER_METHODS

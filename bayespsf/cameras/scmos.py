@@ -15,7 +15,7 @@ density of the counts in ADU is ``p(c) = q(y) / g`` with
 Two likelihood tiers:
 
 ``"exact"``
-    ``log q(y)`` by a log-space sum over a window of ``n`` (see :func:`log_mixture`). The
+    ``log q(y)`` by a log-space sum over a window of ``n`` (see ``log_mixture``). The
     summand is log-concave in ``n`` (its second difference is ``-log((n+1)/n) - 1/s^2 < 0``), so
     it has one mode; the sum starts at the mode and walks outward in both directions, stopping
     once the geometric bound on the remaining terms (valid by log-concavity) is below ``1e-17``
@@ -41,13 +41,13 @@ the mass of a lattice point spread over a cell of width ``g`` ADU, i.e. the limi
 averaged over that cell as ``v -> 0``, so it is in the same units (per ADU) as the ``v > 0``
 densities. A count is on the lattice when ``|y - round(y)| <= 1e-9 (1 + (|c| + |o|) / g)`` and
 ``round(y) >= 0``. Both tiers use this convention for ``v == 0`` pixels, so for ``g = 1, o = 0``
-the law is the :class:`~bayespsf.cameras.Photon` law. Pixels with ``v > 0`` must have a readout
+the law is the ``Photon`` law. Pixels with ``v > 0`` must have a readout
 sd of at least ``0.01`` photoelectrons (no physical readout is that quiet; use 0 for an ideal
 readout-free pixel). The floor bounds the cost of the exact Fisher information, whose
 quadrature step shrinks with the readout sd.
 
 Fisher information about ``lam`` (independent of gain and offset): ``method="exact"`` integrates
-``q(y) score(y)^2`` with a trapezoid rule in ``y`` (:func:`fisher_exact`; relative error
+``q(y) score(y)^2`` with a trapezoid rule in ``y`` (``fisher_exact``; relative error
 ~1e-13); ``method="approx"`` is Huang et al.'s ``1 / (lam + s^2)``, a lower bound of the exact
 value, which is itself at most the readout-free ``1 / lam``.
 """
@@ -256,7 +256,7 @@ def fisher_exact(lam: ArrayLike, s: ArrayLike) -> np.ndarray:
     ``d q / d lam = q(y - 1) - q(y)``, so the score is ``exp(log q(y - 1) - log q(y)) - 1``
     (``= E[n | y] / lam - 1``) and ``I = integral q(y) score(y)^2 dy``. The integral is a
     trapezoid rule on ``y`` over ``[n_lo - 9 s, n_hi + 1 + 9 s]`` with ``n_lo, n_hi = lam -/+
-    (10 sqrt(lam + 1) + 10)``; the step is :func:`_fisher_step`, rounded to ``1/M`` when below
+    (10 sqrt(lam + 1) + 10)``; the step is ``_fisher_step``, rounded to ``1/M`` when below
     2 so that ``y - 1`` is a grid point (one density evaluation per point). The integrand is
     analytic and negligible at both ends, so the rule converges geometrically. Measured relative
     error: <= 2e-13 against adaptive quadrature of a brute-force ``q`` for ``lam`` in [1e-5, 200]
@@ -366,7 +366,7 @@ class SCMOS(Camera):
 
         n ~ Poisson(lam),    counts = o + g n + Normal(0, sqrt(v))    (ADU),
 
-    and :meth:`log_likelihood` is a density per ADU (``v == 0`` pixels: ``log Pois - log g``
+    and ``log_likelihood`` is a density per ADU (``v == 0`` pixels: ``log Pois - log g``
     on the lattice ``o + g n``, ``-inf`` off it).
 
     References
@@ -474,7 +474,7 @@ class SCMOS(Camera):
             Expected photoelectrons (``>= 0``), shape ``(..., rows, columns)`` matching the maps.
         method : {"exact", "approx"}
             ``"exact"``: ``E[(d log p / d lam)^2]`` of the exact law by quadrature (see
-            :func:`fisher_exact`; ``1 / lam`` where ``v == 0``). ``"approx"``: Huang et al.'s
+            ``fisher_exact``; ``1 / lam`` where ``v == 0``). ``"approx"``: Huang et al.'s
             ``1 / (lam + v / g^2)``, the information of the shifted-Poisson approximation.
 
         Returns

@@ -16,7 +16,7 @@ def names() -> list[str]:
 
 
 def load(name: str) -> Scene:
-    """A shipped scene by name (see :func:`names`)."""
+    """A shipped scene by name (see ``names``)."""
     if name not in names():
         raise BayespsfInputError(f"no shipped scene {name!r}; shipped: {', '.join(names())}")
     return Scene.loads(resources.files(__name__).joinpath(f"{name}.toml").read_text())
