@@ -35,9 +35,12 @@ def write(out: Path, stem: str, table, text: str, command: str, started: float,
         write_section(RESULTS.parent / "README.md", stem, f"{summary.strip()}\n\n{link}")
 
 
-def study(doc: str, argv, name: str, posteriors: bool = True):
-    """Parse a study script's arguments: (args, start time, output stem)."""
+def study(doc: str, argv, name: str, posteriors: bool = True, arguments=None):
+    """Parse a study script's arguments: (args, start time, output stem); ``arguments`` adds
+    the script's own options to the parser."""
     p = parser(doc)
+    if arguments is not None:
+        arguments(p)
     args = (add_run_arguments(p) if posteriors else p).parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     return args, time.perf_counter(), _stem(args, name)
@@ -54,6 +57,9 @@ def finish(args, name: str, table, text: str, started: float, summary: str | Non
     command = f"python validation/{name}.py" + (" --quick" if args.quick else "")
     if getattr(args, "method", "mcmc") != "mcmc":
         command += f" --method {args.method}"
+    for option in ("molecules", "configurations"):  # a study's own options, when given
+        if getattr(args, option, None) is not None:
+            command += f" --{option} {getattr(args, option)}"
     stem = _stem(args, name)
     write(args.out, stem, table, text, command, started, summary)
     print(text)

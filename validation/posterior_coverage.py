@@ -15,6 +15,7 @@ Prior (all configurations): x0, y0 uniform over the central pixel; s_x, s_y log-
 [100, 180] nm; N log-uniform on [300, 3000] photons; b uniform on [2, 20] photons per pixel.
 
     python validation/posterior_coverage.py [--quick] [--workers K | --scheduler ADDRESS]
+        [--method importance] [--molecules N] [--configurations 0,1]
 """
 
 from __future__ import annotations
@@ -167,11 +168,20 @@ def interval_figure(table: pd.DataFrame, path: Path) -> None:
     plt.close(fig)
 
 
+def _arguments(p) -> None:
+    p.add_argument("--molecules", type=int, default=None, help="per configuration (100)")
+    p.add_argument(
+        "--configurations", default=None, help="comma-separated indices into CONFIGURATIONS"
+    )
+
+
 def main(argv=None):
-    args, started, stem = study(__doc__, argv, "posterior_coverage")
-    molecules = 4 if args.quick else 100
+    args, started, stem = study(__doc__, argv, "posterior_coverage", arguments=_arguments)
+    molecules = args.molecules or (4 if args.quick else 100)
     options = {"max_steps": 1000} if args.quick else {}
     configurations = CONFIGURATIONS[:1] + CONFIGURATIONS[3:4] if args.quick else CONFIGURATIONS
+    if args.configurations is not None:
+        configurations = tuple(CONFIGURATIONS[int(k)] for k in args.configurations.split(","))
     table, ranks = run(args, configurations, molecules, options)
     rank_figure(ranks, args.out / f"{stem}_ranks.png")
     interval_figure(table, args.out / f"{stem}_intervals.png")
