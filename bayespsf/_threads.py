@@ -10,6 +10,7 @@ to one thread while a molecule is fitted or sampled removes that cost; it is res
 from __future__ import annotations
 
 import functools
+import threading
 
 from threadpoolctl import ThreadpoolController
 
@@ -25,10 +26,14 @@ def single_blas_thread():
 
 
 def one_blas_thread(function):
-    """Decorator: ``function`` runs with BLAS limited to one thread."""
+    """Decorator: ``function`` runs with BLAS limited to one thread when called from the main
+    thread. The limit is process-wide, so calls from other threads (a threaded Dask worker)
+    leave it alone rather than race each other's enter and exit."""
 
     @functools.wraps(function)
     def limited(*args, **kwargs):
+        if threading.current_thread() is not threading.main_thread():
+            return function(*args, **kwargs)
         with single_blas_thread():
             return function(*args, **kwargs)
 

@@ -69,11 +69,12 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
     flat = chains.reshape(-1, 6)
     info = posterior.info
     tau = posterior.tau
+    importance = posterior.method == "importance"
     row = {
         "molecule": int(index),
         "seed": int(seed),
         "converged": bool(info.get("converged", False)),
-        "method": "importance" if "khat" in info else "mcmc",
+        "method": posterior.method,
         "steps": int(info.get("steps", 0)),
         "draws": int(flat.shape[0]),
         "acceptance": float(info.get("acceptance", np.nan)),
@@ -83,7 +84,7 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
     truth = posterior.truth
     # every second thinned draw is ~tau apart: near-independent; RANK_DRAWS of them at random
     # (importance draws, resampled from independent proposals, are independent already)
-    spaced = flat if "khat" in info else chains[:, ::2].reshape(-1, 6)
+    spaced = flat if importance else chains[:, ::2].reshape(-1, 6)
     pick = np.random.default_rng([seed, 1]).choice(len(spaced), RANK_DRAWS, replace=False)
     steps_after_burn = info.get("steps", 0) - info.get("burn", 0)
     for k, name in enumerate(PARAMETER_NAMES):
@@ -93,7 +94,7 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
             row[quantile_column(name, q)] = float(value)
         row[f"{name}_tau"] = float(tau[name])
         row[f"{name}_ess"] = float(
-            info["ess"] if "khat" in info else chains.shape[0] * steps_after_burn / tau[name]
+            info["ess"] if importance else chains.shape[0] * steps_after_burn / tau[name]
         )
         if truth is not None:
             row[f"{name}_truth"] = float(truth[name])

@@ -45,9 +45,9 @@ def importance_draws(counts, model, proposal, ess: float, max_draws: int, random
     zs, log_ratios = [], []
     batch = FIRST_BATCH
     while True:
-        z, _ = proposal._propose(np.zeros((batch, len(proposal.centre))), random)
+        z, log_g = proposal.draw(batch, random)
         zs.append(z)
-        log_ratios.append(model.log_posterior(z, counts) - proposal.log_density(z))
+        log_ratios.append(model.log_posterior(z, counts) - log_g)
         z_all, log_ratio = np.concatenate(zs), np.concatenate(log_ratios)
         weights, khat = psis(log_ratio)
         achieved = 1.0 / np.sum(weights * weights)

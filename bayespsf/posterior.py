@@ -70,6 +70,12 @@ class Posterior:
         return self._attr("sampler") or {}
 
     @property
+    def method(self) -> str:
+        """``"importance"`` for an importance-sampled posterior (its ``info`` has ``khat`` and
+        ``ess``), else ``"mcmc"``."""
+        return "importance" if "khat" in self.info else "mcmc"
+
+    @property
     def converged(self) -> bool:
         return bool(self.info.get("converged", False))
 

@@ -30,8 +30,11 @@ _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 
 def pixel_centres(roi: int, pixel_size: float) -> np.ndarray:
     """Centres (nm) of the ``roi`` pixels along one axis, the central pixel at 0."""
-    roi, pixel_size = _check_geometry(roi, pixel_size)
-    return (np.arange(roi) - (roi - 1) / 2.0) * pixel_size
+    return _centres(*_check_geometry(roi, pixel_size))
+
+
+def _centres(roi: int, a: float) -> np.ndarray:
+    return (np.arange(roi) - (roi - 1) / 2.0) * a
 
 
 def _check_geometry(roi, pixel_size) -> tuple[int, float]:
@@ -138,7 +141,7 @@ def _axis(centre, width, roi: int, a: float, pixel_model: str, derivatives: bool
         mass, z = _pixel_fractions(centre, width, roi, a)
         return (mass, *_fraction_derivatives(z, width)) if derivatives else (mass,)
     w = width[..., None]
-    z = ((np.arange(roi) - (roi - 1) / 2.0) * a - centre[..., None]) / w
+    z = (_centres(roi, a) - centre[..., None]) / w
     mass = (a * _INV_SQRT_2PI) * np.exp(-0.5 * z * z) / w
     return (mass, mass * z / w, mass * (z * z - 1.0) / w) if derivatives else (mass,)
 

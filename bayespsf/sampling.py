@@ -72,19 +72,26 @@ class IndependenceMove(emcee.moves.MHMove):
     def __init__(self, centre, scale, dof: float = 5.0):
         self.centre = np.asarray(centre, dtype=np.float64)
         self.cholesky = np.linalg.cholesky(np.asarray(scale, dtype=np.float64))
+        self.whiten = np.linalg.inv(self.cholesky)  # z - centre -> independent coordinates
         self.dof = float(dof)
         super().__init__(self._propose, ndim=len(self.centre))
 
+    def _log_kernel(self, u) -> np.ndarray:
+        return -0.5 * (self.dof + len(self.centre)) * np.log1p(np.sum(u * u, axis=-1) / self.dof)
+
     def log_density(self, z) -> np.ndarray:
         """Log proposal density up to a constant."""
-        u = np.linalg.solve(self.cholesky, (np.asarray(z) - self.centre).T)
-        return -0.5 * (self.dof + len(self.centre)) * np.log1p(np.sum(u * u, axis=0) / self.dof)
+        return self._log_kernel((np.asarray(z) - self.centre) @ self.whiten.T)
+
+    def draw(self, n: int, random) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` draws (a NumPy RandomState's stream) and their log density."""
+        radius = np.sqrt(self.dof / random.chisquare(self.dof, n))
+        u = radius[:, None] * random.standard_normal((n, len(self.centre)))
+        return self.centre + u @ self.cholesky.T, self._log_kernel(u)
 
     def _propose(self, coords, random):
-        n, ndim = coords.shape
-        radius = np.sqrt(self.dof / random.chisquare(self.dof, n))
-        new = self.centre + radius[:, None] * (random.standard_normal((n, ndim)) @ self.cholesky.T)
-        return new, self.log_density(coords) - self.log_density(new)
+        new, log_new = self.draw(len(coords), random)
+        return new, self.log_density(coords) - log_new
 
 
 def _moves(name: str, proposal: IndependenceMove | None):
@@ -95,7 +102,9 @@ def _moves(name: str, proposal: IndependenceMove | None):
         return moves
     if name in ("laplace-de", "de-snooker"):
         return [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
-    return emcee.moves.StretchMove()
+    if name == "stretch":
+        return emcee.moves.StretchMove()
+    raise BayespsfInputError(f"moves must be one of {', '.join(MOVES)}; got {name!r}")
 
 
 def _start(counts, model, walkers, rng):
@@ -288,7 +297,12 @@ def sample_posterior(
     if method not in ("mcmc", "importance"):
         raise BayespsfInputError(f"method must be 'mcmc' or 'importance'; got {method!r}")
     settings = Settings(
-        int(seed), int(walkers), float(ess), 50, int(max_steps), 50.0, moves, method
+        seed=int(seed),
+        walkers=int(walkers),
+        ess=float(ess),
+        max_steps=int(max_steps),
+        moves=moves,
+        method=method,
     )
     start_seq, emcee_seq = np.random.SeedSequence(seed).spawn(2)
     proposal = None
@@ -345,6 +359,8 @@ def sample_posterior(
             converged = True
             break
         chunk = _next_chunk(sampler.iteration, burn, tau, settings)
+    if show:
+        print(file=sys.stderr)  # ends the progress line
     thin = max(1, int(0.5 * np.nanmin(tau))) if np.any(np.isfinite(tau)) else 1
     draws = sampler.get_chain(discard=burn, thin=thin)  # (draws, walkers, 6) in z
     params = model.from_unconstrained(draws)
@@ -354,6 +370,7 @@ def sample_posterior(
         tau=tau,
         info={
             **asdict(settings),
+            "method": "mcmc",  # what ran; a fallback from importance sampling says why below
             "steps": int(sampler.iteration),
             "burn": burn,
             "thin": thin,

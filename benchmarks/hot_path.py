@@ -61,13 +61,19 @@ def stages(model, rois) -> pd.DataFrame:
                            "convergence checks (tau by FFT)",
                            "result object (Posterior: xarray DataTree)"], 0.0)  # fmt: skip
 
+    inside = []  # the stages being timed, innermost last
+
     def timed(function, stage):
         def wrapper(*args, **kwargs):
+            if inside:  # a nested call (the start scores its walkers): its outer stage counts it
+                return function(*args, **kwargs)
+            inside.append(stage)
             start = time.perf_counter()
             try:
                 return function(*args, **kwargs)
             finally:
                 spent[stage] += time.perf_counter() - start
+                inside.pop()
 
         return wrapper
 
@@ -92,7 +98,6 @@ def stages(model, rois) -> pd.DataFrame:
         for owner, name, original in originals:
             setattr(owner, name, original)
         del model.log_posterior
-    # the start scores its walkers with log_posterior too: counted once, in the start
     parts = dict(spent)
     parts["emcee bookkeeping and the rest"] = total - sum(parts.values())
     table = pd.DataFrame({"stage": list(parts), "seconds": list(parts.values())})

@@ -4,7 +4,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -67,9 +66,10 @@ def test_hot_path_benchmark_quick():
     import hot_path
 
     parts, call, floor, psis = hot_path.main(["--quick"])
+    # each second is counted in one stage only: were a nested call counted twice, "the rest"
+    # (total minus the timed stages) could go negative
     stages = parts[parts["stage"] != "total"]
-    assert stages["seconds"].sum() == pytest.approx(parts["seconds"].iloc[-1], rel=1e-9)
-    assert np.all(stages["seconds"] >= 0)
+    assert np.all(stages["seconds"] > 0)
     # the compiled PSF probe computes the same spot as the NumPy one (near the centre)
     gap = call.set_index("part").loc["numba PSF max relative difference from NumPy"]
     assert float(gap.iloc[0]) < 1e-12

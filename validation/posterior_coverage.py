@@ -32,7 +32,7 @@ import pandas as pd
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import Runner, finish, study
+from _common import RESULTS, Runner, finish, study
 
 from bayespsf import scenes, simulate
 from bayespsf.batch import RANK_DRAWS, coverage
@@ -177,6 +177,12 @@ def _arguments(p) -> None:
 
 def main(argv=None):
     args, started, stem = study(__doc__, argv, "posterior_coverage", arguments=_arguments)
+    subset = args.molecules is not None or args.configurations is not None
+    if subset and args.out.resolve() == RESULTS.resolve():
+        raise SystemExit(
+            "--molecules / --configurations make a different study: give --out, so that the "
+            "full run's results and README section are not overwritten"
+        )
     molecules = args.molecules or (4 if args.quick else 100)
     options = {"max_steps": 1000} if args.quick else {}
     configurations = CONFIGURATIONS[:1] + CONFIGURATIONS[3:4] if args.quick else CONFIGURATIONS
