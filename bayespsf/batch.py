@@ -85,7 +85,10 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
     # every second thinned draw is ~tau apart: near-independent; RANK_DRAWS of them at random
     # (importance draws, resampled from independent proposals, are independent already)
     spaced = flat if importance else chains[:, ::2].reshape(-1, 6)
-    pick = np.random.default_rng([seed, 1]).choice(len(spaced), RANK_DRAWS, replace=False)
+    # a posterior too short for RANK_DRAWS near-independent draws (a capped run) gets no rank
+    ranked = truth is not None and len(spaced) >= RANK_DRAWS
+    if ranked:
+        pick = np.random.default_rng([seed, 1]).choice(len(spaced), RANK_DRAWS, replace=False)
     steps_after_burn = info.get("steps", 0) - info.get("burn", 0)
     for k, name in enumerate(PARAMETER_NAMES):
         row[f"{name}_mean"] = float(flat[:, k].mean())
@@ -98,7 +101,7 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
         )
         if truth is not None:
             row[f"{name}_truth"] = float(truth[name])
-            row[f"{name}_rank"] = int(np.sum(spaced[pick, k] < truth[name]))
+            row[f"{name}_rank"] = int(np.sum(spaced[pick, k] < truth[name])) if ranked else np.nan
     return row
 
 

@@ -222,3 +222,15 @@ def test_ranks_of_truths_drawn_like_the_posterior_are_uniform():
     for k in range(6):
         counts = np.bincount(ranks[:, k] // 10, minlength=10)
         assert stats.chisquare(counts).pvalue > 1e-3
+
+
+def test_a_posterior_too_short_to_rank_gets_no_rank_instead_of_an_error():
+    from bayespsf.batch import RANK_DRAWS, molecule_row
+    from bayespsf.posterior import Posterior
+
+    draws = np.random.default_rng(0).normal(100.0, 1.0, (2, 20, 6))  # 20 spaced draws < 99
+    truth = np.full(6, 100.0)
+    post = Posterior.from_draws(draws, tau=np.ones(6), info={"steps": 20}, truth=truth)
+    row = molecule_row(post, 0, seed=1)
+    assert RANK_DRAWS > 20 and np.isnan(row["s_x_rank"]) and row["s_x_truth"] == 100.0
+    assert "s_x_rank" not in molecule_row(Posterior.from_draws(draws, tau=np.ones(6)), 0, 1)
