@@ -9,11 +9,25 @@ from bayespsf.errors import BayespsfInputError
 
 
 def finite_array(name: str, value) -> np.ndarray:
-    """``value`` as a float64 array; NaN or infinity raise an error naming ``name``."""
+    """``value`` as a float64 array; NaN, infinity, and complex, boolean or non-numeric values
+    (which NumPy would cast silently: the imaginary part dropped, True read as 1) raise an error
+    naming ``name``."""
     try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise BayespsfInputError(f"{name} must be numeric, got {type(value).__name__}") from exc
+        raw = np.asarray(value)
+    except ValueError as exc:  # ragged nested sequences
+        raise BayespsfInputError(f"{name} must be a rectangular numeric array ({exc})") from exc
+    if raw.dtype.kind == "O":  # e.g. a row of a mixed-type DataFrame: numbers held as objects
+        try:
+            raw = raw.astype(np.float64)
+        except (TypeError, ValueError) as exc:
+            raise BayespsfInputError(f"{name} must be real numbers, got {exc}") from exc
+    if raw.dtype.kind not in "iuf":
+        what = {"c": "complex", "b": "boolean", "U": "text", "S": "bytes"}
+        raise BayespsfInputError(
+            f"{name} must be real numbers (integer or float), got "
+            f"{what.get(raw.dtype.kind, raw.dtype.name)} values"
+        )
+    arr = raw.astype(np.float64, copy=False)
     if not np.all(np.isfinite(arr)):
         bad = np.count_nonzero(~np.isfinite(arr))
         raise BayespsfInputError(f"{name} must be finite; {bad} entries are NaN or infinite")

@@ -1,0 +1,34 @@
+"""Bad inputs through the public API: each is refused with a message naming the field (issue 17:
+nothing accepted without a word)."""
+
+import numpy as np
+import pytest
+
+import bayespsf
+from bayespsf.errors import BayespsfInputError
+
+
+@pytest.fixture(scope="module")
+def model():
+    return bayespsf.Model.from_scene(bayespsf.scenes.load("ideal"))
+
+
+@pytest.mark.parametrize(
+    "bad,words",
+    [
+        (np.full((15, 15), 3.0) + 1j, "complex"),
+        (np.ones((15, 15), dtype=bool), "boolean"),
+        (np.full((15, 15), "3"), "text"),
+        ([[1.0, 2.0], [3.0]], "rectangular"),
+    ],
+    ids=["complex", "boolean", "text", "ragged"],
+)
+def test_counts_of_the_wrong_kind_are_named(model, bad, words):
+    with pytest.raises(BayespsfInputError, match=f"counts.*{words}"):
+        model.check_counts(bad)
+
+
+def test_numbers_held_as_objects_are_read(model):
+    """A row of a mixed-type DataFrame holds numbers as objects: still numbers."""
+    counts = np.arange(225.0).reshape(15, 15).astype(object)
+    np.testing.assert_array_equal(model.check_counts(counts), np.arange(225.0).reshape(15, 15))
