@@ -23,6 +23,10 @@ from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.scene import Scene
 
 DEFAULT_TIER = {"emccd": "table", "scmos": "exact"}
+MIN_ROI = 5  # six parameters need the spot and a border of background pixels
+OFFSET_SDS = 5.0  # counts this many readout SDs below the offset are not the camera's
+OFFSET_FRACTION = 0.1  # ... nor an ROI with more than this fraction of such pixels
+PLATEAU_SPREAD = 1000  # a plateau counts where the ROI spans this many count quanta
 LOG_PARAMETERS = [2, 3, 4]  # s_x, s_y, N are sampled in log space
 
 
@@ -56,8 +60,31 @@ class _PriorTerms:
             total -= np.log(safe).sum(axis=-1)
         if self.quadratic.size:
             q = self.quadratic
-            total -= 0.5 * (((p[..., q] - self.centre[q]) / self.scale[q]) ** 2).sum(axis=-1)
+            with np.errstate(over="ignore"):  # beyond ~1e154 scales: density 0, log -inf
+                total -= 0.5 * (((p[..., q] - self.centre[q]) / self.scale[q]) ** 2).sum(axis=-1)
         return np.where(inside, total, -np.inf)
+
+
+def saturation_plateau(roi: np.ndarray) -> int:
+    """The number of pixels of a saturation plateau in one ROI (flat counts), else 0.
+
+    A plateau is two or more pixels at the ROI's maximum where that maximum is an ADC's full
+    scale (``2**k - 1`` or ``2**k`` ADU, ``k`` = 8 to 20), or three or more where the ROI spans
+    at least ``PLATEAU_SPREAD`` quanta (the smallest step between its distinct counts) between
+    its median and its maximum: there, by chance, three pixels share the maximum with a
+    probability of order ``PLATEAU_SPREAD**-2`` or less (the counts near the peak are spread
+    over hundreds of quanta), while a clipped spot has several.
+    """
+    top = roi.max()
+    at_top = int(np.count_nonzero(roi == top))
+    if at_top < 2:
+        return 0
+    full_scale = any(top in (2.0**k - 1, 2.0**k) for k in range(8, 21))
+    if full_scale:
+        return at_top
+    steps = np.diff(np.unique(roi))
+    spread = (top - np.median(roi)) / steps.min()
+    return at_top if at_top >= 3 and spread >= PLATEAU_SPREAD else 0
 
 
 def _sample_prior_1d(spec: dict, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -121,6 +148,12 @@ class Model:
         pixel_model: str = "integrated",
     ):
         psf.pixel_centres(roi, pixel_size)  # validates the geometry
+        if roi < MIN_ROI:
+            raise BayespsfInputError(
+                f"roi must be >= {MIN_ROI} pixels for inference, got {roi}: the six parameters "
+                "need the spot and a border of background pixels (scenes of smaller ROIs can "
+                "be simulated, not fitted)"
+            )
         self.pixel_model = psf._check_pixel_model(pixel_model)
         if not isinstance(camera, Camera):
             raise BayespsfInputError(f"camera must be a bayespsf camera, got {camera!r}")
@@ -164,7 +197,21 @@ class Model:
         return mu + self.clock_induced_charge, jac
 
     def check_counts(self, counts) -> np.ndarray:
-        """ROI counts as a float array of shape ``(..., roi, roi)``, validated once."""
+        """ROI counts as a float array of shape ``(..., roi, roi)``, validated once.
+
+        Raises ``BayespsfInputError`` for the first ROI with a problem (``roi_problems``).
+        """
+        c = self._check_shape(counts)
+        problems = self.roi_problems(c)
+        bad = [(i, why) for i, why in enumerate(problems) if why is not None]
+        if bad:
+            i, why = bad[0]
+            where = f"ROI {i} of {len(problems)}" if c.ndim > 2 else "the ROI"
+            more = f" ({len(bad) - 1} more ROI(s) have problems)" if len(bad) > 1 else ""
+            raise BayespsfInputError(f"counts: {where}: {why}{more}")
+        return c
+
+    def _check_shape(self, counts) -> np.ndarray:
         c = finite_array("counts", counts)
         if c.ndim < 2 or c.shape[-2:] != (self.roi, self.roi):
             raise BayespsfInputError(
@@ -172,27 +219,65 @@ class Model:
                 f"got {c.shape}"
             )
         self.camera._check_counts(c)
+        return c
+
+    def roi_problems(self, counts) -> list[str | None]:
+        """Why each ROI of ``counts`` (..., roi, roi) cannot be analysed by this model, or
+        ``None`` where it can: one entry per ROI, in C order of the leading dimensions.
+
+        The reasons: every pixel equal (an empty, dead or clipped ROI); counts far below the
+        camera's offset (more than ``OFFSET_FRACTION`` of the pixels over ``OFFSET_SDS``
+        readout SDs below it, which the camera law gives a probability below 1e-6 each: not
+        ADU above the offset, e.g. an offset subtracted twice); pixels at or above a
+        declared ``saturation``; and, where no saturation is declared, a plateau of equal
+        maximal counts (``saturation_plateau``) that marks an undeclared one.
+        """
+        c = self._check_shape(counts)
         flat = c.reshape(-1, self.roi * self.roi)
-        constant = np.all(flat == flat[:, :1], axis=1)
-        if np.any(constant):
-            raise BayespsfInputError(
-                f"counts: {int(constant.sum())} ROI(s) have the same value in every pixel "
-                f"(e.g. all {flat[np.argmax(constant), 0]:g}): an empty, dead or clipped ROI "
+        _, offset = self.camera.photons_per_adu()
+        offset = np.broadcast_to(np.asarray(offset, dtype=np.float64), c.shape[-2:]).ravel()
+        readout = np.sqrt(self.camera.variance(np.zeros(c.shape[-2:]))).ravel()
+        return [self._roi_problem(roi, offset, readout) for roi in flat]
+
+    def _roi_problem(self, roi, offset, readout) -> str | None:
+        if np.all(roi == roi[0]):
+            return (
+                f"every pixel has the same value ({roi[0]:g}): an empty, dead or clipped ROI "
                 "carries no spot"
             )
         cam = self.camera
-        if isinstance(cam, EMCCD) and cam.readout_sd == 0 and np.any(c < cam.offset):
-            raise BayespsfInputError(
+        if isinstance(cam, EMCCD) and cam.readout_sd == 0 and np.any(roi < cam.offset):
+            return (
                 f"counts below the offset ({cam.offset:g} ADU) are impossible for an EMCCD "
-                f"without readout noise; min is {c.min():.6g} (declare its readout_sd)"
+                f"without readout noise; min is {roi.min():.6g} (declare its readout_sd)"
             )
-        if self.saturation > 0 and np.any(c >= self.saturation):
-            raise BayespsfInputError(
-                f"counts: {int(np.count_nonzero(c >= self.saturation))} pixels are saturated "
-                f"(>= {self.saturation:g} ADU); their true counts are unknown and the model has "
-                "no censored likelihood: crop or mask the ROI, or lower the EM gain"
+        below = np.mean(roi < offset - OFFSET_SDS * readout)
+        if np.any(readout > 0) and below > OFFSET_FRACTION:
+            return (
+                f"{below:.0%} of the pixels lie more than {OFFSET_SDS:g} readout SDs below the "
+                f"camera's offset ({np.median(offset):g} ADU; median count "
+                f"{np.median(roi):.6g}): the counts are not in ADU above the offset (was the "
+                "offset subtracted already, or is the camera's offset wrong?)"
             )
-        return c
+        if self.saturation > 0:
+            saturated = int(np.count_nonzero(roi >= self.saturation))
+            if saturated:
+                return (
+                    f"{saturated} pixels are saturated (>= {self.saturation:g} ADU); their true "
+                    "counts are unknown and the model has no censored likelihood: crop or mask "
+                    "the ROI, or lower the EM gain"
+                )
+            return None
+        plateau = saturation_plateau(roi)
+        if plateau:
+            return (
+                f"{plateau} pixels share the ROI's maximum of {roi.max():.6g} ADU, a plateau "
+                "that marks a saturated ADC or full well, and no saturation is declared: "
+                "posteriors of saturated spots are wrong. Declare the camera's saturation level "
+                "(`saturation = ...` in the [camera] table, or Model(saturation=...)), so that "
+                "saturated ROIs are named exactly and the others analysed"
+            )
+        return None
 
     def log_likelihood(self, counts, params) -> np.ndarray:
         """Sum over pixels of log p(counts | params), broadcasting batch dimensions."""

@@ -26,12 +26,16 @@ stream, and the same seed gives the same draws.
 from __future__ import annotations
 
 import itertools
+import math
 import sys
+import time
 from dataclasses import asdict, dataclass
 
 import emcee
 import numpy as np
 
+from bayespsf import diagnosis
+from bayespsf._checks import finite_array
 from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle, start_values
@@ -53,9 +57,54 @@ class Settings:
     min_taus: float = 50.0
     moves: str = "laplace-de"  # see MOVES and _moves
     method: str = "mcmc"  # or "importance" (bayespsf.importance), MCMC where k-hat is high
+    max_seconds: float | None = None  # wall-clock budget of the chain (None: none)
 
 
 MOVES = ("laplace-de", "de-snooker", "stretch")
+METHODS = ("mcmc", "importance")
+MAX_ESS = 1e7  # an ESS target beyond this is a typo (the chain would need ~1e9 draws)
+
+
+def _whole(name: str, value, low: int, high: float = math.inf) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise BayespsfInputError(f"{name} must be an integer >= {low}, got {value!r}")
+    if not low <= value <= high:
+        raise BayespsfInputError(f"{name} must be an integer in [{low}, {high:g}], got {value!r}")
+    return int(value)
+
+
+def _positive(name: str, value, high: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise BayespsfInputError(f"{name} must be a number in (0, {high:g}], got {value!r}")
+    v = float(value)
+    if not (math.isfinite(v) and 0 < v <= high):
+        raise BayespsfInputError(f"{name} must be a number in (0, {high:g}], got {value!r}")
+    return v
+
+
+def check_settings(
+    seed=0, walkers=32, ess=400.0, max_steps=50_000, moves="laplace-de", method="mcmc",
+    max_seconds=None,
+) -> Settings:  # fmt: skip
+    """The sampler's settings, each checked (``BayespsfInputError`` naming the argument and its
+    allowed range): a NaN, infinite, zero or negative ``ess`` or budget would never end or
+    never start a run."""
+    walkers = _whole("walkers", walkers, 12)
+    if walkers % 2:
+        raise BayespsfInputError(f"walkers must be an even number >= 12, got {walkers!r}")
+    if moves not in MOVES:
+        raise BayespsfInputError(f"moves must be one of {', '.join(MOVES)}; got {moves!r}")
+    if method not in METHODS:
+        raise BayespsfInputError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    return Settings(
+        seed=_whole("seed", seed, 0, 2**64 - 1),
+        walkers=walkers,
+        ess=_positive("ess", ess, MAX_ESS),
+        max_steps=_whole("max_steps", max_steps, 1),
+        moves=moves,
+        method=method,
+        max_seconds=None if max_seconds is None else _positive("max_seconds", max_seconds, 1e9),
+    )
 
 
 class IndependenceMove(emcee.moves.MHMove):
@@ -144,7 +193,7 @@ def _start(counts, model, walkers, rng):
         out[filled : filled + take] = ok[:take]
         filled += take
         if filled == walkers:
-            return out, bool(fit["converged"]), proposal
+            return out, fit, proposal
     _explain_no_support(counts, model, centre)
     raise RuntimeError("could not place the walkers inside the prior's support")
 
@@ -190,7 +239,8 @@ def _autocorrelation_time(segment):
     """The integrated autocorrelation time of each parameter over the walkers that moved,
     and the number of walkers that did not move at all in some coordinate (stuck, e.g. in a
     local mode of a multimodal posterior: the run cannot be called converged)."""
-    moving = np.all(np.ptp(segment, axis=0) > 0, axis=-1)
+    # a variance that underflows to 0 (moves of 1e-300) has no autocorrelation function either
+    moving = np.all(np.var(segment, axis=0) > 0, axis=-1)
     stuck = int((~moving).sum())
     if moving.sum() < 2:
         return np.full(segment.shape[-1], np.nan), stuck
@@ -228,6 +278,15 @@ def _importance(counts, model, proposal, mle_ok, settings, seed_sequence):
     return {"draws": params, "info": info}, None
 
 
+def _within_budget(chunk: int, steps: int, elapsed: float, settings: Settings) -> int:
+    """The next chunk, shortened so that it ends near the wall-clock budget (if any) at the
+    speed seen so far; at least one step."""
+    if settings.max_seconds is None or steps == 0:
+        return chunk
+    per_step = elapsed / steps
+    return int(max(1, min(chunk, (settings.max_seconds - elapsed) / per_step)))
+
+
 def _next_chunk(steps: int, burn: int, tau, settings: Settings) -> int:
     """Steps to add so that the chain reaches the predicted length (``min_taus`` tau and the
     ESS target after burn-in, plus 10%), at least ``settings.chunk``, at most doubling it."""
@@ -251,6 +310,7 @@ def sample_posterior(
     start=None,
     progress: bool | None = None,
     method: str = "mcmc",
+    max_seconds: float | None = None,
 ) -> Posterior:
     """Sample the posterior of ``x0 y0 s_x s_y N b`` for one ROI with emcee.
 
@@ -266,7 +326,7 @@ def sample_posterior(
     walkers : int
         Ensemble size (even, >= 12; default 32).
     max_steps : int
-        Step cap; a capped run is flagged ``converged = False``.
+        Step cap (>= 1); a capped run is flagged ``converged = False``.
     moves : {"laplace-de", "de-snooker", "stretch"}
         emcee moves (module docstring); default ``laplace-de``.
     truth, scene
@@ -281,6 +341,19 @@ def sample_posterior(
         (``bayespsf.importance``) when its k-hat is <= 0.7 and the ESS target is reached
         within 50 x ``ess`` draws; otherwise (and without a converged MLE, or with ``start``)
         the emcee run, with the reason in ``info["importance"]``.
+    max_seconds : float, optional
+        Wall-clock budget of the chain in seconds; a run that exhausts it stops with
+        ``converged = False``. Default: none (``max_steps`` bounds the run).
+
+    Returns
+    -------
+    Posterior
+        ``info["stopped"]`` says why the chain ended: ``converged``, ``max_steps``,
+        ``max_seconds``, or ``stalled`` (``bayespsf.diagnosis.stalled``: the autocorrelation
+        time grows with the chain, or the walkers do not move, so running on would not
+        converge). A run that did not converge has ``info["diagnosis"]``: the reason in words
+        and its likely cause (the prior excludes the data, the ROI does not identify the
+        posterior, the maximum-likelihood fit failed).
     """
     c = model.check_counts(counts)
     if c.ndim != 2:
@@ -288,28 +361,18 @@ def sample_posterior(
             f"counts must be one ROI of shape ({model.roi}, {model.roi}); got {c.shape} "
             "(use sample_many for a stack)"
         )
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise BayespsfInputError(f"seed must be a non-negative integer, got {seed!r}")
-    if walkers < 12 or walkers % 2:
-        raise BayespsfInputError(f"walkers must be an even number >= 12, got {walkers!r}")
-    if moves not in MOVES:
-        raise BayespsfInputError(f"moves must be one of {', '.join(MOVES)}; got {moves!r}")
-    if method not in ("mcmc", "importance"):
-        raise BayespsfInputError(f"method must be 'mcmc' or 'importance'; got {method!r}")
-    settings = Settings(
-        seed=int(seed),
-        walkers=int(walkers),
-        ess=float(ess),
-        max_steps=int(max_steps),
-        moves=moves,
-        method=method,
-    )
-    start_seq, emcee_seq = np.random.SeedSequence(seed).spawn(2)
-    proposal = None
+    settings = check_settings(
+        seed=seed, walkers=walkers, ess=ess, max_steps=max_steps, moves=moves, method=method,
+        max_seconds=max_seconds,
+    )  # fmt: skip
+    walkers, ess, max_steps = settings.walkers, settings.ess, settings.max_steps
+    start_seq, emcee_seq = np.random.SeedSequence(settings.seed).spawn(2)
+    proposal, fit = None, None
     if start is None:
-        z0, mle_ok, proposal = _start(c, model, walkers, np.random.default_rng(start_seq))
+        z0, fit, proposal = _start(c, model, walkers, np.random.default_rng(start_seq))
+        mle_ok = bool(fit["converged"])
     else:
-        z0, mle_ok = np.array(start, dtype=np.float64), True
+        z0, mle_ok = finite_array("start", start), True
         if z0.shape != (walkers, 6):
             raise BayespsfInputError(f"start must have shape ({walkers}, 6), got {z0.shape}")
     fallback = None
@@ -329,11 +392,14 @@ def sample_posterior(
         walkers, 6, model.log_posterior, args=(c,), vectorize=True, moves=_moves(moves, proposal)
     )
     sampler.random_state = np.random.RandomState(np.random.MT19937(emcee_seq)).get_state()
-    state, previous, converged = z0, None, False
+    state, previous, stopped = z0, None, "max_steps"
     tau = np.full(6, np.nan)
     burn, stuck, chunk = 0, 0, settings.chunk
+    history: list[tuple[int, float]] = []
     show = progress or (progress is None and sys.stderr.isatty())
+    began = time.perf_counter()
     while sampler.iteration < max_steps:
+        chunk = _within_budget(chunk, sampler.iteration, time.perf_counter() - began, settings)
         state = sampler.run_mcmc(state, min(chunk, max_steps - sampler.iteration))
         chain = sampler.get_chain()
         burn = (
@@ -343,25 +409,40 @@ def sample_posterior(
         )
         tau, stuck = _autocorrelation_time(chain[burn:])
         n = chain.shape[0] - burn
+        ess_now = walkers * n / tau
         stable = previous is not None and np.all(np.abs(tau - previous) < 0.1 * tau)
-        enough = n >= settings.min_taus * tau.max() and np.all(walkers * n / tau >= ess)
+        enough = n >= settings.min_taus * tau.max() and np.all(ess_now >= ess)
         enough = enough and stuck == 0
         previous = tau
         if show:
             print(
                 f"\rsampling: {sampler.iteration} steps, tau max {tau.max():.1f}, "
-                f"min ESS {np.min(walkers * n / tau):.0f} (target {ess:g})",
+                f"min ESS {np.min(ess_now):.0f} (target {ess:g})",
                 end="",
                 file=sys.stderr,
                 flush=True,
             )
         if stable and enough:
-            converged = True
+            stopped = "converged"
+            break
+        why = diagnosis.stalled(history, sampler.iteration, tau.max(), stuck, walkers)
+        if why is not None:
+            stopped = "stalled: " + why
+            break
+        history.append((sampler.iteration, float(tau.max())))
+        if max_seconds is not None and time.perf_counter() - began >= max_seconds:
+            stopped = f"max_seconds: the {max_seconds:g} s budget ran out"
             break
         chunk = _next_chunk(sampler.iteration, burn, tau, settings)
     if show:
         print(file=sys.stderr)  # ends the progress line
+    converged = stopped == "converged"
+    report = {}
+    if not converged:
+        cause = "" if fit is None else diagnosis.explain(fit, model)
+        report["diagnosis"] = f"not converged ({stopped})" + (f"; {cause}" if cause else "")
     thin = max(1, int(0.5 * np.nanmin(tau))) if np.any(np.isfinite(tau)) else 1
+    thin = min(thin, max(1, (sampler.iteration - burn) // walkers))  # keep draws >= walkers
     draws = sampler.get_chain(discard=burn, thin=thin)  # (draws, walkers, 6) in z
     params = model.from_unconstrained(draws)
     acceptance = float(np.mean(sampler.acceptance_fraction))
@@ -378,6 +459,8 @@ def sample_posterior(
             "converged": bool(converged and mle_ok),
             "mle_converged": mle_ok,
             "acceptance": acceptance,
+            "stopped": stopped.split(":")[0],
+            **report,
             **({} if fallback is None else {"importance": fallback}),
         },
         counts=c,

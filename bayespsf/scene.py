@@ -305,6 +305,7 @@ _PRIOR_ARGS = {
     "half-normal": ("scale",),
 }
 TOP_LEVEL = ("name", "description")
+MAX_SCENE_CHARACTERS = 65536  # tomllib's time grows with the square of a dotted key's depth
 
 
 def _check_value(section: str, key: Key, value: Any) -> Any:
@@ -498,18 +499,35 @@ class Scene:
 
     @classmethod
     def loads(cls, text: str) -> Scene:
+        if len(text) > MAX_SCENE_CHARACTERS:
+            raise SceneError(
+                f"not a scene: {len(text)} characters, more than the {MAX_SCENE_CHARACTERS} a "
+                "scene can need (a scene is a few dozen lines)"
+            )
         try:
-            return cls.from_dict(tomllib.loads(text))
+            data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise SceneError(f"not valid TOML: {exc}") from exc
+        except RecursionError:  # tomllib parses nested arrays and tables recursively
+            raise SceneError(
+                "not a scene: its tables or arrays are nested too deeply to parse (a scene "
+                "nests two levels: [prior.N])"
+            ) from None
+        return cls.from_dict(data)
 
     @classmethod
     def load(cls, path: str | Path) -> Scene:
         path = Path(path)
         try:
-            text = path.read_text()
+            text = path.read_text(encoding="utf-8")
+        except IsADirectoryError:
+            raise SceneError(f"{path} is a directory, not a scene file (.toml)") from None
         except OSError as exc:
             raise SceneError(f"cannot read scene file {path}: {exc.strerror}") from exc
+        except UnicodeDecodeError as exc:
+            raise SceneError(
+                f"{path} is not a scene file: TOML is UTF-8 text, and byte {exc.start} is not UTF-8"
+            ) from None
         try:
             return cls.loads(text)
         except SceneError as exc:
