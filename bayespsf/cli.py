@@ -6,6 +6,25 @@ import argparse
 import sys
 
 
+class CommandError(Exception):
+    """A problem the command reports as one line, ``bayespsf: ...``, with exit status 1."""
+
+
+def _output_folder(path: str, option: str = "--out", stem: bool = False):
+    """``path`` as a folder to write into (or, with ``stem``, a path stem whose folder is
+    made): no file may stand at it or at any of its parents."""
+    from pathlib import Path
+
+    out = Path(path)
+    if stem and out.is_dir():
+        raise CommandError(f"{option} {out} is a folder; give a path stem such as {out}/sim")
+    for place in out.parents if stem else (out, *out.parents):
+        if place.exists() and not place.is_dir():
+            what = "is" if place == out else f"lies under {place}, which is"
+            raise CommandError(f"{option} {out} {what} a file, not a folder")
+    return out
+
+
 def _selfcheck(_args) -> int:
     from bayespsf import selfcheck
 
@@ -22,27 +41,21 @@ def _scene_from(arg: str):
     if arg in scenes.names():
         return scenes.load(arg)
     if not Path(arg).exists():
-        raise SystemExit(
-            f"bayespsf: no scene file {arg!r} and no shipped scene of that name "
+        raise CommandError(
+            f"no scene file {arg!r} and no shipped scene of that name "
             f"(shipped: {', '.join(scenes.names())})"
         )
     return Scene.load(arg)
 
 
 def _simulate(args) -> int:
-    from pathlib import Path
-
     import numpy as np
 
-    from bayespsf.errors import BayespsfInputError
     from bayespsf.simulator import describe, simulate
 
-    try:
-        scene = _scene_from(args.scene)
-        counts, truth = simulate(scene, args.n, seed=args.seed)
-    except BayespsfInputError as exc:
-        raise SystemExit(f"bayespsf: {exc}") from exc
-    out = Path(args.out)
+    out = _output_folder(args.out, stem=True)
+    scene = _scene_from(args.scene)
+    counts, truth = simulate(scene, args.n, seed=args.seed)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.save(out.with_suffix(".npy"), counts)
     truth.to_csv(out.with_suffix(".truth.csv"), index_label="image")
@@ -55,11 +68,9 @@ def _simulate(args) -> int:
 
 
 def _demo(args) -> int:
-    from pathlib import Path
-
     from bayespsf import demo
 
-    _, _, text = demo.run(Path(args.out), seed=args.seed)
+    _, _, text = demo.run(_output_folder(args.out), seed=args.seed)
     print(text)
     return 0
 
@@ -68,6 +79,7 @@ def _bench(args) -> int:
     from bayespsf import bench
 
     plan = bench.QUICK if args.quick else bench.FULL
+    _output_folder(args.out)
     rows = bench.frontier(plan, workers=args.workers)
     command = "bayespsf bench" + (" --quick" if args.quick else "")
     print(bench.report(rows, args.out, command))
@@ -75,54 +87,86 @@ def _bench(args) -> int:
     return 0
 
 
-def _fit(args) -> int:
+def _camera_scene(camera_file: str, roi: int):
+    """The scene of a camera file (``[camera]`` with an explicit ``kind``, ``[geometry]
+    pixel_size``, optional ``[prior]``) for ROIs of side ``roi``. A missing camera table or kind
+    is an error: the counts' units depend on it, so it is never assumed."""
     import tomllib
     from pathlib import Path
 
-    from bayespsf.batch import sample_many
-    from bayespsf.errors import BayespsfInputError
-    from bayespsf.io import read_rois
-    from bayespsf.model import Model
     from bayespsf.scene import Scene
 
     try:
-        rois = read_rois(args.rois)
-        if args.scene:
-            scene = _scene_from(args.scene)
-            if scene.geometry["roi"] != rois.shape[1]:
-                raise BayespsfInputError(
-                    f"{args.rois}: ROIs of {rois.shape[1]} pixels, but the scene declares "
-                    f"{scene.geometry['roi']}"
-                )
-        else:
-            try:
-                table = tomllib.loads(Path(args.camera).read_text())
-            except (OSError, tomllib.TOMLDecodeError) as exc:
-                raise BayespsfInputError(f"{args.camera}: cannot read it ({exc})") from exc
-            table.setdefault("geometry", {})["roi"] = rois.shape[1]
-            scene = Scene.from_dict(table)
-        model = Model.from_scene(scene, likelihood=args.likelihood)
-        out = Path(args.out)
-        table = sample_many(
-            rois,
-            model,
-            seed=args.seed,
-            executor=args.scheduler,
-            workers=None if args.scheduler else args.workers,
-            store=out,
-            scene=scene,
-            progress=True,
-            ess=args.ess,
-            method=args.method,
+        table = tomllib.loads(Path(camera_file).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise CommandError(f"{camera_file}: cannot read it as a camera file ({exc})") from exc
+    camera = table.get("camera")
+    if not isinstance(camera, dict) or "kind" not in camera:
+        raise CommandError(
+            f"{camera_file}: no [camera] table with its kind ('emccd', 'scmos' or 'photon', "
+            "and the gain, offset and readout noise of the counts); the counts' units depend "
+            "on it, so it is never assumed"
         )
-        for _, row in table.iterrows():
-            print(
-                f"ROI {row['molecule']} ({row['method']}): converged {row['converged']}, "
-                f"s_x = {row['s_x_mean']:.4g} +- {row['s_x_sd']:.3g} nm"
+    if "pixel_size" not in table.get("geometry", {}):
+        raise CommandError(f"{camera_file}: no [geometry] pixel_size (nm)")
+    table["geometry"]["roi"] = roi
+    return Scene.from_dict(table)
+
+
+def _truth_table(path: str, n: int):
+    """The true parameters ``(n, 6)`` from a truth table that ``bayespsf simulate`` wrote."""
+    import pandas as pd
+
+    from bayespsf.psf import PARAMETER_NAMES
+
+    try:
+        truth = pd.read_csv(path)
+    except (OSError, ValueError) as exc:
+        raise CommandError(f"--truth {path}: cannot read it as a CSV table ({exc})") from exc
+    missing = [name for name in PARAMETER_NAMES if name not in truth]
+    if missing:
+        raise CommandError(f"--truth {path}: no column(s) {', '.join(missing)}")
+    if len(truth) != n:
+        raise CommandError(f"--truth {path}: {len(truth)} rows for {n} ROIs")
+    return truth[list(PARAMETER_NAMES)].to_numpy(float)
+
+
+def _fit(args) -> int:
+    from bayespsf.batch import sample_many
+    from bayespsf.io import read_rois
+    from bayespsf.model import Model
+
+    out = _output_folder(args.out)
+    rois = read_rois(args.rois)
+    if args.scene:
+        scene = _scene_from(args.scene)
+        if scene.geometry["roi"] != rois.shape[1]:
+            raise CommandError(
+                f"{args.rois}: ROIs of {rois.shape[1]} pixels, but the scene declares "
+                f"{scene.geometry['roi']}"
             )
-        print(f"wrote {out / 'summary.csv'} and {len(table)} result files")
-    except BayespsfInputError as exc:
-        raise SystemExit(f"bayespsf: {exc}") from exc
+    else:
+        scene = _camera_scene(args.camera, rois.shape[1])
+    truths = None if args.truth is None else _truth_table(args.truth, rois.shape[0])
+    model = Model.from_scene(scene, likelihood=args.likelihood)
+    table = sample_many(
+        rois,
+        model,
+        seed=args.seed,
+        executor=args.scheduler,
+        workers=None if args.scheduler else args.workers,
+        store=out,
+        truths=truths,
+        scene=scene,
+        ess=args.ess,
+        method=args.method,
+    )
+    for _, row in table.iterrows():
+        print(
+            f"ROI {row['molecule']} ({row['method']}): converged {row['converged']}, "
+            f"s_x = {row['s_x_mean']:.4g} +- {row['s_x_sd']:.3g} nm"
+        )
+    print(f"wrote {out / 'summary.csv'} and {len(table)} result files")
     return 0
 
 
@@ -183,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="The accuracy-time frontier: for molecules of the emccd-typical scene at "
         "low, medium and high N, every EMCCD likelihood tier at ESS targets 100-4000 and the "
         "MLE + CRLB and Laplace ends: time per molecule as a ratio to one MLE fit, error of "
-        "the posterior SD of s_x against a long exact-law reference, and 68%%/95%% coverage. "
+        "the posterior SD of s_x against a long exact-law reference, and 68%/95% coverage. "
         "--quick: two molecules, under two minutes.",
     )
     bench.add_argument("--quick", action="store_true", help="a small run (< 2 minutes)")
@@ -198,14 +242,21 @@ def build_parser() -> argparse.ArgumentParser:
         description="Sample the posterior of every ROI in ROIS (a .npy or .tif stack of "
         "square, odd-sized ROIs in ADU) on local processes or a Dask cluster: one NetCDF "
         "result file per ROI and summary.csv (posterior mean, SD, quantiles of the central "
-        "50/68/90/95%% intervals, tau and ESS per parameter). Rerun with the same --out to "
-        "resume a killed run.",
+        "50/68/90/95% intervals, tau and ESS per parameter; with --truth, the truth and its "
+        "SBC rank). Rerun with the same --out to resume a killed run; a progress bar is shown "
+        "when stderr is a terminal.",
     )
     fit.add_argument("rois", help="ROI stack: .npy or .tif, shape (n, roi, roi)")
     source = fit.add_mutually_exclusive_group(required=True)
     source.add_argument("--scene", help="shipped scene name or scene .toml")
     source.add_argument(
         "--camera", help="TOML with [camera] and [geometry] pixel_size (and optional [prior])"
+    )
+    fit.add_argument(
+        "--truth",
+        default=None,
+        help="truth table of simulated ROIs (the OUT.truth.csv of bayespsf simulate): adds "
+        "truth and rank columns to summary.csv",
     )
     fit.add_argument("--likelihood", default=None, help="likelihood tier (default: the scene's)")
     fit.add_argument("--ess", type=float, default=400.0, help="ESS per parameter (default 400)")
@@ -226,8 +277,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command; bad input ends it with one line ``bayespsf: ...`` (exit status 1)."""
     args = build_parser().parse_args(argv)
-    return args.run(args)
+    from bayespsf.errors import BayespsfInputError
+
+    try:
+        return args.run(args)
+    except (CommandError, BayespsfInputError) as exc:
+        raise SystemExit(f"bayespsf: {exc}") from None
+    except KeyboardInterrupt:
+        print("bayespsf: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ paper's Eq. sigma2dp3 and its pixel sum (Eq. pesum). Writes the corner plot and 
 
 from __future__ import annotations
 
+import textwrap
 import time
 from pathlib import Path
 
@@ -18,6 +19,15 @@ from bayespsf.estimators import fit_lsq
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.sampling import sample_posterior
+
+READING = (
+    "How to read these: the CRLB is the smallest SD an unbiased estimator can reach, an average "
+    "over images of this scene at the true parameters; the posterior SD is this one image's "
+    "error bar (here {ratio:.2f} x the CRLB) and scatters from image to image around it: over "
+    "the validation's molecules of this scene at N = 500 the posterior SD of s_x averaged 1.03 x "
+    "the CRLB. Eq. sigma2dp3 is the paper's closed form; at N = 500 in this scene its pixel sum is "
+    "1.27 x and the CRLB 1.44 x larger (validation/README.md, precision against photon count)."
+)
 
 
 def run(out: Path = Path("bayespsf-demo"), seed: int = 0, scene_name: str = "paper-fig3"):
@@ -62,6 +72,7 @@ def run(out: Path = Path("bayespsf-demo"), seed: int = 0, scene_name: str = "pap
             f"s_x: posterior SD {summary.loc['s_x', 'sd']:.3g} nm; Eq. sigma2dp3 {closed:.3g} nm; "
             f"pixel sum (Eq. pesum) {pixel_sum:.3g} nm; CRLB {table.loc['s_x', 'CRLB']:.3g} nm "
             "(DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010))\n"
+            f"{textwrap.fill(READING.format(ratio=summary.loc['s_x', 'sd'] / table.loc['s_x', 'CRLB']), 100)}\n"
             f"sampler: {info['steps']} steps x {info['walkers']} walkers, burn {info['burn']}, "
             f"thin {info['thin']}, acceptance {info['acceptance']:.2f}, "
             f"converged {info['converged']}; {time.perf_counter() - start:.1f} s\n"

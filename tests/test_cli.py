@@ -104,3 +104,95 @@ def test_fit_command_errors_name_the_file(tmp_path):
     np.save(small, np.zeros((1, 9, 9)))
     with pytest.raises(SystemExit, match="declares 15"):
         cli.main(["fit", str(small), "--scene", "ideal"])
+
+
+def _run(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "bayespsf.cli", *args], capture_output=True, text=True, cwd=cwd
+    )
+
+
+def test_help_loads_no_numerical_library():
+    # `bayespsf --help` took 3.5-4 s because the package imported NumPy, SciPy, ArviZ and numba
+    code = (
+        "import sys, bayespsf.cli\n"
+        "bayespsf.cli.build_parser().format_help()\n"
+        "print(sorted(m for m in ('numpy', 'scipy', 'arviz', 'pandas', 'numba', 'emcee')"
+        " if m in sys.modules))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.stdout.strip() == "[]", result.stdout + result.stderr
+
+
+def test_every_help_text_prints_plain_percent_signs():
+    import argparse
+
+    parser = cli.build_parser()
+    (commands,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    for name, sub in commands.choices.items():
+        assert "%%" not in sub.format_help(), name
+
+
+@pytest.mark.parametrize("command", ["fit", "simulate", "demo"])
+def test_out_that_is_or_lies_under_a_file_is_one_line(tmp_path, command):
+    import numpy as np
+
+    from bayespsf import scenes, simulate
+
+    counts, _ = simulate(scenes.load("ideal"), 1, seed=0)
+    np.save(tmp_path / "rois.npy", counts)
+    blocker = tmp_path / "taken"
+    blocker.write_text("a file")
+    args = {
+        "fit": ["fit", "rois.npy", "--scene", "ideal", "--workers", "1"],
+        "simulate": ["simulate", "ideal", "-n", "1"],
+        "demo": ["demo"],
+    }[command]
+    cases = [("taken/inner", "lies under")]
+    if command != "simulate":  # simulate's --out is a path stem: "taken" writes taken.npy
+        cases.append(("taken", "is a file"))
+    for out, words in cases:
+        result = _run(*args, "--out", out, cwd=tmp_path)
+        assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+        assert result.stderr.startswith(f"bayespsf: --out {out}") and words in result.stderr
+
+
+def test_camera_file_without_a_camera_is_an_error_not_a_photon_camera(tmp_path):
+    # a camera file with geometry only was read as a photon-counting camera: N = 15 298 for a
+    # 1 000-photon EMCCD spot. The counts' units depend on the camera, so it is never assumed
+    import numpy as np
+
+    from bayespsf import scenes, simulate
+
+    counts, _ = simulate(scenes.load("emccd-typical"), 1, seed=0)
+    np.save(tmp_path / "rois.npy", counts)
+    camera = tmp_path / "camera.toml"
+    for text in ("[geometry]\npixel_size = 100.0\n", "[geometry]\npixel_size = 100.0\n[camera]\n"
+                 "gain = 200.0\n"):  # fmt: skip
+        camera.write_text(text)
+        with pytest.raises(SystemExit, match=r"camera\.toml: no \[camera\] table with its kind"):
+            cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+    camera.write_text("[camera]\nkind = 'photon'\n")
+    with pytest.raises(SystemExit, match=r"no \[geometry\] pixel_size"):
+        cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+
+
+def test_fit_takes_the_truth_table_simulate_writes_and_keeps_logs_clean(tmp_path):
+    # the coverage columns of docs/scale.md from the command line; the progress bar only on a
+    # terminal (it was written into log files)
+    import pandas as pd
+
+    assert _run("simulate", "ideal", "-n", "2", "--out", "sim/a", cwd=tmp_path).returncode == 0
+    result = _run(
+        "fit", "sim/a.npy", "--scene", "ideal", "--truth", "sim/a.truth.csv", "--workers", "1",
+        "--ess", "100", "--method", "importance", cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "molecule/s" not in result.stderr and "\r" not in result.stderr
+    summary = pd.read_csv(tmp_path / "bayespsf-fit" / "summary.csv")
+    truth = pd.read_csv(tmp_path / "sim" / "a.truth.csv")
+    assert summary["s_x_truth"].tolist() == pytest.approx(truth["s_x"].tolist())
+    assert summary["s_x_rank"].between(0, 99).all()
+    bad = _run("fit", "sim/a.npy", "--scene", "ideal", "--truth", "sim/a.npy", "--out", "x",
+               cwd=tmp_path)  # fmt: skip
+    assert bad.returncode == 1 and bad.stderr.startswith("bayespsf: --truth sim/a.npy")
