@@ -63,6 +63,7 @@ def run(out: Path = Path("bayespsf-demo"), seed: int = 0, scene_name: str = "pap
     figure.savefig(out / "corner.png", dpi=80)
     post.save(out / "posterior.nc")
     info = post.info
+    ratio = summary.loc["s_x", "sd"] / table.loc["s_x", "CRLB"]
     with pd.option_context(
         "display.float_format", "{:.4g}".format, "display.width", 160, "display.max_columns", None
     ):
@@ -72,7 +73,7 @@ def run(out: Path = Path("bayespsf-demo"), seed: int = 0, scene_name: str = "pap
             f"s_x: posterior SD {summary.loc['s_x', 'sd']:.3g} nm; Eq. sigma2dp3 {closed:.3g} nm; "
             f"pixel sum (Eq. pesum) {pixel_sum:.3g} nm; CRLB {table.loc['s_x', 'CRLB']:.3g} nm "
             "(DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010))\n"
-            f"{textwrap.fill(READING.format(ratio=summary.loc['s_x', 'sd'] / table.loc['s_x', 'CRLB']), 100)}\n"
+            f"{textwrap.fill(READING.format(ratio=ratio), 100)}\n"
             f"sampler: {info['steps']} steps x {info['walkers']} walkers, burn {info['burn']}, "
             f"thin {info['thin']}, acceptance {info['acceptance']:.2f}, "
             f"converged {info['converged']}; {time.perf_counter() - start:.1f} s\n"
