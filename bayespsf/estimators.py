@@ -1,10 +1,21 @@
 """Point estimates for a stack of ROIs: the paper's least squares, maximum likelihood, Laplace.
 
 All three return a DataFrame with one row per ROI and the truth table's columns
-``x0 y0 s_x s_y N b``, plus ``converged`` (bool) and ``message``; ``fit_mle`` adds ``sd_<p>``
-columns (the Laplace approximation) and ``log_likelihood``. A fit that fails is flagged
-(``converged = False``, the reason in ``message``), never dropped: the row keeps the last
-iterate, or NaN if there was none.
+``x0 y0 s_x s_y N b``, plus ``status``, ``converged`` (bool) and ``message``; ``fit_mle`` adds
+``sd_<p>`` columns and the 15 correlations ``corr_<p>_<q>`` of the Laplace approximation
+(``covariance`` rebuilds the matrices) and ``log_likelihood``. Outcomes are per ROI, never an
+exception for the whole stack:
+
+``status = "converged"``
+    the fit converged;
+``"not converged"``
+    the optimiser failed, a width ran away or the information is not positive definite: the
+    row keeps the last iterate (or NaN), the reason in ``message``;
+``"refused"``
+    the model cannot analyse this ROI (``Model.roi_problems``: constant, saturated, counts not
+    above the offset, ...): parameters NaN, the reason in ``message``.
+
+The tables hold plain columns only, so they print, concatenate and save as CSV or Parquet.
 """
 
 from __future__ import annotations
@@ -13,7 +24,9 @@ import numpy as np
 import pandas as pd
 from scipy import optimize
 
+from bayespsf._checks import finite_array
 from bayespsf._threads import one_blas_thread
+from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES, pixel_centres
 
@@ -47,10 +60,43 @@ def start_values(photons: np.ndarray, model: Model) -> np.ndarray:
     )
 
 
+CORRELATIONS = [
+    (i, j, f"corr_{PARAMETER_NAMES[i]}_{PARAMETER_NAMES[j]}")
+    for i in range(6)
+    for j in range(i + 1, 6)
+]
+
+
 def _frame(rows: list[dict]) -> pd.DataFrame:
     df = pd.DataFrame(rows)
     first = list(PARAMETER_NAMES)
+    df["status"] = np.where(df["converged"], "converged", "not converged")
+    if "refused" in df:
+        df.loc[df["refused"].eq(True), "status"] = "refused"
+        df = df.drop(columns="refused")
     return df[first + [c for c in df.columns if c not in first]]
+
+
+def _stack(counts, model: Model):
+    """The ROIs as ``(n, roi, roi)`` and why each cannot be fitted (``None`` where it can)."""
+    c = model._check_shape(counts)
+    stack = c.reshape(-1, model.roi, model.roi)
+    return stack, model.roi_problems(stack)
+
+
+def _refused_row(reason: str, extra: tuple[str, ...] = ()) -> dict:
+    row = dict.fromkeys((*PARAMETER_NAMES, *extra), np.nan)
+    return {**row, "converged": False, "message": reason, "refused": True}
+
+
+def covariance(fits: pd.DataFrame) -> np.ndarray:
+    """The Laplace covariance matrices ``(n, 6, 6)`` of ``fit_mle``'s rows, from their
+    ``sd_<p>`` and ``corr_<p>_<q>`` columns (NaN where the fit did not converge)."""
+    sd = fits[[f"sd_{name}" for name in PARAMETER_NAMES]].to_numpy(float)
+    corr = np.broadcast_to(np.eye(6), (len(fits), 6, 6)).copy()
+    for i, j, column in CORRELATIONS:
+        corr[:, i, j] = corr[:, j, i] = fits[column].to_numpy(float)
+    return corr * sd[:, :, None] * sd[:, None, :]
 
 
 # ---------------------------------------------------------------------------- least squares
@@ -113,13 +159,15 @@ def fit_lsq(counts, model: Model) -> pd.DataFrame:
     pixelated width (Eq. tophat), not s0. Not converged: the optimiser failed, a width ran
     away beyond the ROI, or a value is not finite.
     """
-    c = model.check_counts(counts)
-    stack = c.reshape(-1, model.roi, model.roi)
+    stack, problems = _stack(counts, model)
     photons = model.to_photons(stack)
     starts = start_values(photons, model)
     rows = []
     limit = model.roi * model.pixel_size
-    for image, start in zip(photons, starts, strict=True):
+    for image, start, problem in zip(photons, starts, problems, strict=True):
+        if problem is not None:
+            rows.append(_refused_row(problem))
+            continue
         res = _lsq_one(image, start, model)
         params = lsq_to_params(res.x, model.pixel_size)
         ok, message = bool(res.success), res.message
@@ -257,10 +305,11 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
     ranges (a fit ending on a bound is flagged), with the analytic gradient
     (PSF Jacobian times the camera's per-pixel score). With ``laplace``, ``sd_<p>`` columns are
     the square roots of the diagonal of the inverse observed information (the Hessian of
-    -log L by differences of the analytic gradient), and ``attrs["covariance"]`` holds the full
-    inverse information of every ROI, shape ``(n, 6, 6)`` (NaN where not converged). Not
+    -log L by differences of the analytic gradient) and ``corr_<p>_<q>`` its correlations
+    (``covariance(fits)`` rebuilds the ``(n, 6, 6)`` matrices; NaN where not converged). Not
     converged: the optimiser failed, a width ran away beyond the ROI, or the Hessian is not
-    positive definite (SDs then NaN).
+    positive definite (SDs then NaN). ROIs the model cannot analyse are ``refused`` rows
+    (module docstring); the other ROIs are fitted.
 
     Parameters
     ----------
@@ -269,13 +318,16 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
     start : array_like, shape (..., 6), optional
         Starting parameters; default ``start_values`` of the counts in photons.
     """
-    c = model.check_counts(counts)
-    stack = c.reshape(-1, model.roi, model.roi)
+    stack, problems = _stack(counts, model)
     starts = (
         start_values(model.to_photons(stack), model)
         if start is None
-        else np.asarray(start, float).reshape(-1, 6)
+        else finite_array("start", start).reshape(-1, 6)
     )
+    if len(starts) != len(stack):
+        raise BayespsfInputError(
+            f"start must have one row per ROI ({len(stack)}), got {len(starts)}"
+        )
     a = model.pixel_size
     roi = model.roi
     # keep the optimiser's line searches inside physical ranges (the spot's centre within two
@@ -289,8 +341,11 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
     bounds += [(np.log(1e-3), np.log(1e9)), (0.0, 1e7)]
     limit = roi * a
     rows = []
-    covariances = np.full((len(stack), 6, 6), np.nan)
-    for i, (image, p0) in enumerate(zip(stack, starts, strict=True)):
+    laplace_columns = (*(f"sd_{n}" for n in PARAMETER_NAMES), *(c for _, _, c in CORRELATIONS))
+    for image, p0, problem in zip(stack, starts, problems, strict=True):
+        if problem is not None:
+            rows.append(_refused_row(problem, ("log_likelihood", *laplace_columns)))
+            continue
         u0 = _to_internal(p0, a)
         # precondition by the expected information at the start, so that a unit step is about
         # one standard deviation in every coordinate (L-BFGS-B's first step has unit length)
@@ -316,24 +371,22 @@ def fit_mle(counts, model: Model, start=None, laplace: bool = True) -> pd.DataFr
             ok, message = False, "ended on a bound of the search box"
         row = dict(zip(PARAMETER_NAMES, p, strict=True), log_likelihood=-res.fun)
         if laplace:
-            sd = np.full(6, np.nan)
+            cov = np.full((6, 6), np.nan)
             if ok:
                 try:
-                    cov = np.linalg.inv(_hessian(image, model, p))
-                    if np.all(np.diag(cov) > 0) and np.all(np.linalg.eigvalsh(cov) > 0):
-                        sd = np.sqrt(np.diag(cov))
-                        covariances[i] = cov
+                    inverse = np.linalg.inv(_hessian(image, model, p))
+                    if np.all(np.diag(inverse) > 0) and np.all(np.linalg.eigvalsh(inverse) > 0):
+                        cov = inverse
                     else:
                         ok, message = False, "observed information not positive definite"
                 except np.linalg.LinAlgError:
                     ok, message = False, "observed information singular"
+            sd = np.sqrt(np.diag(cov))
             row.update({f"sd_{name}": v for name, v in zip(PARAMETER_NAMES, sd, strict=True)})
+            row.update({column: cov[i, j] / (sd[i] * sd[j]) for i, j, column in CORRELATIONS})
         row.update(converged=ok, message=message)
         rows.append(row)
-    frame = _frame(rows)
-    if laplace:
-        frame.attrs["covariance"] = covariances
-    return frame
+    return _frame(rows)
 
 
 def _on_bound(u, bounds) -> bool:

@@ -38,7 +38,7 @@ from bayespsf import diagnosis
 from bayespsf._checks import finite_array
 from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
-from bayespsf.estimators import fit_mle, start_values
+from bayespsf.estimators import covariance, fit_mle, start_values
 from bayespsf.importance import CHAINS, KHAT_MAX, importance_draws, systematic_resample
 from bayespsf.model import Model
 from bayespsf.posterior import Posterior
@@ -180,7 +180,7 @@ def _start(counts, model, walkers, rng):
     to_z = np.array([1.0, 1.0, 1 / centre[2], 1 / centre[3], 1 / centre[4], 1.0])
     dz = sd * to_z
     if fit["converged"]:
-        proposal = IndependenceMove(z0, fits.attrs["covariance"][0] * np.outer(to_z, to_z))
+        proposal = IndependenceMove(z0, covariance(fits)[0] * np.outer(to_z, to_z))
     proposals = itertools.chain(
         (z0 + 0.5 * dz * rng.standard_normal((walkers, 6)) for _ in range(100)),
         (model.to_unconstrained(model.sample_prior(walkers, rng)) for _ in range(100)),

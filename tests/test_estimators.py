@@ -5,7 +5,7 @@ import pytest
 
 from bayespsf import Scene, scenes, simulate
 from bayespsf.calibration import calibrate_gain
-from bayespsf.estimators import fit_lsq, fit_mle, lsq_first_order, start_values
+from bayespsf.estimators import covariance, fit_lsq, fit_mle, lsq_first_order, start_values
 from bayespsf.model import Model
 from bayespsf.theory import crlb, scene_params
 
@@ -90,10 +90,12 @@ def test_mle_with_the_exact_tier_matches_the_table_tier():
     assert np.all(np.abs(exact[COLUMNS].to_numpy() - table[COLUMNS].to_numpy()) < 0.02 * bound)
 
 
-def test_all_zero_roi_is_rejected():
+def test_all_zero_roi_is_refused_by_name():
     model = Model.from_scene(scenes.load("ideal"))
+    fits = fit_mle(np.zeros((2, 15, 15)), model)
+    assert (fits["status"] == "refused").all() and fits["message"].str.contains("same value").all()
     with pytest.raises(ValueError, match="same value"):
-        fit_mle(np.zeros((2, 15, 15)), model)
+        model.check_counts(np.zeros((2, 15, 15)))
 
 
 def test_start_values_are_close_for_a_bright_spot():
@@ -113,8 +115,8 @@ def test_bad_counts_are_named():
     with pytest.raises(ValueError, match="counts"):
         fit_mle(np.full((15, 15), np.nan), model)
     noiseless = Model.from_scene(Scene.from_dict({"camera": {"kind": "emccd", "gain": 100.0}}))
-    with pytest.raises(ValueError, match="offset"):
-        fit_mle(np.arange(225.0).reshape(15, 15) - 1.0, noiseless)
+    below = fit_mle(np.arange(225.0).reshape(15, 15) - 1.0, noiseless).iloc[0]
+    assert below["status"] == "refused" and "below the offset" in below["message"]
 
 
 GAIN_SCENE = {
@@ -157,8 +159,39 @@ def test_laplace_covariance_is_kept_with_the_sds():
     scene = scenes.load("emccd-typical")
     counts, _ = simulate(scene, 2, seed=4)
     fits = fit_mle(counts, Model.from_scene(scene))
-    cov = fits.attrs["covariance"]
+    cov = covariance(fits)
     assert cov.shape == (2, 6, 6)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
     np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2))
     sds = fits[[f"sd_{c}" for c in COLUMNS]].to_numpy()
     np.testing.assert_allclose(np.sqrt(np.diagonal(cov, axis1=1, axis2=2)), sds, rtol=1e-12)
+
+
+def test_a_bad_roi_is_a_row_not_an_exception_for_the_stack():
+    # picasso fits the rest of a stack with a constant or saturated ROI; so do we, and say why
+    scene = scenes.load("emccd-typical")
+    counts, _ = simulate(scene, 4, seed=4)
+    counts[1] = 500.0  # constant
+    counts[2, 7, 7] = scene.camera["saturation"]  # saturated
+    model = Model.from_scene(scene)
+    for fit in (fit_mle, fit_lsq):
+        fits = fit(counts, model)
+        assert fits["status"].tolist() == ["converged", "refused", "refused", "converged"]
+        assert "same value" in fits.loc[1, "message"] and "saturated" in fits.loc[2, "message"]
+        assert fits.loc[[1, 2], list(COLUMNS)].isna().all().all()
+        assert fits.loc[[0, 3], list(COLUMNS)].notna().all().all()
+
+
+def test_fit_tables_print_concatenate_and_save(tmp_path):
+    # repr() raised under pandas 2.3 (a NumPy array in attrs) and pd.concat of two results failed
+    import pandas as pd
+
+    scene = scenes.load("ideal")
+    model = Model.from_scene(scene)
+    a = fit_mle(simulate(scene, 2, seed=1)[0], model)
+    b = fit_mle(simulate(scene, 3, seed=2)[0], model)
+    both = pd.concat([a, b], ignore_index=True)
+    assert len(both) == 5 and "x0" in repr(both) and not both.attrs
+    both.to_csv(tmp_path / "fits.csv", index=False)
+    back = pd.read_csv(tmp_path / "fits.csv")
+    np.testing.assert_allclose(covariance(back), covariance(both), rtol=1e-12)
