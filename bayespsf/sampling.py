@@ -438,9 +438,10 @@ def sample_posterior(
         print(file=sys.stderr)  # ends the progress line
     converged = stopped == "converged"
     report = {}
-    if not converged:
+    if not (converged and mle_ok):
         cause = "" if fit is None else diagnosis.explain(fit, model)
-        report["diagnosis"] = f"not converged ({stopped})" + (f"; {cause}" if cause else "")
+        head = f"not converged ({stopped})" if not converged else "the chain met its targets"
+        report["diagnosis"] = head + (f"; {cause}" if cause else "")
     thin = max(1, int(0.5 * np.nanmin(tau))) if np.any(np.isfinite(tau)) else 1
     thin = min(thin, max(1, (sampler.iteration - burn) // walkers))  # keep draws >= walkers
     draws = sampler.get_chain(discard=burn, thin=thin)  # (draws, walkers, 6) in z
