@@ -24,6 +24,7 @@ import numpy as np
 DECREMENT = 1e-10  # Newton decrement (in log-likelihood units) below which a ROI has converged
 STATIONARY = 1e-4  # ... and where no step lowers -log L, the decrement that still counts as one
 MAX_ITERATIONS = 200
+METRIC_FLOOR = 1e-6  # expected photons per pixel (the EMCCD Fisher table's lower end)
 BLOCK = 1024  # ROIs per array pass: the Jacobian of a block of 15 x 15 ROIs is 11 MB
 
 
@@ -69,7 +70,9 @@ def _gradient_and_metric(model, counts, p):
     """Gradient of ``-log L`` and the expected information, both in ``u``: (n, 6), (n, 6, 6)."""
     lam, jac = model.expected_and_jacobian(p)
     score = model.camera._score(counts, lam)
-    fisher = model.camera._fisher_information(np.maximum(lam, 1e-12))
+    # the metric only steers the steps (the optimum is where the gradient vanishes): pixels
+    # below METRIC_FLOOR, where a camera's tabulated information ends, are scored at the floor
+    fisher = model.camera._fisher_information(np.maximum(lam, METRIC_FLOOR))
     chain = _chain(p, model.pixel_size)
     grad = -np.einsum("nkxy,nxy->nk", jac, score) * chain
     metric = np.einsum("nkxy,nlxy,nxy->nkl", jac, jac, fisher)

@@ -64,3 +64,26 @@ def test_zero_signal_no_readout_and_large_readout():
 def test_table_finite_everywhere(counts, lam):
     value = EMCCD(**REALISTIC[1], likelihood="table").log_likelihood(counts, lam)
     assert np.isfinite(value)
+
+
+def test_below_the_grid_the_closed_form_equals_the_quadrature(monkeypatch):
+    # lam < 1e-6 (pixels far from a spot without background) went to the exact quadrature, one
+    # pixel at a time in memory (0.5 GB for a stack) and hundreds of times slower; the
+    # second-order expansion is within 1e-7 in log p of it up to t = 1000 gain units
+    from bayespsf.cameras import _emccd_law as law
+    from bayespsf.cameras import _emccd_table as table
+
+    for r in (0.005, 0.25, 2.0):
+        t = np.array([-5 * r, -r, 0.0, r, 3 * r, 1.0, 5.0, 20.0, 200.0, 1000.0])
+        for lam in (1e-9, 1e-7, 9.9e-7):
+            lams = np.full_like(t, lam)
+            exact = law.log_exact(t, lams, r)
+            np.testing.assert_allclose(law.log_small_lam(t, lams, r), exact, rtol=0, atol=1e-7)
+    table.table_for(0.25)  # built before the quadrature is forbidden
+
+    def forbidden(*args):
+        raise AssertionError("the exact quadrature was called below the grid")
+
+    monkeypatch.setattr(law, "log_exact", forbidden)
+    lams = np.array([1e-12, 1e-8, 5e-7])
+    assert np.all(np.isfinite(table.log_table(np.array([0.3, 2.0, -0.1]), lams, 0.25)))

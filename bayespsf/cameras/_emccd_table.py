@@ -16,7 +16,9 @@ stores the 16 power-basis coefficients of a bicubic Hermite patch, with derivati
 splines along each axis. Interpolation costs one read of 16 contiguous numbers and ~40
 arithmetic operations per pixel, with no special function, in a compiled (numba) loop.
 
-Points outside the grids (lam outside [LAM_MIN, LAM_MAX], counts more than ETA_MAX above or
+Below LAM_MIN the law's second-order expansion in lam is used (``_emccd_law.log_small_lam``,
+closed form; a spot without background has pixels there). Points outside the grids (lam above
+LAM_MAX, counts more than ETA_MAX above or
 below the bulk, counts more than NEAR readout SDs below the offset: all with log p below about
 -50) and cameras with ``r > R_MAX`` are computed by the exact quadrature, so the tier is
 accurate everywhere and fast where data are. Spacings were chosen by measurement against the
@@ -155,9 +157,11 @@ def log_table(t, lam, r):
     t, lam = np.broadcast_arrays(np.asarray(t, float), np.asarray(lam, float))
     shape = t.shape
     t, lam = np.ascontiguousarray(t).ravel(), np.ascontiguousarray(lam).ravel()
-    positive = lam > 0
-    if positive.all():
+    on_grid = lam >= LAM_MIN
+    if on_grid.all():
         return table_for(float(r)).log_p(t, lam).reshape(shape)
     out = -lam + law.log_normal_pdf(t, r)  # lam == 0: readout noise only
-    out[positive] = table_for(float(r)).log_p(t[positive], lam[positive])
+    out[on_grid] = table_for(float(r)).log_p(t[on_grid], lam[on_grid])
+    tiny = (lam > 0) & ~on_grid  # below the grid: closed form, not quadrature (a pixel far
+    out[tiny] = law.log_small_lam(t[tiny], lam[tiny], r)  # from a spot without background)
     return out.reshape(shape)
