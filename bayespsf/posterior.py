@@ -13,6 +13,7 @@ and the truth when known: it is self-describing and opens in plain ArviZ or xarr
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +43,11 @@ class Posterior:
         if counts is not None:
             groups["observed_data"] = {"counts": np.asarray(counts)}
             dims = {"counts": ["row", "column"]}
-        tree = az.from_dict(groups, dims=dims)
+        with warnings.catch_warnings():
+            # arviz guesses that more chains than draws means misnamed dims; ours are named (a
+            # short run of many walkers has more chains than draws)
+            warnings.filterwarnings("ignore", "Found chain dimension to be longer", UserWarning)
+            tree = az.from_dict(groups, dims=dims)
         attrs = {"bayespsf": "posterior of x0 y0 s_x s_y N b (nm, photons)"}
         if tau is not None:
             attrs["tau"] = json.dumps(dict(zip(PARAMETER_NAMES, map(float, tau), strict=True)))
