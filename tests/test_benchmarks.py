@@ -75,3 +75,17 @@ def test_hot_path_benchmark_quick():
     assert float(gap.iloc[0]) < 1e-12
     assert np.all(floor["steps/s with a free log-probability"] > 0)
     assert np.all(psis["Pareto k-hat"] <= 0.7) and np.all(psis["ESS"] >= 400)
+
+
+def test_throughput_benchmark_quick():
+    # picasso's fitters and ours on the same ROIs; every method fits and is timed, and the
+    # stack engine is unbiased in s_x within 4 standard errors (picasso's sampled-Gaussian LM
+    # MLE is not asserted: its bias is what the benchmark reports)
+    import throughput
+
+    peers, scaling = throughput.main(["--quick"])
+    assert len(peers) == 16 and np.all(peers["ROIs/s"] > 0)
+    ours = peers[peers["method"] == "bayespsf fit_mle (stack, with Laplace)"]
+    assert np.all(np.abs(ours["s_x - truth (nm)"]) < 4 * ours["SE (nm)"])
+    assert set(scaling["varied"]) == {"roi", "N", "stack"} and np.all(scaling["peak MB"] > 0)
+    assert scaling["converged"].min() > 0.9

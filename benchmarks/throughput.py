@@ -1,0 +1,189 @@
+"""Throughput: ROIs per second for a stack, bayespsf against picasso on the same ROIs.
+
+The peers a localisation user would otherwise pick, in the same run, on the same simulated
+15 x 15 ROIs (the counts converted to photons with the camera's mean gain for picasso, as its
+Localize does), one thread each (``NUMBA_NUM_THREADS=1`` and one BLAS thread, set before any
+import):
+
+* picasso ``gaussmle`` (``sigmaxy``): the pixel-integrated Newton MLE of Smith et al., Nat.
+  Methods 7 (2010) (deprecated in picasso 0.11, still its most-cited fitter);
+* picasso ``fitting.gaussfit.fit_spots(mle=True)``: its current Levenberg-Marquardt Poisson MLE
+  of the sampled Gaussian, and ``mle=False``, its least squares;
+* bayespsf ``fit_mle`` with the stack engine (Laplace SDs and correlations included, and
+  without them), the one-ROI scipy path, and per-ROI posteriors: importance sampling
+  (``method="importance"``) and the emcee chain.
+
+Each method is compiled / warmed up on a few ROIs first (not timed). Reported: ROIs per second,
+the ratio to picasso ``gaussmle`` on the same ROIs, and the mean of s_x minus the truth with its
+standard error (nm) over the timed ROIs. Then, for the stack engine: time per ROI against ROI
+size, photon count and stack size, with the peak memory (tracemalloc) of the call.
+
+    pip install -e ".[bench]"
+    python benchmarks/throughput.py            # full run, rewrites its section of README.md
+    python benchmarks/throughput.py --quick    # a small run that prints only (the tests)
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")  # picasso and bayespsf compile with numba
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+import tracemalloc  # noqa: E402
+import warnings  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from _report import machine, publish  # noqa: E402
+
+from bayespsf import scenes, simulate  # noqa: E402
+from bayespsf.estimators import fit_mle  # noqa: E402
+from bayespsf.model import Model  # noqa: E402
+from bayespsf.sampling import sample_posterior  # noqa: E402
+
+
+def picasso_fitters():
+    """picasso's fitters by name: each takes ROIs in photons ``(n, s, s)`` and returns
+    ``s_x`` in pixels per ROI."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # picasso's own deprecation and import chatter
+        from picasso import gaussmle
+        from picasso.fitting import gaussfit, seeds
+
+    def newton(spots):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            thetas, *_ = gaussmle.gaussmle(spots, eps=0.001, max_it=1000, method="sigmaxy")
+        return thetas[:, 4]  # x, y, photons, bg, sx, sy
+
+    def fit_spots(mle):
+        def fit(spots):
+            start = seeds.initial_parameters_gauss(spots, spots.shape[-1])
+            thetas, *_ = gaussfit.fit_spots(gaussfit.ELLIPTIC, spots, start, mle=mle)
+            return thetas[:, 3]  # photons, x, y, sx, sy, bg
+
+        return fit
+
+    return {
+        "picasso gaussmle (sigmaxy)": newton,
+        "picasso LM MLE (fit_spots)": fit_spots(True),
+        "picasso least squares (fit_spots)": fit_spots(False),
+    }
+
+
+def _timed(function, *args):
+    started = time.perf_counter()
+    out = function(*args)
+    return out, time.perf_counter() - started
+
+
+def peers(scene_name: str, n: int, posteriors: int, chains: int) -> pd.DataFrame:
+    """Every method on the same ``n`` ROIs of a scene (posteriors on the first few)."""
+    scene = scenes.load(scene_name)
+    model = Model.from_scene(scene)
+    counts, truth = simulate(scene, n, seed=1)
+    spots = model.to_photons(counts).astype(np.float32)
+    a = scene.geometry["pixel_size"]
+    true_sx = truth["s_x"].to_numpy()
+    rows = []
+
+    def row(method, seconds, count, sx):
+        error = np.asarray(sx, dtype=float) - true_sx[:count]
+        error = error[np.isfinite(error)]
+        se = error.std(ddof=1) / np.sqrt(len(error)) if len(error) > 1 else np.nan
+        rows.append({
+            "scene": scene_name, "method": method, "ROIs": count, "seconds": seconds,
+            "ROIs/s": count / seconds, "s_x - truth (nm)": error.mean(), "SE (nm)": se,
+        })  # fmt: skip
+
+    for name, fit in picasso_fitters().items():
+        fit(spots[:4])  # numba compilation
+        sx, seconds = _timed(fit, spots)
+        row(name, seconds, n, a * sx)
+    fit_mle(counts[:4], model)  # the table tier's build and numba compilation
+    fits, seconds = _timed(fit_mle, counts, model)
+    row("bayespsf fit_mle (stack, with Laplace)", seconds, n, fits["s_x"])
+    fits, seconds = _timed(lambda: fit_mle(counts, model, laplace=False))
+    row("bayespsf fit_mle (stack, no Laplace)", seconds, n, fits["s_x"])
+    few = min(n, max(posteriors, 20))
+    fits, seconds = _timed(lambda: fit_mle(counts[:few], model, engine="scipy"))
+    row("bayespsf fit_mle (scipy, one ROI at a time)", seconds, few, fits["s_x"])
+    for method, count in (("importance", posteriors), ("mcmc", chains)):
+        sample_posterior(counts[-1], model, seed=0, method=method)  # imports arviz once
+        started = time.perf_counter()
+        means = [
+            sample_posterior(counts[i], model, seed=i, method=method).draws()["s_x"].mean()
+            for i in range(count)
+        ]
+        label = "importance sampling" if method == "importance" else "emcee chain"
+        row(f"bayespsf posterior ({label}, per ROI)", time.perf_counter() - started, count, means)
+    table = pd.DataFrame(rows)
+    reference = table.loc[table["method"] == "picasso gaussmle (sigmaxy)", "ROIs/s"].iloc[0]
+    table["ROIs/s / gaussmle"] = table["ROIs/s"] / reference
+    return table
+
+
+def scaling(quick: bool) -> pd.DataFrame:
+    """The stack engine's time per ROI and peak memory against ROI size, N and stack size."""
+    base = scenes.load("emccd-typical")
+    plans = [("roi", v) for v in ((7,) if quick else (7, 11, 15, 25))]
+    plans += [("N", v) for v in ((1e4,) if quick else (100.0, 1e3, 1e4, 1e5))]
+    plans += [("stack", v) for v in ((1, 50) if quick else (1, 10, 100, 1000, 10_000, 100_000))]
+    rows = []
+    for kind, value in plans:
+        scene, n = base, 50 if quick else 1000
+        if kind == "roi":
+            scene = base.replace(geometry={"roi": value})
+        elif kind == "N":
+            scene = base.replace(emitter={"photons": value})
+        else:
+            n = value
+        model = Model.from_scene(scene)
+        counts, _ = simulate(scene, n, seed=2)
+        fit_mle(counts[:2], model)
+        tracemalloc.start()
+        fits, seconds = _timed(fit_mle, counts, model)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        rows.append({
+            "varied": kind, "value": value, "ROIs": n, "ms per ROI": 1e3 * seconds / n,
+            "ROIs/s": n / seconds, "peak MB": peak / 2**20,
+            "converged": float(fits["converged"].mean()),
+        })  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def markdown(peer_table: pd.DataFrame, scale_table: pd.DataFrame, command: str) -> str:
+    fmt = {"floatfmt": ".3g", "index": False}
+    return (
+        "Same ROIs, one thread each; `ROIs/s / gaussmle` is the ratio to picasso's `gaussmle` in "
+        "the same run.\n\n"
+        f"{peer_table.to_markdown(**fmt)}\n\n"
+        "The stack engine (`fit_mle`, Laplace included) against ROI size, photon count and stack "
+        "size (emccd-typical otherwise), with the call's peak memory:\n\n"
+        f"{scale_table.to_markdown(**fmt)}\n\n"
+        f"Command: `{command}` on {machine()}."
+    )
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="a small run that prints only")
+    args = parser.parse_args(argv)
+    n, posteriors, chains = (40, 3, 2) if args.quick else (2000, 40, 5)
+    peer_table = pd.concat(
+        [peers(name, n, posteriors, chains) for name in ("emccd-typical", "ideal")],
+        ignore_index=True,
+    )
+    scale_table = scaling(args.quick)
+    command = "python benchmarks/throughput.py" + (" --quick" if args.quick else "")
+    publish("throughput", markdown(peer_table, scale_table, command), args.quick)
+    return peer_table, scale_table
+
+
+if __name__ == "__main__":
+    main()
