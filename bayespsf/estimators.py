@@ -287,7 +287,9 @@ def fit_mle(
     Jacobian times the camera's per-pixel score). With ``laplace``, ``sd_<p>`` columns are
     the square roots of the diagonal of the inverse observed information (the Hessian of
     -log L by differences of the analytic gradient) and ``corr_<p>_<q>`` its correlations
-    (``covariance(fits)`` rebuilds the ``(n, 6, 6)`` matrices; NaN where not converged). Not
+    (``covariance(fits)`` rebuilds the ``(n, 6, 6)`` matrices; NaN where not converged).
+    ``crlb_<p>`` columns hold the Cramér-Rao bound at the fit (the inverse expected
+    information, the plug-in error bar other fitters report; ``stack_mle.crlb``). Not
     converged: the optimiser failed, a width ran away beyond the ROI, or the Hessian is not
     positive definite (SDs then NaN). ROIs the model cannot analyse are ``refused`` rows
     (module docstring); the other ROIs are fitted.
@@ -329,6 +331,10 @@ def fit_mle(
     message[runaway] = "a width ran away beyond the ROI"
     message[~finite] = "non-finite estimate"
     ok &= finite & ~runaway & ~on_bound
+    bound = np.full((len(fit), 6), np.nan)
+    if ok.any():
+        with np.errstate(invalid="ignore"):  # a negative diagonal (not invertible): NaN
+            bound[ok] = stack_mle.crlb(model, params[ok])
     cov = np.full((len(fit), 6, 6), np.nan)
     if laplace and ok.any():
         cov[ok], definite = _laplace(model, stack[fit][ok], params[ok])
@@ -338,13 +344,15 @@ def fit_mle(
         cov[bad] = np.nan
     rows: list[dict] = []
     laplace_columns = (*(f"sd_{n}" for n in PARAMETER_NAMES), *(c for _, _, c in CORRELATIONS))
+    crlb_columns = tuple(f"crlb_{n}" for n in PARAMETER_NAMES)
     fitted = dict(zip(fit, range(len(fit)), strict=True))
     for i, problem in enumerate(problems):
         if problem is not None:
-            rows.append(_refused_row(problem, ("log_likelihood", *laplace_columns)))
+            rows.append(_refused_row(problem, ("log_likelihood", *crlb_columns, *laplace_columns)))
             continue
         k = fitted[i]
         row = dict(zip(PARAMETER_NAMES, params[k], strict=True), log_likelihood=logl[k])
+        row.update(zip(crlb_columns, bound[k], strict=True))
         if laplace:
             sd = np.sqrt(np.diagonal(cov[k]))
             row.update({f"sd_{name}": v for name, v in zip(PARAMETER_NAMES, sd, strict=True)})

@@ -108,7 +108,7 @@ def peers(scene_name: str, n: int, posteriors: int, chains: int) -> pd.DataFrame
     fits, seconds = _timed(fit_mle, counts, model)
     row("bayespsf fit_mle (stack, with Laplace)", seconds, n, fits["s_x"])
     fits, seconds = _timed(lambda: fit_mle(counts, model, laplace=False))
-    row("bayespsf fit_mle (stack, no Laplace)", seconds, n, fits["s_x"])
+    row("bayespsf fit_mle + CRLB (stack, no Laplace)", seconds, n, fits["s_x"])
     few = min(n, max(posteriors, 20))
     fits, seconds = _timed(lambda: fit_mle(counts[:few], model, engine="scipy"))
     row("bayespsf fit_mle (scipy, one ROI at a time)", seconds, few, fits["s_x"])
