@@ -1,4 +1,4 @@
-"""Reading ROI stacks: NumPy (.npy) and TIFF (.tif/.tiff, via tifffile)."""
+"""Reading ROI stacks: NumPy (.npy) and TIFF (.tif/.tiff, via tifffile, page by page)."""
 
 from __future__ import annotations
 
@@ -6,39 +6,64 @@ from pathlib import Path
 
 import numpy as np
 
+from bayespsf._checks import finite_array
 from bayespsf.errors import BayespsfInputError
 
 
 def read_rois(path) -> np.ndarray:
     """A stack of square ROIs ``(n, roi, roi)`` (a single 2-D ROI becomes ``(1, roi, roi)``).
 
-    Errors name the file and the problem: missing, unreadable, unknown extension, wrong
-    number of dimensions, non-square or even-sized ROIs, non-finite values.
+    Errors name the file and the problem: missing, a directory, unreadable or damaged, unknown
+    extension, no images, TIFF pages of different shapes (named), wrong number of dimensions,
+    non-square or even-sized ROIs, complex, boolean or non-finite values.
     """
     path = Path(path)
     if not path.exists():
         raise BayespsfInputError(f"{path}: no such file")
+    if path.is_dir():
+        raise BayespsfInputError(f"{path} is a directory, not a ROI stack (.npy or .tif)")
     suffix = path.suffix.lower()
+    if suffix not in (".npy", ".tif", ".tiff"):
+        raise BayespsfInputError(f"{path}: unknown file type {suffix!r} (use .npy or .tif)")
     try:
-        if suffix == ".npy":
-            data = np.load(path, allow_pickle=False)
-        elif suffix in (".tif", ".tiff"):
-            import tifffile
-
-            data = tifffile.imread(path)
-        else:
-            raise BayespsfInputError(f"{path}: unknown file type {suffix!r} (use .npy or .tif)")
+        data = np.load(path, allow_pickle=False) if suffix == ".npy" else _read_tiff(path)
     except BayespsfInputError:
         raise
     except Exception as exc:  # the readers raise many kinds for a damaged file
-        raise BayespsfInputError(f"{path}: cannot read it ({exc})") from exc
-    data = np.asarray(data, dtype=np.float64)
+        raise BayespsfInputError(f"{path}: cannot read it, damaged or truncated ({exc})") from exc
+    try:
+        data = finite_array("counts", data)
+    except BayespsfInputError as exc:
+        raise BayespsfInputError(f"{path}: {exc}") from None
     if data.ndim == 2:
         data = data[None]
     if data.ndim != 3 or data.shape[1] != data.shape[2] or data.shape[1] % 2 == 0:
         raise BayespsfInputError(
             f"{path}: expected square ROIs of odd size, shape (n, roi, roi); got {data.shape}"
         )
-    if not np.all(np.isfinite(data)):
-        raise BayespsfInputError(f"{path}: contains NaN or infinite counts")
+    if data.shape[0] == 0:
+        raise BayespsfInputError(f"{path}: no ROIs (the stack's shape is {data.shape})")
     return data
+
+
+def _read_tiff(path: Path) -> np.ndarray:
+    """Every page of a TIFF, read page by page; pages of different shapes are an error that
+    names them (reading the first page's series alone analysed only part of such a file)."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        pages = tif.pages
+        if len(pages) == 0:
+            raise BayespsfInputError(f"{path}: a TIFF with no images")
+        shapes = [page.shape for page in pages]
+        if len(set(shapes)) > 1:
+            first = shapes[0]
+            odd = [i for i, shape in enumerate(shapes) if shape != first]
+            listed = ", ".join(f"page {i} {shapes[i]}" for i in odd[:5])
+            raise BayespsfInputError(
+                f"{path}: its pages differ in shape (page 0 {first}; {listed}"
+                f"{' ...' if len(odd) > 5 else ''}); a ROI stack has pages of one shape"
+            )
+        if len(pages) == 1:
+            return pages[0].asarray()
+        return np.stack([page.asarray() for page in pages])
