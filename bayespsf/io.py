@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -35,14 +36,14 @@ def read_rois(path) -> np.ndarray:
         data = finite_array("counts", data)
     except BayespsfInputError as exc:
         raise BayespsfInputError(f"{path}: {exc}") from None
+    if data.size == 0:
+        raise BayespsfInputError(f"{path}: no ROIs (the stack's shape is {data.shape})")
     if data.ndim == 2:
         data = data[None]
     if data.ndim != 3 or data.shape[1] != data.shape[2] or data.shape[1] % 2 == 0:
         raise BayespsfInputError(
             f"{path}: expected square ROIs of odd size, shape (n, roi, roi); got {data.shape}"
         )
-    if data.shape[0] == 0:
-        raise BayespsfInputError(f"{path}: no ROIs (the stack's shape is {data.shape})")
     return data
 
 
@@ -51,19 +52,44 @@ def _read_tiff(path: Path) -> np.ndarray:
     names them (reading the first page's series alone analysed only part of such a file)."""
     import tifffile
 
-    with tifffile.TiffFile(path) as tif:
-        pages = tif.pages
-        if len(pages) == 0:
-            raise BayespsfInputError(f"{path}: a TIFF with no images")
-        shapes = [page.shape for page in pages]
-        if len(set(shapes)) > 1:
-            first = shapes[0]
-            odd = [i for i, shape in enumerate(shapes) if shape != first]
-            listed = ", ".join(f"page {i} {shapes[i]}" for i in odd[:5])
-            raise BayespsfInputError(
-                f"{path}: its pages differ in shape (page 0 {first}; {listed}"
-                f"{' ...' if len(odd) > 5 else ''}); a ROI stack has pages of one shape"
-            )
-        if len(pages) == 1:
-            return pages[0].asarray()
-        return np.stack([page.asarray() for page in pages])
+    complaints = _TiffComplaints()
+    logger = logging.getLogger("tifffile")
+    logger.addHandler(complaints)
+    try:
+        with tifffile.TiffFile(path) as tif:
+            return _tiff_pages(path, tif, complaints)
+    finally:
+        logger.removeHandler(complaints)
+
+
+class _TiffComplaints(logging.Handler):
+    """tifffile's logged warnings while a file is read: it logs, and stops, where a truncated
+    file's chain of pages breaks ("invalid page offset"), returning the pages before it."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+def _tiff_pages(path: Path, tif, complaints: _TiffComplaints) -> np.ndarray:
+    pages = tif.pages
+    count = len(pages)  # walks the chain of pages: a break is logged here
+    if complaints.messages:
+        raise BayespsfInputError(f"{path}: damaged or truncated TIFF ({complaints.messages[0]})")
+    if count == 0:
+        raise BayespsfInputError(f"{path}: a TIFF with no images")
+    shapes = [page.shape for page in pages]
+    if len(set(shapes)) > 1:
+        first = shapes[0]
+        odd = [i for i, shape in enumerate(shapes) if shape != first]
+        listed = ", ".join(f"page {i} {shapes[i]}" for i in odd[:5])
+        raise BayespsfInputError(
+            f"{path}: its pages differ in shape (page 0 {first}; {listed}"
+            f"{' ...' if len(odd) > 5 else ''}); a ROI stack has pages of one shape"
+        )
+    if count == 1:
+        return pages[0].asarray()
+    return np.stack([page.asarray() for page in pages])

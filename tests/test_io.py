@@ -35,7 +35,10 @@ def test_a_multipage_tiff_is_every_page(tmp_path):
         (lambda p: np.save(p / "x.npy", np.ones((2, 15, 15)) + 1j), r"x\.npy: counts .*complex"),
         (lambda p: np.save(p / "x.npy", np.ones((2, 15, 15), bool)), r"x\.npy: .*boolean"),
         (lambda p: (p / "x.npy").write_bytes(b"\x93NUMPY\x01\x00v\x00{'descr'"), "damaged"),
-        (lambda p: (p / "x.tif").write_bytes(b"II*\x00\x08\x00\x00\x00"), "TIFF with no images"),
+        (
+            lambda p: (p / "x.tif").write_bytes(b"II*\x00\x08\x00\x00\x00"),
+            "damaged or truncated TIFF",
+        ),
         (lambda p: (p / "x.tif").write_bytes(b"\x00" * 64), r"x\.tif: cannot read it"),
         (lambda p: (p / "x.npy").mkdir(), r"x\.npy is a directory"),
     ],
@@ -48,13 +51,25 @@ def test_bad_stacks_are_named(tmp_path, make, words):
         read_rois(path)
 
 
+def test_a_tiff_of_empty_pages_has_no_rois(tmp_path):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # tifffile warns that it writes a zero-size image
+        tifffile.imwrite(tmp_path / "empty.tif", np.ones((0, 15, 15), np.float32))
+    with pytest.raises(BayespsfInputError, match=r"empty\.tif: no ROIs"):
+        read_rois(tmp_path / "empty.tif")
+
+
 def test_a_truncated_tiff_is_named(tmp_path):
+    # tifffile stops at the break in the chain of pages and returns the pages before it: a
+    # stack silently shorter than the file that was written
     tifffile.imwrite(
         tmp_path / "ok.tif", np.ones((4, 15, 15), np.float32), photometric="minisblack"
     )
     raw = (tmp_path / "ok.tif").read_bytes()
     (tmp_path / "cut.tif").write_bytes(raw[: len(raw) // 2])
-    with pytest.raises(BayespsfInputError, match=r"cut\.tif: cannot read it, damaged or trunc"):
+    with pytest.raises(BayespsfInputError, match=r"cut\.tif: damaged or truncated TIFF"):
         read_rois(tmp_path / "cut.tif")
 
 
