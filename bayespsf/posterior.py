@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
+from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 
 
@@ -169,10 +170,75 @@ class Posterior:
 
     @classmethod
     def load(cls, path) -> Posterior:
+        """Read a result file written by ``save``. A missing, empty, truncated or damaged file,
+        a directory, a NetCDF3 file, or a NetCDF without the six parameters' draws in a
+        ``posterior`` group raises ``BayespsfInputError`` naming the file and what it is not."""
         path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"no result file {path}")
-        return cls(xr.open_datatree(path).load())
+        what = _not_a_result_file(path)
+        if what:
+            raise BayespsfInputError(f"{path}: {what}")
+        try:
+            _readable_hdf5(path)  # before xarray: h5netcdf leaves a broken half-open file
+            tree = xr.open_datatree(path).load()
+        except Exception as exc:  # h5py and xarray raise many kinds for a damaged file
+            raise BayespsfInputError(
+                f"{path}: a damaged or truncated result file ({type(exc).__name__}: {exc})"
+            ) from None
+        missing = _missing_draws(tree)
+        if missing:
+            raise BayespsfInputError(
+                f"{path}: not a bayespsf result file: {missing} (a result file holds the draws "
+                f"of {', '.join(PARAMETER_NAMES)} with dims (chain, draw) in its 'posterior' "
+                "group)"
+            )
+        return cls(tree)
+
+
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"  # NetCDF4 files are HDF5 files
+
+
+def _not_a_result_file(path: Path) -> str:
+    """What ``path`` is instead of a result file, judged from its first bytes ('' if it may be
+    one)."""
+    if not path.exists():
+        return "no such result file"
+    if path.is_dir():
+        return "is a directory, not a result file (.nc)"
+    with path.open("rb") as file:
+        head = file.read(8)
+    if not head:
+        return "an empty file, not a result file"
+    if head[:3] == b"CDF":
+        return "a NetCDF3 file; bayespsf result files are NetCDF4 (HDF5)"
+    if head != HDF5_SIGNATURE:
+        return "not a bayespsf result file (NetCDF4/HDF5): its first bytes are not HDF5's"
+    return ""
+
+
+def _readable_hdf5(path: Path) -> None:
+    """Open ``path`` with h5py and read every dataset (raises for a damaged file)."""
+    import h5py
+
+    def read(_name, item):
+        if isinstance(item, h5py.Dataset):
+            item[()]
+
+    with h5py.File(path, "r") as file:
+        file.visititems(read)
+
+
+def _missing_draws(tree) -> str:
+    """What a tree lacks of a posterior's draws ('' if nothing)."""
+    if "posterior" not in tree.children:
+        return "it has no 'posterior' group"
+    post = tree["posterior"]
+    absent = [name for name in PARAMETER_NAMES if name not in post.data_vars]
+    if absent:
+        return f"its posterior group has no {', '.join(absent)}"
+    odd = [n for n in PARAMETER_NAMES if tuple(post[n].dims) != ("chain", "draw")]
+    if odd:
+        return f"{', '.join(odd)} do not have dims (chain, draw)"
+    return ""
 
 
 def _jsonable(value):
