@@ -8,10 +8,10 @@ import numpy as np
 from bayespsf.errors import BayespsfInputError
 
 
-def finite_array(name: str, value) -> np.ndarray:
-    """``value`` as a float64 array; NaN, infinity, and complex, boolean or non-numeric values
-    (which NumPy would cast silently: the imaginary part dropped, True read as 1) raise an error
-    naming ``name``."""
+def real_array(name: str, value) -> np.ndarray:
+    """``value`` as a float64 array; complex, boolean or non-numeric values (which NumPy would
+    cast silently: the imaginary part dropped, True read as 1) raise an error naming ``name``.
+    NaN and infinity pass (``finite_array`` refuses them)."""
     try:
         raw = np.asarray(value)
     except ValueError as exc:  # ragged nested sequences
@@ -27,7 +27,12 @@ def finite_array(name: str, value) -> np.ndarray:
             f"{name} must be real numbers (integer or float), got "
             f"{what.get(raw.dtype.kind, raw.dtype.name)} values"
         )
-    arr = raw.astype(np.float64, copy=False)
+    return raw.astype(np.float64, copy=False)
+
+
+def finite_array(name: str, value) -> np.ndarray:
+    """``real_array`` whose entries are all finite (NaN or infinity raise naming ``name``)."""
+    arr = real_array(name, value)
     if not np.all(np.isfinite(arr)):
         bad = np.count_nonzero(~np.isfinite(arr))
         raise BayespsfInputError(f"{name} must be finite; {bad} entries are NaN or infinite")

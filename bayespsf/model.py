@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from bayespsf import psf
-from bayespsf._checks import finite_array
+from bayespsf._checks import finite_array, real_array
 from bayespsf.cameras import EMCCD, SCMOS, Camera, Photon
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
@@ -212,25 +212,26 @@ class Model:
         return c
 
     def _check_shape(self, counts) -> np.ndarray:
-        c = finite_array("counts", counts)
+        """Counts as a float array of shape (..., roi, roi); values are judged per ROI."""
+        c = real_array("counts", counts)
         if c.ndim < 2 or c.shape[-2:] != (self.roi, self.roi):
             raise BayespsfInputError(
                 f"counts must have shape (..., {self.roi}, {self.roi}) for this model, "
                 f"got {c.shape}"
             )
-        self.camera._check_counts(c)
         return c
 
     def roi_problems(self, counts) -> list[str | None]:
         """Why each ROI of ``counts`` (..., roi, roi) cannot be analysed by this model, or
         ``None`` where it can: one entry per ROI, in C order of the leading dimensions.
 
-        The reasons: every pixel equal (an empty, dead or clipped ROI); counts far below the
-        camera's offset (more than ``OFFSET_FRACTION`` of the pixels over ``OFFSET_SDS``
-        readout SDs below it, which the camera law gives a probability below 1e-6 each: not
-        ADU above the offset, e.g. an offset subtracted twice); pixels at or above a
-        declared ``saturation``; and, where no saturation is declared, a plateau of equal
-        maximal counts (``saturation_plateau``) that marks an undeclared one.
+        The reasons: NaN or infinite pixels; counts outside the camera's domain (a photon
+        camera's are whole numbers >= 0); every pixel equal (an empty, dead or clipped ROI);
+        counts far below the camera's offset (more than ``OFFSET_FRACTION`` of the pixels
+        over ``OFFSET_SDS`` readout SDs below it, which the camera law gives a probability
+        below 1e-6 each: not ADU above the offset, e.g. an offset subtracted twice); pixels at
+        or above a declared ``saturation``; and, where no saturation is declared, a plateau of
+        equal maximal counts (``saturation_plateau``) that marks an undeclared one.
         """
         c = self._check_shape(counts)
         flat = c.reshape(-1, self.roi * self.roi)
@@ -240,6 +241,13 @@ class Model:
         return [self._roi_problem(roi, offset, readout) for roi in flat]
 
     def _roi_problem(self, roi, offset, readout) -> str | None:
+        bad = np.count_nonzero(~np.isfinite(roi))
+        if bad:
+            return f"{bad} pixels are NaN or infinite"
+        try:
+            self.camera._check_counts(roi.reshape(self.roi, self.roi))
+        except BayespsfInputError as exc:
+            return str(exc)
         if np.all(roi == roi[0]):
             return (
                 f"every pixel has the same value ({roi[0]:g}): an empty, dead or clipped ROI "
