@@ -33,13 +33,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from bayespsf._checks import real_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
 
 QUANTILES = (0.025, 0.05, 0.16, 0.25, 0.5, 0.75, 0.84, 0.95, 0.975)
 RANK_DRAWS = 99  # ranks 0..99: a histogram of 100 equally likely values under calibration
-SAMPLER_OPTIONS = ("ess", "walkers", "max_steps", "moves", "method")
+SAMPLER_OPTIONS = ("ess", "walkers", "max_steps", "moves", "method", "max_seconds")
+SCHEDULER_TIMEOUT = 10.0  # seconds to reach a Dask scheduler before the address is called wrong
 
 
 def molecule_seed(seed: int, index: int) -> int:
@@ -74,6 +76,8 @@ def molecule_row(posterior, index: int, seed: int) -> dict:
         "molecule": int(index),
         "seed": int(seed),
         "converged": bool(info.get("converged", False)),
+        "status": "converged" if info.get("converged", False) else "not converged",
+        "message": info.get("diagnosis", ""),
         "method": posterior.method,
         "steps": int(info.get("steps", 0)),
         "draws": int(flat.shape[0]),
@@ -137,13 +141,30 @@ def _sample_one(task):
 
     index, counts, model, seed, truth, scene, options = task
     started = time.perf_counter()
-    post = sample_posterior(counts, model, seed=seed, truth=truth, scene=scene, progress=False,
-                            **options)  # fmt: skip
+    try:
+        post = sample_posterior(counts, model, seed=seed, truth=truth, scene=scene,
+                                progress=False, **options)  # fmt: skip
+    except BayespsfInputError as error:  # e.g. a ROI outside the likelihood tier's support
+        return index, None, _outcome_row(index, seed, "failed", str(error))
     info = dict(post.info, seconds=time.perf_counter() - started)
     post.tree.attrs["sampler"] = json.dumps(info)
     row = molecule_row(post, index, seed)
     post.tree.attrs["summary_row"] = json.dumps(row)
     return index, post, row
+
+
+def _die_with_parent(parent: int) -> None:
+    """Worker initializer: ask the kernel to kill this worker when its parent dies (Linux
+    ``prctl(PR_SET_PDEATHSIG, SIGKILL)``), so that a killed run leaves no orphaned workers; if
+    the parent is already gone, exit."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
@@ -155,7 +176,16 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
     # client, a progress monitor): then forkserver, which re-imports the main module
     method = "fork" if threading.active_count() == 1 else "forkserver"
-    return cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method))
+    context = multiprocessing.get_context(method)
+    # a forkserver's workers are its children: they die with it, and it ends with this process
+    parent = os.getpid() if method == "fork" else None
+    return cf.ProcessPoolExecutor(
+        workers, mp_context=context, initializer=_die_with_parent_of, initargs=(parent,)
+    )
+
+
+def _die_with_parent_of(parent: int | None) -> None:
+    _die_with_parent(os.getppid() if parent is None else parent)
 
 
 def _executor(executor, workers):
@@ -169,7 +199,13 @@ def _executor(executor, workers):
     if isinstance(executor, str):
         from distributed import Client
 
-        client = Client(executor)
+        try:
+            client = Client(executor, timeout=SCHEDULER_TIMEOUT)
+        except (OSError, TimeoutError) as exc:
+            raise BayespsfInputError(
+                f"no Dask scheduler answered at {executor!r} within {SCHEDULER_TIMEOUT:g} s "
+                f"({type(exc).__name__}); check the address and that the scheduler runs"
+            ) from None
         return _AddressExecutor(client), True
     if hasattr(executor, "get_executor"):  # a dask.distributed.Client
         return executor.get_executor(), False
@@ -203,6 +239,36 @@ class Store:
 
     def __init__(self, path):
         self.path = Path(path)
+        self._lock = None
+
+    def lock(self) -> None:
+        """Hold the store's lock for this run (``fcntl.flock``, released when the run ends or
+        its process dies): a second run on the same store is refused at once, naming the
+        process that holds it, instead of doing all the work again beside the first."""
+        import fcntl
+
+        self.path.mkdir(parents=True, exist_ok=True)
+        handle = (self.path / ".lock").open("a+")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            raise BayespsfInputError(
+                f"store {self.path} is in use by process {holder}; wait for that run to end, "
+                "or use another store folder"
+            ) from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(str(os.getpid()))
+        handle.flush()
+        self._lock = handle
+
+    def unlock(self) -> None:
+        if self._lock is not None:
+            self._lock.close()
+            self._lock = None
 
     def molecule_path(self, index: int) -> Path:
         return self.path / f"molecule-{index:06d}.nc"
@@ -328,50 +394,62 @@ def sample_many(
     -------
     pandas.DataFrame
         One row per molecule, sorted by molecule (see ``molecule_row``); also written to
-        ``store/summary.csv``.
+        ``store/summary.csv``. ``status`` says what happened to each: ``converged``,
+        ``not converged`` (``message``: the sampler's diagnosis), ``refused`` (the model cannot
+        analyse that ROI: ``Model.roi_problems``) or ``failed`` (its sampling raised a named
+        input error); one bad ROI never stops the stack. A store is locked while a run uses
+        it: a second run on it is refused at once.
     """
     unknown = sorted(set(options) - set(SAMPLER_OPTIONS))
     if unknown:
         raise BayespsfInputError(
             f"unknown sampler option(s) {unknown}; sample_many takes {list(SAMPLER_OPTIONS)}"
         )
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise BayespsfInputError(f"seed must be a non-negative integer, got {seed!r}")
-    stack = np.asarray(counts, dtype=np.float64)
+    from bayespsf.sampling import check_settings
+
+    check_settings(seed=seed, **options)  # a bad setting fails here, not in every worker
+    stack = model._check_shape(counts)
     if stack.ndim != 3:
         raise BayespsfInputError(f"counts must be a stack (n, roi, roi), got shape {stack.shape}")
-    for i, roi in enumerate(stack):
-        try:
-            model.check_counts(roi)
-        except BayespsfInputError as error:
-            raise BayespsfInputError(f"molecule {i}: {error}") from None
     n = stack.shape[0]
+    if n == 0:
+        raise BayespsfInputError("counts: the stack has no ROIs")
     if truths is not None:
-        truths = np.asarray(truths, dtype=np.float64)
+        truths = real_array("truths", truths)
         if truths.shape != (n, 6):
             raise BayespsfInputError(f"truths must have shape ({n}, 6), got {truths.shape}")
+    problems = model.roi_problems(stack)
     rows: dict[int, dict] = {}
     saver = None
     if store is not None:
         saver = Store(store)
-        saver.open(_manifest(stack, model, seed, options, truths))
-        rows = saver.finished(n)
-    todo = [i for i in range(n) if i not in rows]
-    tasks = (
-        (
-            i,
-            stack[i],
-            model,
-            molecule_seed(seed, i),
-            None if truths is None else truths[i],
-            scene,
-            options,
-        )
-        for i in todo
-    )
+        saver.lock()
+    try:
+        if saver is not None:
+            saver.open(_manifest(stack, model, seed, options, truths))
+            rows = saver.finished(n)
+        for i, problem in enumerate(problems):
+            if problem is not None:
+                rows[i] = _outcome_row(i, molecule_seed(seed, i), "refused", problem)
+        todo = [i for i in range(n) if i not in rows]
+        tasks = (
+            (i, stack[i], model, molecule_seed(seed, i),
+             None if truths is None else truths[i], scene, options)
+            for i in todo
+        )  # fmt: skip
+        _run(tasks, executor, workers, saver, rows, _progress(n, len(rows), progress))
+        table = pd.DataFrame([rows[i] for i in sorted(rows)])
+        if saver is not None:
+            saver.write_summary(table)
+    finally:
+        if saver is not None:
+            saver.unlock()
+    return table
+
+
+def _run(tasks, executor, workers, saver, rows, bar) -> None:
+    """Sample the tasks, write each result as it comes, fill ``rows``."""
     runner, owned = _executor(executor, workers)
-    show = progress or (progress is None and sys.stderr.isatty())
-    bar = _progress(n, len(rows), show)
     try:
         if runner is None:
             results = map(_sample_one, tasks)
@@ -379,7 +457,7 @@ def sample_many(
             futures = [runner.submit(_sample_one, task) for task in tasks]
             results = (f.result() for f in cf.as_completed(futures))
         for index, post, row in results:
-            if saver is not None:
+            if saver is not None and post is not None:
                 saver.write(index, post)
             rows[index] = row
             bar.update(1)
@@ -387,14 +465,18 @@ def sample_many(
         bar.close()
         if owned:
             runner.shutdown(wait=True, cancel_futures=True)
-    table = pd.DataFrame([rows[i] for i in sorted(rows)])
-    if saver is not None:
-        saver.write_summary(table)
-    return table
 
 
-def _progress(total, done, show):
+def _outcome_row(index: int, seed: int, status: str, message: str) -> dict:
+    """The summary row of a molecule without a posterior: its status and the reason."""
+    return {"molecule": int(index), "seed": int(seed), "converged": False, "status": status,
+            "message": message}  # fmt: skip
+
+
+def _progress(total, done, progress):
     from tqdm import tqdm
+
+    show = progress or (progress is None and sys.stderr.isatty())
 
     class Bar(tqdm):
         monitor_interval = 0  # no monitor thread: the next run may still fork its workers

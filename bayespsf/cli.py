@@ -162,6 +162,9 @@ def _fit(args) -> int:
         method=args.method,
     )
     for _, row in table.iterrows():
+        if row["status"] in ("refused", "failed"):
+            print(f"ROI {row['molecule']}: {row['status']}: {row['message']}")
+            continue
         print(
             f"ROI {row['molecule']} ({row['method']}): converged {row['converged']}, "
             f"s_x = {row['s_x_mean']:.4g} +- {row['s_x_sd']:.3g} nm"

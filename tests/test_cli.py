@@ -196,3 +196,18 @@ def test_fit_takes_the_truth_table_simulate_writes_and_keeps_logs_clean(tmp_path
     bad = _run("fit", "sim/a.npy", "--scene", "ideal", "--truth", "sim/a.npy", "--out", "x",
                cwd=tmp_path)  # fmt: skip
     assert bad.returncode == 1 and bad.stderr.startswith("bayespsf: --truth sim/a.npy")
+
+
+def test_fit_reports_a_refused_roi_and_fits_the_rest(tmp_path):
+    import numpy as np
+
+    from bayespsf import scenes, simulate
+
+    counts, _ = simulate(scenes.load("ideal"), 3, seed=0)
+    counts[1] = 4.0
+    np.save(tmp_path / "rois.npy", counts)
+    result = _run("fit", "rois.npy", "--scene", "ideal", "--workers", "1", "--method",
+                  "importance", "--ess", "100", cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "ROI 1: refused: every pixel has the same value" in result.stdout
+    assert "ROI 2 (importance)" in result.stdout
