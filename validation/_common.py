@@ -61,7 +61,8 @@ def finish(args, name: str, table, text: str, started: float, summary: str | Non
         if getattr(args, option, None) is not None:
             command += f" --{option} {getattr(args, option)}"
     stem = _stem(args, name)
-    write(args.out, stem, table, text, command, started, summary)
+    # a quick run is a try-out: it writes its own *_quick files, never the README's sections
+    write(args.out, stem, table, text, command, started, None if args.quick else summary)
     print(text)
     return table
 
