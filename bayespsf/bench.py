@@ -256,8 +256,8 @@ def summarise(rows: pd.DataFrame) -> pd.DataFrame:
             {
                 "molecules": n,
                 "reference converged": len(compared),
-                "time / MLE": g["time / MLE"].median(),
-                "seconds": g["seconds"].median(),
+                "time / MLE": _median(g["time / MLE"]),
+                "seconds": _median(g["seconds"]),
                 "SD error (median |.|)": np.median(np.abs(compared["sd error"])),
                 "SD error (RMS)": np.sqrt(np.mean(compared["sd error"] ** 2)),
                 "mean offset (RMS, ref SDs)": np.sqrt(np.mean(compared["mean offset"] ** 2)),
@@ -265,7 +265,7 @@ def summarise(rows: pd.DataFrame) -> pd.DataFrame:
                 "coverage 68% SE": np.sqrt(0.68 * 0.32 / n),
                 "coverage 95%": c95,
                 "coverage 95% SE": np.sqrt(0.95 * 0.05 / n),
-                "median ESS": g["ess"].median() if "ess" in g else np.nan,
+                "median ESS": _median(g["ess"]) if "ess" in g else np.nan,
             }
         )
 
@@ -273,6 +273,13 @@ def summarise(rows: pd.DataFrame) -> pd.DataFrame:
     failed = rows[~np.isfinite(rows["sd"])].groupby(keys, dropna=False, sort=False).size()
     table["ROIs it cannot score"] = failed.reindex(table.index).fillna(0).astype(int)
     return table.reset_index()
+
+
+def _median(values) -> float:
+    """Median of the finite values, NaN if none (pandas 2.3 warns on an all-NaN median)."""
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    return float(np.median(finite)) if finite.size else np.nan
 
 
 def which_tier(summary: pd.DataFrame) -> pd.DataFrame:
