@@ -64,7 +64,8 @@ def _read_tiff(path: Path) -> np.ndarray:
 
 class _TiffComplaints(logging.Handler):
     """tifffile's logged warnings while a file is read: it logs, and stops, where a truncated
-    file's chain of pages breaks ("invalid page offset"), returning the pages before it."""
+    file's chain of pages breaks ("invalid page offset"), returning the pages before it; it also
+    logs, and reads on, for a file without pages or with an unreadable tag."""
 
     def __init__(self):
         super().__init__(logging.WARNING)
@@ -75,21 +76,29 @@ class _TiffComplaints(logging.Handler):
 
 
 def _tiff_pages(path: Path, tif, complaints: _TiffComplaints) -> np.ndarray:
+    """The pages of an open TIFF as one array. Only what tifffile logs while walking the chain
+    of pages marks a file as truncated: a tag it cannot read (logged on opening) leaves the
+    image readable, as ``tifffile.imread`` reads it."""
+    opening = list(complaints.messages)
+    complaints.messages.clear()
     pages = tif.pages
     count = len(pages)  # walks the chain of pages: a break is logged here
+    if count == 0:
+        why = f" ({opening[0]})" if opening else ""
+        raise BayespsfInputError(f"{path}: a TIFF with no images, only a header{why}")
     if complaints.messages:
         raise BayespsfInputError(f"{path}: damaged or truncated TIFF ({complaints.messages[0]})")
-    if count == 0:
-        raise BayespsfInputError(f"{path}: a TIFF with no images")
     shapes = [page.shape for page in pages]
+    first = shapes[0]
     if len(set(shapes)) > 1:
-        first = shapes[0]
         odd = [i for i, shape in enumerate(shapes) if shape != first]
         listed = ", ".join(f"page {i} {shapes[i]}" for i in odd[:5])
         raise BayespsfInputError(
             f"{path}: its pages differ in shape (page 0 {first}; {listed}"
             f"{' ...' if len(odd) > 5 else ''}); a ROI stack has pages of one shape"
         )
+    if first == () or 0 in first:  # an image directory without (or with empty) image data
+        raise BayespsfInputError(f"{path}: no ROIs, its pages hold no image data (shape {first})")
     if count == 1:
         return pages[0].asarray()
     return np.stack([page.asarray() for page in pages])
