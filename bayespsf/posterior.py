@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
+from bayespsf._checks import real_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 
@@ -171,15 +172,18 @@ class Posterior:
     @classmethod
     def load(cls, path) -> Posterior:
         """Read a result file written by ``save``. A missing, empty, truncated or damaged file,
-        a directory, a NetCDF3 file, or a NetCDF without the six parameters' draws in a
-        ``posterior`` group raises ``BayespsfInputError`` naming the file and what it is not."""
+        a directory, a NetCDF3 file, or a NetCDF without the six parameters' draws (real numbers,
+        dims ``(chain, draw)``, at least one draw) in a ``posterior`` group raises
+        ``BayespsfInputError`` naming the file and what it is not."""
         path = Path(path)
         what = _not_a_result_file(path)
         if what:
             raise BayespsfInputError(f"{path}: {what}")
         try:
             _readable_hdf5(path)  # before xarray: h5netcdf leaves a broken half-open file
-            tree = xr.open_datatree(path).load()
+            # h5netcdf: the engine result files are written with; phony_dims names the dims of
+            # a plain HDF5 file's datasets (it warns when left to its default)
+            tree = xr.open_datatree(path, engine="h5netcdf", phony_dims="access").load()
         except Exception as exc:  # h5py and xarray raise many kinds for a damaged file
             raise BayespsfInputError(
                 f"{path}: a damaged or truncated result file ({type(exc).__name__}: {exc})"
@@ -228,7 +232,8 @@ def _readable_hdf5(path: Path) -> None:
 
 
 def _missing_draws(tree) -> str:
-    """What a tree lacks of a posterior's draws ('' if nothing)."""
+    """What a tree lacks of a posterior's draws ('' if nothing): the ``posterior`` group, one
+    of the six parameters, dims ``(chain, draw)``, at least one draw, real-number values."""
     if "posterior" not in tree.children:
         return "it has no 'posterior' group"
     post = tree["posterior"]
@@ -238,6 +243,14 @@ def _missing_draws(tree) -> str:
     odd = [n for n in PARAMETER_NAMES if tuple(post[n].dims) != ("chain", "draw")]
     if odd:
         return f"{', '.join(odd)} do not have dims (chain, draw)"
+    empty = [n for n in PARAMETER_NAMES if post[n].size == 0]
+    if empty:
+        return f"{', '.join(empty)} have no draws (shape {post[empty[0]].shape})"
+    for name in PARAMETER_NAMES:
+        try:
+            real_array(f"the draws of {name}", post[name].values)
+        except BayespsfInputError as exc:
+            return str(exc)
     return ""
 
 

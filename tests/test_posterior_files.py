@@ -68,3 +68,50 @@ def test_a_netcdf_of_another_program_is_refused_at_load(tmp_path):
     tree.to_netcdf(partial, engine="h5netcdf")
     with pytest.raises(BayespsfInputError, match="posterior group has no y0, s_x, s_y, N, b"):
         Posterior.load(partial)
+
+
+def _posterior_tree(path, values, dims=("chain", "draw")):
+    """A NetCDF of another program: a posterior group whose six parameters hold ``values``."""
+    names = ("x0", "y0", "s_x", "s_y", "N", "b")
+    group = xr.Dataset({name: (dims, values) for name in names})
+    xr.DataTree.from_dict({"posterior": group}).to_netcdf(path, engine="h5netcdf")
+    return path
+
+
+@pytest.mark.parametrize(
+    "values,dims,words",
+    [
+        # each loaded, then failed in draws() or summary() (or, for other dims, was misread)
+        (np.zeros(5), ("draw",), r"x0, y0, s_x, s_y, N, b do not have dims \(chain, draw\)"),
+        (
+            np.zeros((2, 5, 3)),
+            ("chain", "draw", "extra"),
+            r"x0, y0, s_x, s_y, N, b do not have dims \(chain, draw\)",
+        ),
+        (np.zeros((4, 0)), ("chain", "draw"), r"x0, y0, s_x, s_y, N, b have no draws"),
+        (np.full((2, 5), "a"), ("chain", "draw"), "the draws of x0 must be real numbers.*text"),
+    ],
+    ids=["one-dim", "extra-dim", "no-draws", "text"],
+)
+def test_a_posterior_group_without_usable_draws_is_refused_at_load(tmp_path, values, dims, words):
+    path = _posterior_tree(tmp_path / "odd.nc", values, dims)
+    with pytest.raises(BayespsfInputError, match=rf"odd\.nc: not a bayespsf result file: {words}"):
+        Posterior.load(path)
+
+
+def test_a_real_netcdf3_file_is_named(tmp_path):
+    # xarray raised its own error for a NetCDF3 file (no groups)
+    path = tmp_path / "old.nc"
+    xr.Dataset({"x0": (("chain", "draw"), np.zeros((2, 5)))}).to_netcdf(path, engine="scipy")
+    with pytest.raises(BayespsfInputError, match=r"old\.nc: a NetCDF3 file"):
+        Posterior.load(path)
+
+
+def test_a_plain_hdf5_file_is_not_a_result_file(tmp_path):
+    # h5netcdf warned about the dims of its datasets, an error here and "damaged" to the user
+    import h5py
+
+    with h5py.File(tmp_path / "plain.h5", "w") as file:
+        file["x0"] = np.zeros(3)
+    with pytest.raises(BayespsfInputError, match=r"plain\.h5: .*no 'posterior' group"):
+        Posterior.load(tmp_path / "plain.h5")
