@@ -54,11 +54,14 @@ def _read_tiff(path: Path) -> np.ndarray:
 
     complaints = _TiffComplaints()
     logger = logging.getLogger("tifffile")
+    level = logger.level
     logger.addHandler(complaints)
+    logger.setLevel(logging.WARNING)  # another library may have raised it (picasso: CRITICAL)
     try:
         with tifffile.TiffFile(path) as tif:
             return _tiff_pages(path, tif, complaints)
     finally:
+        logger.setLevel(level)
         logger.removeHandler(complaints)
 
 
