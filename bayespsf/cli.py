@@ -160,6 +160,7 @@ def _fit(args) -> int:
         scene=scene,
         ess=args.ess,
         method=args.method,
+        max_seconds=args.max_seconds,
     )
     for _, row in table.iterrows():
         if row["status"] in ("refused", "failed"):
@@ -263,6 +264,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("--likelihood", default=None, help="likelihood tier (default: the scene's)")
     fit.add_argument("--ess", type=float, default=400.0, help="ESS per parameter (default 400)")
+    fit.add_argument(
+        "--max-seconds",
+        type=float,
+        default=None,
+        help="wall-clock budget of each ROI's chain (default: none); a ROI that exhausts it "
+        "is reported not converged",
+    )
     fit.add_argument(
         "--method",
         choices=("mcmc", "importance"),

@@ -211,3 +211,17 @@ def test_fit_reports_a_refused_roi_and_fits_the_rest(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "ROI 1: refused: every pixel has the same value" in result.stdout
     assert "ROI 2 (importance)" in result.stdout
+
+
+def test_fit_settings_that_would_never_end_are_one_line(tmp_path):
+    # `--ess nan` ran forever
+    import numpy as np
+
+    from bayespsf import scenes, simulate
+
+    counts, _ = simulate(scenes.load("ideal"), 1, seed=0)
+    np.save(tmp_path / "rois.npy", counts)
+    for option, value in (("--ess", "nan"), ("--ess", "-5"), ("--max-seconds", "0")):
+        result = _run("fit", "rois.npy", "--scene", "ideal", option, value, cwd=tmp_path)
+        assert result.returncode == 1 and result.stderr.startswith("bayespsf: "), result.stderr
+        assert "Traceback" not in result.stderr
