@@ -6,9 +6,9 @@ values at their current *stage*: ``expected`` photons, integer ``photoelectrons`
 it draws random numbers, and does one thing. ``bayespsf.simulate`` builds the list of
 effects from exactly what a scene declares.
 
-The camera laws' own ``sample`` methods (``bayespsf.cameras``) use the same primitives
-(``gamma_register``, ``add_normal``), so the simulator and the likelihood describe one
-camera.
+The EM register and readout draws (``gamma_register``, ``add_normal``) belong to the camera
+laws (``bayespsf.cameras._draws``), whose own ``sample`` methods use them; the effects import
+them from there, so the simulator and the likelihood describe one camera.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import numpy as np
 from scipy import special
 
 from bayespsf import psf
+from bayespsf.cameras._draws import add_normal, gamma_register
 
 STAGES = ("truth", "expected", "photoelectrons", "electrons", "adu")
 
@@ -58,19 +59,6 @@ class Effect(ABC):
             if not k.startswith("_") and k not in ("reads", "leaves")
         )
         return f"{type(self).__name__}({fields})"
-
-
-# ---------------------------------------------------------------------------------- primitives
-
-
-def gamma_register(photoelectrons: np.ndarray, gain: float, rng: np.random.Generator):
-    """EM register as the Gamma(n, gain) law (n = 0 stays exactly 0)."""
-    return rng.gamma(photoelectrons, gain)
-
-
-def add_normal(values: np.ndarray, sd: float, rng: np.random.Generator) -> np.ndarray:
-    """``values + Normal(0, sd)`` element-wise (readout noise)."""
-    return values + rng.normal(0.0, sd, size=np.shape(values))
 
 
 # ------------------------------------------------------------------------------- truth effects
