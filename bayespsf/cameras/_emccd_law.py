@@ -14,7 +14,13 @@ photoelectrons ``n ~ Poisson(lam)``; the EM register turns ``n >= 1`` into ``Gam
 ``exp(-lam) phi_r(t) + J(t)`` with ``J(t) = integral_0^inf f(u) phi_r(t - u) du``, which has no
 closed form; ``log_convolved`` computes it by Gauss-Legendre quadrature on windows placed
 around the integrand's mode (the integrand is log-concave in u, so it has one mode and the
-windows carry all but ``exp(-_DROP)`` of its mass).
+windows carry all but ``exp(-_DROP)`` of its mass), except where the readout is too narrow to
+change ``log J`` at double precision: there ``J = f`` (``readout_negligible``, with its bound).
+
+Numerical domain (``EMCCD`` refuses anything else; tests/test_camera_domain.py): ``r = 0`` or
+``RATIO_MIN <= r <= RATIO_MAX``, ``lam`` in ``[0, 1e10]`` and ``|t| <= T_MAX``. There every
+function here is finite (``-inf`` only outside the support) and warning-free: ``(t / r)**2``
+stays below 1e55 and ``r * r`` above 1e-24.
 """
 
 from __future__ import annotations
@@ -26,6 +32,11 @@ _DROP = 40.0  # each window ends where the log-integrand has dropped this far be
 _NODES = 24  # Gauss-Legendre nodes per window: 1e-10 in log p against 128 nodes, lam <= 1e4
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(_NODES)
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
+RATIO_MIN, RATIO_MAX = 1e-12, 1e6  # readout/gain r > 0; physical cameras have 1e-4 to 300
+T_MAX = 1e15  # largest |t| in gain units, 1e5 times the law's bulk at lam = 1e10
+_NEGLIGIBLE_ABS = 1e-13  # readout ignored where it moves log J by less than this ...
+_NEGLIGIBLE_REL = 2.0**-53  # ... or by less than half an ulp of log J
+_REACH = 40.0  # readout SDs: beyond them the Gaussian weight is below exp(-800)
 
 
 def log_0f1_2(w):
@@ -37,9 +48,10 @@ def log_0f1_2(w):
     w = np.asarray(w, dtype=np.float64)
     small = w < 1e-8
     ws = np.where(small, 1.0, w)
+    wt = np.where(small, w, 0.0)  # the series only where it is used: w * w overflows at 1e154
     z = 2.0 * np.sqrt(ws)
     big = np.log(special.i1e(z)) + z - 0.5 * np.log(ws)
-    return np.where(small, w * (0.5 - w / 24.0), big)
+    return np.where(small, wt * (0.5 - wt / 24.0), big)
 
 
 def dlog_0f1_2(w, *, second: bool = False):
@@ -82,10 +94,15 @@ def log_high_gain(t, lam):
     return np.where(t == 0, -lam, continuous)
 
 
-def _gradient(u, t0, lam, r):
-    """First and second derivatives in u of ``log f(u) + log phi_r(t0 - u)``."""
+def _gradient(u, gap, lam, r):
+    """First and second derivatives in u of ``log f(u) + log phi_r(t0 - u)``, ``gap = t0 - u``.
+
+    The gap is passed separately so that callers can form it from exact small differences: at
+    large ``t0`` and small ``r`` the readout term ``gap / r**2`` would otherwise be dominated by
+    the rounding of ``u``.
+    """
     first, second = dlog_0f1_2(lam * u, second=True)
-    d1 = -1.0 + lam * first + (t0 - u) / (r * r)
+    d1 = -1.0 + lam * first + gap / (r * r)
     d2 = lam * lam * second - 1.0 / (r * r)
     return d1, d2
 
@@ -93,7 +110,9 @@ def _gradient(u, t0, lam, r):
 def _mode(t0, lam, r, max_iter: int = 200):
     """Mode of the concave log-integrand on [0, inf): safeguarded Newton, vectorised.
 
-    Only a loose mode is needed (1e-3 of the local width): the windows extend ~9 widths.
+    Only a loose mode is needed (1e-3 of the local width ``1 / sqrt(-d2)``): the windows extend
+    ~9 widths. Iteration also stops once the bracket is that narrow or a few ulp wide (the
+    mode is then resolved as well as a double can hold it).
     """
     slope0, _ = _gradient(np.zeros_like(t0), t0, lam, r)
     interior = slope0 > 0
@@ -107,12 +126,13 @@ def _mode(t0, lam, r, max_iter: int = 200):
     for _ in range(max_iter):
         if idx.size == 0:
             break
-        d1, d2 = _gradient(u, x, lm, r)
+        d1, d2 = _gradient(u, x - u, lm, r)
         lo = np.where(d1 > 0, u, lo)
         hi = np.where(d1 <= 0, u, hi)
         newton = u - d1 / d2
         step = np.where((newton > lo) & (newton < hi), newton, 0.5 * (lo + hi))
-        done = (np.abs(step - u) * np.sqrt(-d2) <= 1e-3) | (hi - lo <= 1e-12 * np.maximum(hi, 1.0))
+        width = 1e-3 / np.sqrt(-d2)
+        done = (np.abs(step - u) <= width) | (hi - lo <= np.maximum(width, 4.0 * np.spacing(hi)))
         mode[idx[done]] = step[done]
         keep = ~done
         idx, x, lm, lo, hi, u = idx[keep], x[keep], lm[keep], lo[keep], hi[keep], step[keep]
@@ -121,33 +141,90 @@ def _mode(t0, lam, r, max_iter: int = 200):
 
 
 def _windows(t0, lam, r):
-    """Integration windows (left, right) of shape (..., 4) covering the integrand's mass."""
+    """Integration windows as offsets from the mode ``m``: ``(m, lower, upper)``, the last two
+    of shape (..., 4), covering all but ``exp(-_DROP)`` of the integrand's mass.
+
+    Slopes at the window ends are evaluated from the exact offsets. The log-integrand's
+    curvature is at most ``-1 / r**2`` (``log f`` is concave), so its slope ``delta`` away from
+    the mode exceeds ``|delta| / r**2`` in magnitude; half of that floors the computed slope,
+    so no rounding can open a window without end.
+    """
     m, interior = _mode(t0, lam, r)
-    slope_m, curv_m = _gradient(m, t0, lam, r)
+    gap = t0 - m
+    r2 = r * r
+
+    def slope(delta):
+        return _gradient(m + delta, gap - delta, lam, r)[0]
+
+    slope_m, curv_m = _gradient(m, gap, lam, r)
     quad_half = np.sqrt(2.0 * _DROP / -curv_m)
     # At a boundary mode (m = 0, slope < 0) the tangent bound may end the window sooner.
     tangent = np.where(slope_m < 0, _DROP / np.maximum(-slope_m, 1e-300), np.inf)
-    right1 = m + np.where(interior, quad_half, np.minimum(quad_half, tangent))
-    slope_r, _ = _gradient(right1, t0, lam, r)
-    right2 = right1 + _DROP / np.maximum(-slope_r, 1e-300)
-    left1 = np.where(interior, np.maximum(m - quad_half, 0.0), m)
-    slope_l, _ = _gradient(left1, t0, lam, r)
-    left2 = np.where(left1 > 0, np.maximum(left1 - _DROP / np.maximum(slope_l, 1e-300), 0.0), 0.0)
-    lower = np.stack([left2, left1, m, right1], axis=-1)
-    upper = np.stack([left1, m, right1, right2], axis=-1)
+    right1 = np.where(interior, quad_half, np.minimum(quad_half, tangent))
+    right2 = right1 + _DROP / np.maximum(-slope(right1), 0.5 * right1 / r2)
+    inner = interior & (m > quad_half)  # a left tail window fits above u = 0
+    left1 = np.where(inner, -quad_half, -m)
+    left2 = np.where(
+        inner, np.maximum(left1 - _DROP / np.maximum(slope(left1), 0.5 * quad_half / r2), -m), -m
+    )
+    zero = np.zeros_like(m)
+    lower = np.stack([left2, left1, zero, right1], axis=-1)
+    upper = np.stack([left1, zero, right1, right2], axis=-1)
     return m, lower, upper
+
+
+def readout_negligible(t0, lam, r):
+    """Where the readout cannot change ``log J`` at double precision, and ``log f(t0)``.
+
+    With ``g = log f``, concave on ``u > 0`` with curvature ``lam**2 R'(lam u)`` shrinking in
+    magnitude as ``u`` grows (``R = dlog_0f1_2``, ``-1/12 <= R' < 0``), and ``Z ~ Normal(0, 1)``,
+    ``J(t) / f(t) = E[exp(g(t + r Z) - g(t)); t + r Z > 0]``. For ``t > 40 r``:
+
+    * concavity, ``g(t + rZ) <= g(t) + g'(t) r Z``, gives ``log J - g(t) <= r**2 g'(t)**2 / 2``;
+    * on ``|Z| <= 40``, ``g(t + rZ) >= g(t) + g'(t) r Z - c r**2 Z**2 / 2`` with
+      ``c = |g''(t - 40 r)|``, and the Gaussian integral gives
+      ``log J - g(t) >= -c r**2 / 2 - exp(-200)`` (while ``|g'| r <= 20``).
+
+    So ``|log J - g(t)| <= B = r**2 max(g'(t)**2, c) / 2``. Where ``B`` is below 1e-13 (a
+    hundredth of the quadrature's error) or below half an ulp of ``g(t)`` (``2**-53 |g|``),
+    ``J = f(t)`` exactly in double precision; the score's error, to leading order
+    ``r**2 g' dg'/dlam``, is smaller still. This is where the quadrature's windows (a few ``r``
+    wide) would fall below the spacing of doubles near ``t``: the issue-#17 regime of
+    ``r <= 1e-5`` far in the upper tail. Returns the mask and ``log f(t0)`` (``-inf`` off it).
+    """
+    far = t0 > _REACH * r
+    ts = np.where(far, t0, 1.0)
+    g1 = -1.0 + lam * dlog_0f1_2(lam * ts)
+    _, curvature = dlog_0f1_2(lam * np.where(far, t0 - _REACH * r, 1.0), second=True)
+    bound = 0.5 * r * r * np.maximum(g1 * g1, -lam * lam * curvature)
+    log_f = log_amplified(ts, lam)
+    negligible = far & (bound <= np.maximum(_NEGLIGIBLE_ABS, _NEGLIGIBLE_REL * np.abs(log_f)))
+    return negligible, np.where(negligible, log_f, -np.inf)
 
 
 def log_convolved(t0, lam, r, *, with_score: bool = False):
     """``log J(t0)``, the readout-convolved amplified part, for ``lam > 0`` and ``r > 0``.
 
-    With ``with_score``, also returns ``dJ/dlam / J``, using
+    The closed form ``log f(t0)`` where ``readout_negligible``, quadrature elsewhere. With
+    ``with_score``, also returns ``dJ/dlam / J``, using
     ``d log f(u) / d lam = -1 + 1/lam + u * dlog_0f1_2(lam u)``.
     """
+    t0, lam = np.broadcast_arrays(np.asarray(t0, float), np.asarray(lam, float))
+    negligible, log_j = readout_negligible(t0, lam, r)
+    score = _score_amplified(np.where(negligible, t0, 1.0), lam)
+    hard = ~negligible
+    if hard.any():
+        quad = _log_convolved_quadrature(t0[hard], lam[hard], r, with_score=with_score)
+        log_j[hard], score[hard] = quad if with_score else (quad, 0.0)
+    return (log_j, score) if with_score else log_j
+
+
+def _log_convolved_quadrature(t0, lam, r, *, with_score: bool):
+    """``log J(t0)`` (and its score) by Gauss-Legendre quadrature on ``_windows``; 1-D input."""
     m, lower, upper = _windows(t0, lam, r)
     half = 0.5 * (upper - lower)
     # node offsets from the mode, formed from small differences to keep precision at large t
-    offset = (0.5 * (upper + lower) - m[..., None])[..., None] + half[..., None] * _GL_X
+    offset = (0.5 * (upper + lower))[..., None] + half[..., None] * _GL_X
     weights = half[..., None] * _GL_W
     lam_e = lam[..., None, None]
     m_e = m[..., None, None]
@@ -168,6 +245,11 @@ def log_convolved(t0, lam, r, *, with_score: bool = False):
         return log_j
     dlogf = -1.0 + 1.0 / lam_e + u * dlog_0f1_2(lam_e * u)
     return log_j, (rel * dlogf).sum(axis=(-2, -1)) / total
+
+
+def _score_amplified(t, lam):
+    """``d log f(t) / d lam = -1 + 1/lam + t R(lam t)`` at ``t > 0``, ``lam > 0``."""
+    return -1.0 + 1.0 / lam + t * dlog_0f1_2(lam * t)
 
 
 def log_exact(t, lam, r):
@@ -226,6 +308,5 @@ def score_high_gain(t, lam):
     """``d log p / d lam`` of the readout-free law at ``t >= 0``, ``lam > 0``."""
     t, lam = np.broadcast_arrays(np.asarray(t, float), np.asarray(lam, float))
     positive = t > 0
-    ts = np.where(positive, t, 1.0)
-    continuous = -1.0 + 1.0 / lam + ts * dlog_0f1_2(lam * ts)
+    continuous = _score_amplified(np.where(positive, t, 1.0), lam)
     return np.where(positive, continuous, -1.0)

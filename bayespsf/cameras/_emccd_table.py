@@ -17,12 +17,16 @@ splines along each axis. Interpolation costs one read of 16 contiguous numbers a
 arithmetic operations per pixel, with no special function, in a compiled (numba) loop.
 
 Below LAM_MIN the law's second-order expansion in lam is used (``_emccd_law.log_small_lam``,
-closed form; a spot without background has pixels there). Points outside the grids (lam above
-LAM_MAX, counts more than ETA_MAX above or
-below the bulk, counts more than NEAR readout SDs below the offset: all with log p below about
--50) and cameras with ``r > R_MAX`` are computed by the exact quadrature, so the tier is
-accurate everywhere and fast where data are. Spacings were chosen by measurement against the
-exact tier; see benchmarks/README.md.
+closed form; a spot without background has pixels there) where its neglected third-order term,
+``(lam (|t| + r))**2 / 12`` relative, is below 1e-7 (``lam (|t| + r) <= SMALL_LAM_REACH``);
+farther counts go to the quadrature. Points outside the grids (lam above LAM_MAX, counts more
+than ETA_MAX above or below the bulk, counts more than NEAR readout SDs below the offset: all
+with log p below about -50) and cameras with ``r`` outside ``[R_MIN, R_MAX]`` are computed by
+the exact quadrature, so the tier is accurate everywhere and fast where data are. Below
+``R_MIN`` the readout peak is so narrow that the bulk grid's lowest cells (counts within a few
+``r`` of the offset) no longer resolve it: at ``r = 1e-3`` the interpolant is off by 8 in log p
+at log p ~ -46, at ``r = 1e-12`` by 1e19 (measured; issue #17). Spacings were chosen by
+measurement against the exact tier; see benchmarks/README.md.
 """
 
 from __future__ import annotations
@@ -39,7 +43,8 @@ LAM_MIN, LAM_MAX = 1e-6, 1e5
 XI_STEP = 0.05
 ETA_MAX, ETA_STEP = 8.0, 0.05
 NEAR, TAU_STEP = 12.0, 0.1
-R_MAX = 2.0
+R_MIN, R_MAX = 0.01, 2.0  # readout/gain ratios the table serves (measured, benchmarks/README.md)
+SMALL_LAM_REACH = 1e-3  # log_small_lam where lam (|t| + r) is below this
 _HERMITE = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [-3, 3, -2, -1], [2, -2, 1, 1]], dtype=float)
 
 
@@ -70,7 +75,7 @@ def _patches(values: np.ndarray, xi: np.ndarray, second: np.ndarray) -> np.ndarr
 
 
 class Table:
-    """Interpolated EMCCD log density for one readout/gain ratio ``0 < r <= R_MAX``."""
+    """Interpolated EMCCD log density for one readout/gain ratio ``R_MIN <= r <= R_MAX``."""
 
     def __init__(self, r: float):
         self.r = r
@@ -152,7 +157,7 @@ def table_for(r: float) -> Table:
 
 def log_table(t, lam, r):
     """Log density of the EMCCD law with readout ``r > 0`` (gain units), ``lam >= 0``."""
-    if r > R_MAX:
+    if not R_MIN <= r <= R_MAX:
         return law.log_exact(t, lam, r)
     t, lam = np.broadcast_arrays(np.asarray(t, float), np.asarray(lam, float))
     shape = t.shape
@@ -162,6 +167,11 @@ def log_table(t, lam, r):
         return table_for(float(r)).log_p(t, lam).reshape(shape)
     out = -lam + law.log_normal_pdf(t, r)  # lam == 0: readout noise only
     out[on_grid] = table_for(float(r)).log_p(t[on_grid], lam[on_grid])
-    tiny = (lam > 0) & ~on_grid  # below the grid: closed form, not quadrature (a pixel far
-    out[tiny] = law.log_small_lam(t[tiny], lam[tiny], r)  # from a spot without background)
+    # below the grid: closed form, not quadrature (a pixel far from a spot without background)
+    below = (lam > 0) & ~on_grid
+    tiny = below & (lam * (np.abs(t) + r) <= SMALL_LAM_REACH)
+    out[tiny] = law.log_small_lam(t[tiny], lam[tiny], r)
+    far = below & ~tiny
+    if far.any():
+        out[far] = law.log_exact(t[far], lam[far], r)
     return out.reshape(shape)

@@ -34,6 +34,30 @@ The atom without readout: with ``readout_sd = 0`` the law puts probability ``exp
 ``counts == offset`` exactly. ``log_likelihood`` is then a log density with respect to Lebesgue
 measure plus a unit point mass at the offset: at the offset it returns ``-lam`` (the log mass),
 elsewhere the log density in ADU; below the offset ``-inf``.
+
+Numerical domain (written down here and in docs/cameras.md, "Numerical domain"; outside it
+``BayespsfInputError`` names the limit, except ``expected`` above ``MAX_EXPECTED`` for the
+closed-form tiers, which compute it untested):
+
+* ``gain >= 1`` (finite), ``e_per_adu > 0``, ``offset`` finite;
+* ``readout_sd = 0`` or ``RATIO_MIN <= readout_sd / gain <= RATIO_MAX`` (1e-12 to 1e6;
+  physical cameras have 1e-4 to 300);
+* ``expected`` in ``[0, MAX_EXPECTED]`` photons per pixel (1e10);
+* ``counts`` finite with ``|counts - offset| * e_per_adu / gain <= MAX_GAIN_UNITS`` (1e15
+  electrons per gain step).
+
+There every tier's ``log_likelihood`` is finite, or ``-inf`` exactly outside the tier's support:
+below the offset without readout (``exact``, ``table``, ``high-gain``) or for the ``poisson``
+tier; above the offset with ``expected == 0`` and no readout (all mass at the offset; the
+``poisson`` tier at any readout); off ``counts == offset`` for the ``gaussian`` tier with
+``expected == 0`` and no readout; and for the ``gaussian`` tier without readout where its log
+density is below -1.8e308 (``expected`` < ~1e-278). ``score`` is finite wherever
+``log_likelihood`` is and ``expected >= 1e-100`` (at ``expected == 0`` it is the one-sided
+derivative, ``+inf`` where the count is impossible without photons, NaN for the ``gaussian``
+tier's atom without readout). No operation warns. tests/test_camera_domain.py checks all of
+it. Where ``readout_sd / gain`` is so small that the readout cannot change ``log p`` at double
+precision the ``exact`` tier is the closed form, with the error bound of
+``_emccd_law.readout_negligible`` (issue #17).
 """
 
 from __future__ import annotations
@@ -42,13 +66,15 @@ import numpy as np
 
 from bayespsf._checks import nonnegative_array, scalar_in_range
 from bayespsf.cameras import _emccd_fisher, _emccd_law, _emccd_table
+from bayespsf.cameras._draws import add_normal, gamma_register
 from bayespsf.cameras.base import Camera
-from bayespsf.cameras.photon import poisson_log_pmf
-from bayespsf.effects import add_normal, gamma_register
+from bayespsf.cameras.photon import poisson_log_pmf, poisson_score
 from bayespsf.errors import BayespsfInputError
 
 TIERS = ("exact", "table", "high-gain", "gaussian", "poisson")
 MAX_EXPECTED = 1e10  # photons per pixel: the readout quadrature is validated up to here
+RATIO_MIN, RATIO_MAX = _emccd_law.RATIO_MIN, _emccd_law.RATIO_MAX  # readout_sd / gain, if > 0
+MAX_GAIN_UNITS = _emccd_law.T_MAX  # |counts - offset| * e_per_adu / gain
 FISHER_METHODS = ("exact", "excess-noise")
 
 
@@ -60,7 +86,8 @@ class EMCCD(Camera):
     gain : float
         Mean EM gain G (electrons out per photoelectron), >= 1.
     readout_sd : float
-        Readout noise SD in electrons, >= 0.
+        Readout noise SD in electrons: 0, or between ``RATIO_MIN`` and ``RATIO_MAX`` times
+        ``gain`` (see the module docstring for the whole numerical domain).
     offset : float
         Bias added to every pixel, in ADU.
     e_per_adu : float
@@ -81,6 +108,13 @@ class EMCCD(Camera):
     ):
         self.gain = scalar_in_range("gain", gain, 1.0)
         self.readout_sd = scalar_in_range("readout_sd", readout_sd, 0.0)
+        ratio = self.readout_sd / self.gain
+        if ratio != 0 and not RATIO_MIN <= ratio <= RATIO_MAX:
+            raise BayespsfInputError(
+                f"readout_sd must be 0 or in [{RATIO_MIN:g}, {RATIO_MAX:g}] x gain (readout_sd / "
+                f"gain = {ratio:.3g}): the EMCCD law is computed and tested there; use "
+                "readout_sd=0 for a readout-free camera"
+            )
         self.offset = scalar_in_range("offset", offset, -np.inf)
         self.e_per_adu = scalar_in_range("e_per_adu", e_per_adu, 0.0, low_inclusive=False)
         if likelihood not in TIERS:
@@ -96,16 +130,40 @@ class EMCCD(Camera):
         """Counts in ADU as electrons over gain, ``t = (counts - offset) e_per_adu / gain``."""
         return (np.asarray(counts, dtype=np.float64) - self.offset) * (self.e_per_adu / self.gain)
 
+    def log_likelihood(self, counts, expected) -> np.ndarray:
+        self._check_expected(expected)
+        return super().log_likelihood(counts, expected)
+
+    def score(self, counts, expected) -> np.ndarray:
+        self._check_expected(expected)
+        return super().score(counts, expected)
+
+    def _check_expected(self, expected):
+        """``expected <= MAX_EXPECTED`` for the tiers with the readout quadrature (checked in
+        the public methods: the score's differences may step just above it)."""
+        lam = nonnegative_array("expected", expected)
+        r = self.readout_in_gain_units
+        if self.likelihood in ("exact", "table") and r > 0 and lam.max(initial=0.0) > MAX_EXPECTED:
+            raise BayespsfInputError(
+                f"expected must be <= {MAX_EXPECTED:g} photons per pixel for the EMCCD law with "
+                f"readout (got {lam.max():.3g}); no camera pixel holds that many"
+            )
+
+    def _check_counts(self, counts):
+        t = np.abs(self.gain_units(counts))
+        if t.max(initial=0.0) > MAX_GAIN_UNITS:
+            half_width = MAX_GAIN_UNITS * self.gain / self.e_per_adu
+            raise BayespsfInputError(
+                f"counts must be within offset +/- {half_width:.3g} ADU for this camera "
+                f"(|counts - offset| e_per_adu / gain <= {MAX_GAIN_UNITS:g}); got "
+                f"{t.max() * self.gain / self.e_per_adu:.3g} ADU from the offset"
+            )
+
     def _log_likelihood(self, counts, expected):
         t = self.gain_units(counts)
         log_jacobian = np.log(self.e_per_adu / self.gain)
         r = self.readout_in_gain_units
         tier = self.likelihood
-        if tier in ("exact", "table") and r > 0 and expected.max(initial=0.0) > MAX_EXPECTED:
-            raise BayespsfInputError(
-                f"expected must be <= {MAX_EXPECTED:g} photons per pixel for the EMCCD law with "
-                f"readout (got {expected.max():.3g}); no camera pixel holds that many"
-            )
         if tier == "exact" and r > 0:
             return _emccd_law.log_exact(t, expected, r) + log_jacobian
         if tier == "table" and r > 0:
@@ -135,15 +193,30 @@ class EMCCD(Camera):
         return self.offset + electrons / self.e_per_adu
 
     def _score(self, counts, expected):
-        """Closed form for the exact tier (quadrature with readout, Bessel ratio without);
-        other tiers by differences of their own log-likelihood."""
-        r = self.readout_in_gain_units
-        if self.likelihood != "exact" or np.any(expected == 0):
-            return super()._score(counts, expected)
+        """``d log p / d lam`` in closed form for each tier but ``table`` (and ``high-gain``
+        with readout): the exact tier by quadrature with readout (``log_and_score_exact``), the
+        Bessel ratio without; ``gaussian`` and ``poisson`` from their formulas. Elsewhere, and
+        at ``lam == 0`` with readout, by differences of the tier's own log-likelihood. Without
+        readout at ``lam == 0`` the one-sided derivative is ``+inf`` above the offset."""
         t = self.gain_units(counts)
-        if r > 0:
-            return _emccd_law.log_and_score_exact(t, expected, r)[1]
-        return _emccd_law.score_high_gain(t, expected)
+        r = self.readout_in_gain_units
+        tier = self.likelihood
+        if tier == "poisson":
+            return poisson_score(t, expected)
+        if tier == "gaussian":
+            return _gaussian_score(t, expected, r)
+        if r == 0:
+            return _readout_free_score(t, expected)
+        if tier != "exact":
+            return super()._score(counts, expected)
+        t, lam = np.broadcast_arrays(t, expected)
+        out = np.empty(t.shape)
+        positive = lam > 0
+        out[positive] = _emccd_law.log_and_score_exact(t[positive], lam[positive], r)[1]
+        if not positive.all():
+            zero = ~positive
+            out[zero] = super()._score(np.asarray(counts, float)[zero], lam[zero])
+        return out
 
     def _variance(self, expected):
         """``(2 lam G^2 + readout_sd^2) / e_per_adu^2`` (ADU^2)."""
@@ -191,10 +264,42 @@ class EMCCD(Camera):
         )
 
 
+def _readout_free_score(t, lam):
+    """Score of the closed form without readout; at ``lam == 0``, ``-1`` at the offset and
+    ``+inf`` above it (the one-sided derivative of ``log(lam) + ...``)."""
+    positive = lam > 0
+    score = _emccd_law.score_high_gain(t, np.where(positive, lam, 1.0))
+    return np.where(positive, score, np.where(t > 0, np.inf, -1.0))
+
+
+def _gaussian_score(t, lam, r):
+    """``d/dlam`` of ``log Normal(t; lam, 2 lam + r^2)``:
+    ``(t - lam) / v + (t - lam)^2 / v^2 - 1 / v`` with ``v = 2 lam + r^2``; NaN at the
+    degenerate ``v = 0`` (``lam = r = 0``), where the law is an atom at 0 with no derivative.
+
+    Without readout and below ``lam ~ 1e-150`` the true value can exceed the double range: it
+    is then ``+inf`` or ``-inf`` by the sign of ``z^2 - 1``, ``z^2 = (t - lam)^2 / v``.
+    """
+    v = 2.0 * lam + r * r
+    degenerate = v == 0
+    vs = np.where(degenerate, 1.0, v)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        d = (t - lam) / vs
+        score = d + d * d - 1.0 / vs
+        z2 = (t - lam) * d
+    score = np.where(np.isnan(score), np.where(z2 > 1.0, np.inf, -np.inf), score)
+    return np.where(degenerate, np.nan, score)
+
+
 def _gaussian_log_pdf(t, lam, r):
-    """Normal(lam, 2 lam + r^2) in gain units; the degenerate ``lam = r = 0`` is the atom at 0."""
+    """Normal(lam, 2 lam + r^2) in gain units; the degenerate ``lam = r = 0`` is the atom at 0.
+
+    Without readout and at ``lam`` below ~1e-278 the log density of a count far from ``lam`` is
+    below -1.8e308: it is ``-inf``, the nearest double (the overflow is expected, not warned).
+    """
     var = 2.0 * lam + r * r
     degenerate = var == 0
     v = np.where(degenerate, 1.0, var)
-    log_pdf = -0.5 * (t - lam) ** 2 / v - 0.5 * np.log(2.0 * np.pi * v)
+    with np.errstate(over="ignore"):
+        log_pdf = -0.5 * (t - lam) ** 2 / v - 0.5 * np.log(2.0 * np.pi * v)
     return np.where(degenerate, np.where(t == 0, 0.0, -np.inf), log_pdf)

@@ -17,6 +17,17 @@ def poisson_log_pmf(k, lam):
     return special.xlogy(k, lam) - lam - special.gammaln(k + 1.0)
 
 
+def poisson_score(k, lam):
+    """``d/dlam`` of ``poisson_log_pmf``: ``k / lam - 1``, and ``-1`` at ``k == 0``.
+
+    At ``lam == 0`` with ``k > 0`` it is the one-sided derivative ``+inf``; below
+    ``lam ~ k * 1e-308`` the true value exceeds the double range and is ``+inf`` too (no
+    warning: both are the correctly rounded value).
+    """
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        return np.where(k == 0, -1.0, k / lam - 1.0)
+
+
 class Photon(Camera):
     """An ideal photon-counting detector: ``counts ~ Poisson(expected)``, 1 ADU per photon."""
 
@@ -33,9 +44,8 @@ class Photon(Camera):
         return rng.poisson(expected).astype(np.float64)
 
     def _score(self, counts, expected):
-        """``k / lam - 1`` (``-1`` where both are 0)."""
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            return np.where(counts == 0, -1.0, counts / expected - 1.0)
+        """``k / lam - 1`` (``-1`` where ``k == 0``): ``poisson_score``."""
+        return poisson_score(counts, expected)
 
     def _variance(self, expected):
         return expected.copy()

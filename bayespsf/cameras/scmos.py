@@ -60,7 +60,7 @@ from scipy import special
 
 from bayespsf._checks import finite_array, nonnegative_array
 from bayespsf.cameras.base import Camera
-from bayespsf.cameras.photon import poisson_log_pmf
+from bayespsf.cameras.photon import poisson_log_pmf, poisson_score
 from bayespsf.errors import BayespsfInputError
 
 _LIKELIHOODS = ("exact", "huang")
@@ -113,7 +113,7 @@ def _log_poisson_lattice(n: np.ndarray, lam: np.ndarray, log_lam: np.ndarray) ->
     ns = np.where(pos, n, 1.0)
     diff = ns - lam
     near = np.abs(diff) < 0.5 * ns
-    bd0_near = ns * np.log1p(np.where(near, diff / lam, 0.0)) - diff
+    bd0_near = ns * np.log1p(np.where(near, diff, 0.0) / np.where(near, lam, 1.0)) - diff
     bd0_far = ns * (np.log(ns) - log_lam) - diff
     bd0 = np.where(near, bd0_near, bd0_far)
     value = -_stirlerr(ns) - 0.5 * np.log(ns) - _LOG_SQRT_2PI - bd0
@@ -542,6 +542,20 @@ class SCMOS(Camera):
             )
         out -= np.log(g)
         return out.reshape(shape)
+
+    def _score(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
+        """Differences of the log-likelihood (base class) where ``v > 0``; on the lattice of
+        readout-free pixels the Poisson score ``n / lam - 1`` (``poisson_score``), where
+        differences would step onto ``lam = 0``, outside the support of any ``n >= 1``."""
+        score = super()._score(counts, expected)
+        if self._all_readout:
+            return score
+        shape = score.shape
+        _, lam, _, _, y, s = self._electrons(counts, expected)
+        score = score.ravel()  # a fresh array: safe to write into
+        lattice = s == 0
+        score[lattice] = poisson_score(np.round(y[lattice]), lam[lattice])
+        return score.reshape(shape)
 
     def _sample(self, expected: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         self._check_shape("expected", expected.shape)
