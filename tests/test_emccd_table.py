@@ -87,3 +87,14 @@ def test_below_the_grid_the_closed_form_equals_the_quadrature(monkeypatch):
     monkeypatch.setattr(law, "log_exact", forbidden)
     lams = np.array([1e-12, 1e-8, 5e-7])
     assert np.all(np.isfinite(table.log_table(np.array([0.3, 2.0, -0.1]), lams, 0.25)))
+
+
+def test_below_the_grid_far_counts_use_the_quadrature():
+    # the second-order expansion in lam misses the n >= 3 terms, ~(lam t)^2 / 12 relative: at
+    # lam = 9e-7 it was off by 47 in log p at t = 1e9; beyond lam (|t| + r) = 1e-3 the table
+    # tier now uses the exact law there
+    t = np.array([1e3, 1e5, 1e6, 1e9])
+    lam = np.full_like(t, 9e-7)
+    exact = EMCCD(gain=1.0, readout_sd=0.25).log_likelihood(t, lam)
+    fast = EMCCD(gain=1.0, readout_sd=0.25, likelihood="table").log_likelihood(t, lam)
+    np.testing.assert_allclose(fast, exact, rtol=1e-12, atol=1e-7)

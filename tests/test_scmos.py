@@ -476,3 +476,15 @@ def test_property_fisher_between_its_bounds(lam, s):
     info = float(fisher_exact(lam, s))
     assert np.isfinite(info)
     assert 1 / (lam + s * s) * (1 - 1e-9) <= info <= 1 / lam * (1 + 1e-9)
+
+
+def test_far_counts_at_tiny_expected_photons_and_lattice_score():
+    # Loader's bd0 divided (n - lam) / lam before choosing the branch: an overflow warning at
+    # lam = 1e-299 and counts of 1e13 e-; and on readout-free pixels the score by differences
+    # stepped onto lam = 0, outside the support of n >= 1 (+inf); it is now n / lam - 1
+    cam = SCMOS(124.8, 671.0, (0.06 * 124.8) ** 2)
+    assert np.isfinite(cam.log_likelihood(1.24e15, 1.66e-299))
+    lattice = SCMOS(2.0, 100.0, 0.0)
+    lam = np.array([1e-20, 1e-9, 3.0])
+    counts = 100.0 + 2.0 * np.array([3.0, 1.0, 0.0])
+    assert np.allclose(lattice.score(counts, lam), [3e20, 1e9 - 1.0, -1.0], rtol=1e-12)
