@@ -114,7 +114,7 @@ def test_bad_counts_are_named():
         fit_lsq(np.zeros((2, 9, 9)), model)
     nan = fit_mle(np.full((15, 15), np.nan), model).iloc[0]
     assert nan["status"] == "refused" and "NaN or infinite" in nan["message"]
-    with pytest.raises(ValueError, match="counts.*complex"):
+    with pytest.raises(ValueError, match=r"counts.*complex"):
         fit_mle(np.ones((15, 15)) + 1j, model)
     noiseless = Model.from_scene(Scene.from_dict({"camera": {"kind": "emccd", "gain": 100.0}}))
     below = fit_mle(np.arange(225.0).reshape(15, 15) - 1.0, noiseless).iloc[0]
