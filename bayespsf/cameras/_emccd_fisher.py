@@ -19,6 +19,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from bayespsf.cameras import _emccd_law as law
+from bayespsf.cameras import _table_cache
 
 _PANEL_NODES = 12
 _PX, _PW = np.polynomial.legendre.leggauss(_PANEL_NODES)
@@ -65,11 +66,21 @@ def fisher_times_lam(lam, r: float) -> np.ndarray:
     return lam * (np.bincount(idx, weights=integrand, minlength=lam.size) + atom)
 
 
+_SOURCE_DIGEST = _table_cache.digest(law.__file__, __file__)
+
+
 @functools.lru_cache(maxsize=32)
 def _table(r: float) -> CubicSpline:
+    """The spline of ``log(lam I)`` on the grid; its values come from the machine's on-disk
+    cache (``_table_cache``) after the machine's first build (seconds)."""
     n = int((GRID_LOG10_MAX - GRID_LOG10_MIN) * GRID_PER_DECADE) + 1
     log_lam = np.linspace(GRID_LOG10_MIN, GRID_LOG10_MAX, n)
-    return CubicSpline(log_lam, np.log(fisher_times_lam(10.0**log_lam, r)))
+    values = _table_cache.load_or_compute(
+        f"emccd-fisher-{float(r).hex()}-{_SOURCE_DIGEST}",
+        lambda: np.log(fisher_times_lam(10.0**log_lam, r)),
+        (n,),
+    )
+    return CubicSpline(log_lam, values)
 
 
 def fisher_information(lam, r: float) -> np.ndarray:

@@ -38,6 +38,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from bayespsf.cameras import _emccd_law as law
+from bayespsf.cameras import _table_cache
 
 LAM_MIN, LAM_MAX = 1e-6, 1e5
 XI_STEP = 0.05
@@ -80,20 +81,30 @@ class Table:
     def __init__(self, r: float):
         self.r = r
         self.xi = np.arange(np.log(LAM_MIN), np.log(LAM_MAX) + 0.5 * XI_STEP, XI_STEP)
-        lam = np.exp(self.xi)[:, None]
-        root = np.sqrt(lam)
         self.eta = np.arange(-ETA_MAX, ETA_MAX + 0.5 * ETA_STEP, ETA_STEP)
         self.tau = np.arange(-NEAR - 2.0, NEAR + 2.0 + 0.5 * TAU_STEP, TAU_STEP)
+        cells = self.xi.size - 1
+        self.near_offset = cells * (self.eta.size - 1)
+        shape = (self.near_offset + cells * (self.tau.size - 1), 16)
+        # built once per machine (seconds), then read from the on-disk cache (milliseconds)
+        name = f"emccd-table-{float(r).hex()}-{_SOURCE_DIGEST}"
+        self.coef = _table_cache.load_or_compute(name, self._build, shape)
+        self.nbytes = self.coef.nbytes
+
+    def _build(self) -> np.ndarray:
+        """The patches' coefficients, from the exact law on the two grids."""
+        r = self.r
+        lam = np.exp(self.xi)[:, None]
+        root = np.sqrt(lam)
         t_bulk = _t_from_v(self.eta[None, :] + root, r)
         t_near = np.broadcast_to(self.tau[None, :] * r, (lam.size, self.tau.size))
         bulk = self._evaluate(law.log_convolved, t_bulk, lam)
         near = self._evaluate(law.log_exact, t_near, lam)
         bulk += (count_coordinate(t_bulk, r) - root) ** 2
         near += (count_coordinate(t_near, r) - root) ** 2
-        bulk_patches = _patches(bulk, self.xi, self.eta)
-        self.coef = np.concatenate([bulk_patches, _patches(near, self.xi, self.tau)])
-        self.near_offset = bulk_patches.shape[0]
-        self.nbytes = self.coef.nbytes
+        return np.concatenate(
+            [_patches(bulk, self.xi, self.eta), _patches(near, self.xi, self.tau)]
+        )
 
     def _evaluate(self, log_density, t, lam):
         lam = np.broadcast_to(lam, t.shape)
@@ -149,9 +160,14 @@ def _interpolate(t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset,
     return misses
 
 
+_SOURCE_DIGEST = _table_cache.digest(law.__file__, __file__)
+
+
 @functools.lru_cache(maxsize=16)
 def table_for(r: float) -> Table:
-    """The table for readout/gain ratio ``r``, built on first use (seconds) and cached."""
+    """The table for readout/gain ratio ``r``: read from the machine's on-disk cache
+    (``_table_cache``), or built on the machine's first use (seconds) and stored there; kept in
+    memory for the process."""
     return Table(r)
 
 

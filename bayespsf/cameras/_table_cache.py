@@ -1,0 +1,71 @@
+"""An on-disk cache of arrays that take seconds to compute (the EMCCD ``table`` tier), shared by
+every process of a machine.
+
+Files live in ``$BAYESPSF_CACHE`` (``off`` disables the cache), else
+``$XDG_CACHE_HOME/bayespsf``, else ``~/.cache/bayespsf``. A name carries a digest of the source
+files that computed it, so a changed law never reads a stale table. Writers write a temporary
+file in the same folder and rename it into place (atomic on POSIX), so concurrent writers and
+readers only ever see whole files; a file that cannot be read is computed again and replaced.
+Where the folder cannot be written, arrays are computed as if there were no cache.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def folder() -> Path | None:
+    """The cache folder, or ``None`` when caching is off."""
+    chosen = os.environ.get("BAYESPSF_CACHE")
+    if chosen is not None:
+        return None if chosen.strip().lower() == "off" else Path(chosen)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "bayespsf"
+
+
+def digest(*sources: str | Path) -> str:
+    """16 hex digits of the SHA-256 of the given source files."""
+    h = hashlib.sha256()
+    for source in sources:
+        h.update(Path(source).read_bytes())
+    return h.hexdigest()[:16]
+
+
+def load_or_compute(name: str, compute, shape: tuple[int, ...]) -> np.ndarray:
+    """The array cached as ``name`` if it is there, whole and of ``shape``; else ``compute()``,
+    stored for the next process."""
+    where = folder()
+    path = None if where is None else where / f"{name}.npy"
+    if path is not None and path.exists():
+        try:
+            array = np.load(path, allow_pickle=False)
+            if array.shape == shape:
+                return array
+        except (OSError, ValueError, EOFError):  # damaged: computed and replaced below
+            pass
+    array = compute()
+    if path is not None:
+        _store(path, array)
+    return array
+
+
+def _store(path: Path, array: np.ndarray) -> None:
+    """Write ``array`` to ``path`` atomically; a folder that cannot be written keeps nothing."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".partial")
+    except OSError:
+        return
+    try:
+        with os.fdopen(handle, "wb") as file:
+            np.save(file, array)
+        os.replace(temporary, path)
+    except OSError:  # a full disk: the array is still returned, just not kept
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
