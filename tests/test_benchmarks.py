@@ -83,9 +83,10 @@ def test_throughput_benchmark_quick():
     # MLE is not asserted: its bias is what the benchmark reports)
     import throughput
 
-    peers, scaling = throughput.main(["--quick"])
+    peers, scaling, cold = throughput.main(["--quick"])
     assert len(peers) == 16 and np.all(peers["ROIs/s"] > 0)
     ours = peers[peers["method"] == "bayespsf fit_mle (stack, with Laplace)"]
     assert np.all(np.abs(ours["s_x - truth (nm)"]) < 4 * ours["SE (nm)"])
     assert set(scaling["varied"]) == {"roi", "N", "stack"} and np.all(scaling["peak MB"] > 0)
     assert scaling["converged"].min() > 0.9
+    assert len(cold) == 2 and np.all(cold["first fit (s)"] > 0)
