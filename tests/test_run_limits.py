@@ -1,8 +1,6 @@
 """Runs that cannot end usefully stop early and say why; settings that would never end (or never
 start) a run are refused by name (issue 17: nothing endless)."""
 
-import time
-
 import numpy as np
 import pytest
 
@@ -102,11 +100,10 @@ def test_the_wall_clock_budget_stops_a_run(typical):
     _, counts, model = typical
     narrow = Model(15, 100.0, model.camera, prior={"N": {"kind": "log-uniform", "low": 1e6,
                                                          "high": 1e7}})  # fmt: skip
-    started = time.perf_counter()
     post = bayespsf.sample_posterior(counts, narrow, seed=0, max_seconds=2.0)
+    # without the budget this chain runs 6400 steps before the stall rule stops it
     assert post.info["stopped"] == "max_seconds" and not post.converged
-    # generous: the budget bounds the chain; the MLE start and the result come on top
-    assert time.perf_counter() - started < 60
+    assert post.info["steps"] < 6400
 
 
 # ------------------------------------------------------------------ ROIs the model refuses
