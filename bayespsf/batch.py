@@ -1,6 +1,9 @@
 """Posteriors for a stack of ROIs: in parallel, reproducible, resumable.
 
-``sample_many`` runs ``bayespsf.sample_posterior`` on every ROI of a stack, on local
+``sample_many`` gives the posterior of every ROI of a stack: by default (``method="auto"``)
+through the batched engine (``bayespsf.stack_posterior``: a stack MLE, then Laplace or
+importance-sampled posteriors for many ROIs per vectorised call), with an emcee chain
+(``bayespsf.sample_posterior``) only for the ROIs whose diagnostics need one; on local
 processes (the default), in this process (``workers=1``), or on any
 ``concurrent.futures.Executor``, including a Dask ``distributed`` cluster (pass a ``Client``, its
 ``get_executor()``, or a scheduler address). Molecule ``i`` is sampled with the seed
@@ -34,13 +37,22 @@ import numpy as np
 import pandas as pd
 
 from bayespsf._checks import real_array
+from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
+from bayespsf.importance import CHAINS
 from bayespsf.model import Model
-from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.posterior_rows import (  # noqa: F401  (public in bayespsf.batch since issue 5)
+    QUANTILES,
+    RANK_DRAWS,
+    central_interval,
+    coverage,
+    draws_row,
+    molecule_row,
+    quantile_column,
+)
 
-QUANTILES = (0.025, 0.05, 0.16, 0.25, 0.5, 0.75, 0.84, 0.95, 0.975)
-RANK_DRAWS = 99  # ranks 0..99: a histogram of 100 equally likely values under calibration
 SAMPLER_OPTIONS = ("ess", "walkers", "max_steps", "moves", "method", "max_seconds")
+CHUNK = 256  # ROIs per task of the batched methods (auto, laplace, importance)
 SCHEDULER_TIMEOUT = 10.0  # seconds to reach a Dask scheduler before the address is called wrong
 
 
@@ -49,87 +61,6 @@ def molecule_seed(seed: int, index: int) -> int:
     of the pair, so nearby seeds and indices give unrelated streams)."""
     state = np.random.SeedSequence([int(seed), int(index)]).generate_state(2, np.uint32)
     return int(state[0]) << 32 | int(state[1])
-
-
-def quantile_column(name: str, q: float) -> str:
-    return f"{name}_q{1000 * q:04.0f}"
-
-
-def central_interval(prob: float) -> tuple[float, float]:
-    """The quantiles bounding the central ``prob`` interval (one of 0.5, 0.68, 0.9, 0.95)."""
-    low, high = round((1 - prob) / 2, 3), round((1 + prob) / 2, 3)
-    if low not in QUANTILES or high not in QUANTILES:
-        raise BayespsfInputError(f"prob must be one of 0.5, 0.68, 0.9, 0.95; got {prob!r}")
-    return low, high
-
-
-def molecule_row(posterior, index: int, seed: int) -> dict:
-    """The summary row of one molecule's posterior (see the module docstring)."""
-    chains = np.stack(
-        [posterior.tree["posterior"][n].values for n in PARAMETER_NAMES], axis=-1
-    )  # (walkers, draws, 6), draws thinned by tau/2
-    flat = chains.reshape(-1, 6)
-    info = posterior.info
-    tau = posterior.tau
-    importance = posterior.method == "importance"
-    row = {
-        "molecule": int(index),
-        "seed": int(seed),
-        "converged": bool(info.get("converged", False)),
-        "status": "converged" if info.get("converged", False) else "not converged",
-        "message": info.get("diagnosis", ""),
-        "method": posterior.method,
-        "steps": int(info.get("steps", 0)),
-        "draws": int(flat.shape[0]),
-        "acceptance": float(info.get("acceptance", np.nan)),
-        "seconds": float(info.get("seconds", np.nan)),
-    }
-    quantiles = np.quantile(flat, QUANTILES, axis=0)
-    truth = posterior.truth
-    # every second thinned draw is ~tau apart: near-independent; RANK_DRAWS of them at random
-    # (importance draws, resampled from independent proposals, are independent already)
-    spaced = flat if importance else chains[:, ::2].reshape(-1, 6)
-    # a posterior too short for RANK_DRAWS near-independent draws (a capped run) gets no rank
-    ranked = truth is not None and len(spaced) >= RANK_DRAWS
-    if ranked:
-        pick = np.random.default_rng([seed, 1]).choice(len(spaced), RANK_DRAWS, replace=False)
-    steps_after_burn = info.get("steps", 0) - info.get("burn", 0)
-    for k, name in enumerate(PARAMETER_NAMES):
-        row[f"{name}_mean"] = float(flat[:, k].mean())
-        row[f"{name}_sd"] = float(flat[:, k].std(ddof=1))
-        for q, value in zip(QUANTILES, quantiles[:, k], strict=True):
-            row[quantile_column(name, q)] = float(value)
-        row[f"{name}_tau"] = float(tau[name])
-        row[f"{name}_ess"] = float(
-            info["ess"] if importance else chains.shape[0] * steps_after_burn / tau[name]
-        )
-        if truth is not None:
-            row[f"{name}_truth"] = float(truth[name])
-            row[f"{name}_rank"] = int(np.sum(spaced[pick, k] < truth[name])) if ranked else np.nan
-    return row
-
-
-def coverage(table: pd.DataFrame, prob: float) -> pd.DataFrame:
-    """Fraction of molecules whose central ``prob`` interval holds the truth, per parameter,
-    with its binomial standard error; needs the truth columns."""
-    low, high = central_interval(prob)
-    missing = [f"{n}_truth" for n in PARAMETER_NAMES if f"{n}_truth" not in table]
-    if missing or len(table) == 0:
-        raise BayespsfInputError(
-            f"coverage needs a table with molecules and truth columns (missing: {missing})"
-        )
-    rows = []
-    for name in PARAMETER_NAMES:
-        truth = table[f"{name}_truth"].to_numpy()
-        inside = (table[quantile_column(name, low)] <= truth) & (
-            truth <= table[quantile_column(name, high)]
-        )
-        n = len(table)
-        p = float(inside.mean())
-        rows.append(
-            {"parameter": name, "nominal": prob, "coverage": p, "se": np.sqrt(p * (1 - p) / n)}
-        )
-    return pd.DataFrame(rows)
 
 
 # --------------------------------------------------------------------------------- workers
@@ -325,7 +256,8 @@ def _atomic_write_text(path: Path, text: str) -> None:
 def _resolved_sampler_settings(options: dict) -> dict:
     """Every sampler setting a run uses, defaults included, so that a store made under other
     defaults (another bayespsf version) is refused rather than resumed with mixed results."""
-    from bayespsf.sampling import Settings, sample_posterior
+    from bayespsf.sampler_settings import Settings
+    from bayespsf.sampling import sample_posterior
 
     defaults = inspect.signature(sample_posterior).parameters
     resolved = {k: options.get(k, defaults[k].default) for k in SAMPLER_OPTIONS}
@@ -388,16 +320,23 @@ def sample_many(
     progress : bool, optional
         A progress bar on stderr (default: when stderr is a terminal).
     **options
-        ``ess``, ``walkers``, ``max_steps``, ``moves``, ``method`` of ``sample_posterior``.
+        ``ess``, ``walkers``, ``max_steps``, ``moves``, ``method``, ``max_seconds`` of
+        ``sample_posterior``. ``method`` defaults to ``"auto"`` here (``sample_posterior``'s
+        default is the chain): the stack is fitted and sampled in chunks of ``CHUNK`` ROIs by
+        the batched engine (``bayespsf.stack_posterior``: the Laplace where its pilot passes,
+        else importance sampling where its k-hat passes), and only the ROIs where both fail
+        get an emcee chain. ``method="mcmc"`` runs the chain for every ROI.
 
     Returns
     -------
     pandas.DataFrame
         One row per molecule, sorted by molecule (see ``molecule_row``); also written to
-        ``store/summary.csv``. ``status`` says what happened to each: ``converged``,
-        ``not converged`` (``message``: the sampler's diagnosis), ``refused`` (the model cannot
-        analyse that ROI: ``Model.roi_problems``) or ``failed`` (its sampling raised a named
-        input error); one bad ROI never stops the stack. A store is locked while a run uses
+        ``store/summary.csv``. ``method`` says what made each posterior (``laplace``,
+        ``importance``, ``mcmc``) and ``why`` why that method was chosen. ``status`` says
+        what happened to each: ``converged``, ``not converged`` (``message``: the sampler's
+        diagnosis), ``refused`` (the model cannot analyse that ROI: ``Model.roi_problems``) or
+        ``failed`` (its sampling raised a named input error); one bad ROI never stops the
+        stack. A store is locked while a run uses
         it: a second run on it is refused at once.
     """
     unknown = sorted(set(options) - set(SAMPLER_OPTIONS))
@@ -405,9 +344,10 @@ def sample_many(
         raise BayespsfInputError(
             f"unknown sampler option(s) {unknown}; sample_many takes {list(SAMPLER_OPTIONS)}"
         )
-    from bayespsf.sampling import check_settings
+    from bayespsf.sampler_settings import check_settings
 
-    check_settings(seed=seed, **options)  # a bad setting fails here, not in every worker
+    options.setdefault("method", "auto")
+    settings = check_settings(seed=seed, **options)  # a bad setting fails here, not in workers
     stack = model._check_shape(counts)
     if stack.ndim != 3:
         raise BayespsfInputError(f"counts must be a stack (n, roi, roi), got shape {stack.shape}")
@@ -432,12 +372,27 @@ def sample_many(
             if problem is not None:
                 rows[i] = _outcome_row(i, molecule_seed(seed, i), "refused", problem)
         todo = [i for i in range(n) if i not in rows]
-        tasks = (
-            (i, stack[i], model, molecule_seed(seed, i),
-             None if truths is None else truths[i], scene, options)
-            for i in todo
-        )  # fmt: skip
-        _run(tasks, executor, workers, saver, rows, _progress(n, len(rows), progress))
+        bar = _progress(n, len(rows), progress)
+        runner, owned = _executor(executor, workers)
+        try:
+            if settings.method != "mcmc":  # the batched methods; the chain where they fail
+                chunks = (
+                    (chunk, stack[chunk], model, [molecule_seed(seed, i) for i in chunk],
+                     None if truths is None else truths[chunk], settings, saver is not None)
+                    for chunk in np.array_split(todo, max(1, -(-len(todo) // CHUNK)))
+                    if len(chunk)
+                )  # fmt: skip
+                todo = _run_chunks(chunks, runner, saver, rows, bar, stack, model, scene)
+            tasks = (
+                (i, stack[i], model, molecule_seed(seed, i),
+                 None if truths is None else truths[i], scene, options)
+                for i in todo
+            )  # fmt: skip
+            _run(tasks, runner, saver, rows, bar)
+        finally:
+            bar.close()
+            if owned:
+                runner.shutdown(wait=True, cancel_futures=True)
         table = pd.DataFrame([rows[i] for i in sorted(rows)])
         if saver is not None:
             saver.write_summary(table)
@@ -447,24 +402,69 @@ def sample_many(
     return table
 
 
-def _run(tasks, executor, workers, saver, rows, bar) -> None:
+def _results(function, tasks, runner):
+    """``function`` over ``tasks``: in this process, or on ``runner`` as they finish."""
+    if runner is None:
+        return map(function, tasks)
+    futures = [runner.submit(function, task) for task in tasks]
+    return (f.result() for f in cf.as_completed(futures))
+
+
+def _run(tasks, runner, saver, rows, bar) -> None:
     """Sample the tasks, write each result as it comes, fill ``rows``."""
-    runner, owned = _executor(executor, workers)
-    try:
-        if runner is None:
-            results = map(_sample_one, tasks)
-        else:
-            futures = [runner.submit(_sample_one, task) for task in tasks]
-            results = (f.result() for f in cf.as_completed(futures))
-        for index, post, row in results:
-            if saver is not None and post is not None:
+    for index, post, row in _results(_sample_one, tasks, runner):
+        if saver is not None and post is not None:
+            saver.write(index, post)
+        rows[index] = row
+        bar.update(1)
+
+
+def _run_chunks(chunks, runner, saver, rows, bar, stack, model, scene) -> list[int]:
+    """The batched methods chunk by chunk (``_posteriors_of_chunk``); fills ``rows``, writes
+    each posterior if there is a store, and returns the ROIs that need the chain."""
+    from bayespsf.posterior import Posterior
+
+    chain = []
+    for results in _results(_posteriors_of_chunk, chunks, runner):
+        for index, row, kept in results:
+            if row is None:
+                chain.append(index)
+                continue
+            if saver is not None:
+                draws, info, truth = kept
+                post = Posterior.from_draws(
+                    draws.reshape(CHAINS, -1, 6), tau=np.ones(6), info=info,
+                    counts=stack[index], model=model, truth=truth, scene=scene,
+                )  # fmt: skip
+                post.tree.attrs["summary_row"] = json.dumps(row)
                 saver.write(index, post)
             rows[index] = row
-            bar.update(1)
-    finally:
-        bar.close()
-        if owned:
-            runner.shutdown(wait=True, cancel_futures=True)
+        bar.update(len(results) - sum(row is None for _, row, _ in results))
+    return sorted(chain)
+
+
+@one_blas_thread
+def _posteriors_of_chunk(task):
+    """Worker side: ``fit_mle`` and the chain-free posteriors (``bayespsf.stack_posterior``)
+    of a chunk of ROIs; per ROI ``(index, summary row or None if the chain is needed, (draws,
+    info, truth) if kept for a store)`` (picklable in and out)."""
+    from bayespsf.estimators import fit_mle
+    from bayespsf.stack_posterior import cheap_posteriors
+
+    indices, stack, model, seeds, truths, settings, keep = task
+    started = time.perf_counter()
+    outcomes = cheap_posteriors(stack, model, fit_mle(stack, model), seeds, settings)
+    seconds = (time.perf_counter() - started) / len(indices)
+    results = []
+    for k, (index, outcome) in enumerate(zip(indices, outcomes, strict=True)):
+        if outcome["draws"] is None:
+            results.append((int(index), None, None))
+            continue
+        info = dict(outcome["info"], seconds=seconds)
+        truth = None if truths is None else truths[k]
+        row = draws_row(outcome["draws"], int(index), seeds[k], info, truth)
+        results.append((int(index), row, (outcome["draws"], info, truth) if keep else None))
+    return results
 
 
 def _outcome_row(index: int, seed: int, status: str, message: str) -> dict:

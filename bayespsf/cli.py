@@ -273,9 +273,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument(
         "--method",
-        choices=("mcmc", "importance"),
-        default="mcmc",
-        help="emcee (default) or Laplace importance sampling (PSIS; MCMC where k-hat > 0.7)",
+        choices=("auto", "mcmc", "importance", "laplace"),
+        default="auto",
+        help="auto (default): per ROI the Laplace where a pilot shows it accurate, else "
+        "importance sampling (PSIS) where its k-hat <= 0.7, else emcee; mcmc: emcee for "
+        "every ROI; importance; laplace (no check)",
     )
     fit.add_argument(
         "--seed", type=int, default=0, help="run seed (ROI k uses molecule_seed(seed, k))"

@@ -338,11 +338,13 @@ class Model:
             [_sample_prior_1d(self.prior[name], int(n), rng) for name in PARAMETER_NAMES]
         )
 
-    def log_posterior(self, z, counts) -> np.ndarray:
+    def log_posterior(self, z, counts, which=None) -> np.ndarray:
         """Log posterior in sampling coordinates ``z`` (..., 6), up to a constant: log prior +
         log |Jacobian| (the log of s_x, s_y, N) + log-likelihood. Vectorised over walkers; the
         likelihood is evaluated only where the prior is finite. ``counts`` must already be
-        validated (``check_counts``)."""
+        validated (``check_counts``): one ROI for every ``z``, or a stack ``(m, roi, roi)``
+        with ``which`` (integers, the shape of ``z[..., 0]``) naming each draw's ROI, so that
+        draws of many ROIs are scored in one call."""
         z = np.asarray(z, dtype=np.float64)
         with np.errstate(over="ignore"):  # exp overflow -> inf -> outside the prior's support
             p = self.from_unconstrained(z)
@@ -356,7 +358,8 @@ class Model:
                 )
                 + self.clock_induced_charge
             )
-            out[inside] += self.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
+            data = counts if which is None else counts[np.asarray(which)[inside]]
+            out[inside] += self.camera._log_likelihood(data, lam).sum(axis=(-2, -1))
         out[~np.isfinite(out)] = -np.inf
         return out
 

@@ -78,9 +78,13 @@ class Posterior:
 
     @property
     def method(self) -> str:
-        """``"importance"`` for an importance-sampled posterior (its ``info`` has ``khat`` and
-        ``ess``), else ``"mcmc"``."""
-        return "importance" if "khat" in self.info else "mcmc"
+        """What made the draws: ``"laplace"``, ``"importance"`` or ``"mcmc"`` (``info["method"]``;
+        files written before ``method="auto"`` existed: ``"importance"`` where ``info`` has
+        ``khat``)."""
+        info = self.info
+        if info.get("method") in ("laplace", "importance", "mcmc"):
+            return info["method"]
+        return "importance" if "khat" in info else "mcmc"
 
     @property
     def converged(self) -> bool:

@@ -26,10 +26,9 @@ stream, and the same seed gives the same draws.
 from __future__ import annotations
 
 import itertools
-import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import emcee
 import numpy as np
@@ -38,109 +37,12 @@ from bayespsf import diagnosis
 from bayespsf._checks import finite_array
 from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
-from bayespsf.estimators import covariance, fit_mle, start_values
-from bayespsf.importance import CHAINS, KHAT_MAX, importance_draws, systematic_resample
+from bayespsf.estimators import fit_mle, start_values
+from bayespsf.importance import CHAINS, IndependenceMove
 from bayespsf.model import Model
 from bayespsf.posterior import Posterior
-from bayespsf.psf import PARAMETER_NAMES
-
-
-@dataclass(frozen=True)
-class Settings:
-    """Sampler settings (stored in every result file)."""
-
-    seed: int = 0
-    walkers: int = 32
-    ess: float = 400.0
-    chunk: int = 50  # first (and smallest) chunk of steps between convergence checks
-    max_steps: int = 50_000
-    min_taus: float = 50.0
-    moves: str = "laplace-de"  # see MOVES and _moves
-    method: str = "mcmc"  # or "importance" (bayespsf.importance), MCMC where k-hat is high
-    max_seconds: float | None = None  # wall-clock budget of the chain (None: none)
-
-
-MOVES = ("laplace-de", "de-snooker", "stretch")
-METHODS = ("mcmc", "importance")
-MAX_ESS = 1e7  # an ESS target beyond this is a typo (the chain would need ~1e9 draws)
-
-
-def _whole(name: str, value, low: int, high: float = math.inf) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise BayespsfInputError(f"{name} must be an integer >= {low}, got {value!r}")
-    if not low <= value <= high:
-        raise BayespsfInputError(f"{name} must be an integer in [{low}, {high:g}], got {value!r}")
-    return int(value)
-
-
-def _positive(name: str, value, high: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise BayespsfInputError(f"{name} must be a number in (0, {high:g}], got {value!r}")
-    v = float(value)
-    if not (math.isfinite(v) and 0 < v <= high):
-        raise BayespsfInputError(f"{name} must be a number in (0, {high:g}], got {value!r}")
-    return v
-
-
-def check_settings(
-    seed=0, walkers=32, ess=400.0, max_steps=50_000, moves="laplace-de", method="mcmc",
-    max_seconds=None,
-) -> Settings:  # fmt: skip
-    """The sampler's settings, each checked (``BayespsfInputError`` naming the argument and its
-    allowed range): a NaN, infinite, zero or negative ``ess`` or budget would never end or
-    never start a run."""
-    walkers = _whole("walkers", walkers, 12)
-    if walkers % 2:
-        raise BayespsfInputError(f"walkers must be an even number >= 12, got {walkers!r}")
-    if moves not in MOVES:
-        raise BayespsfInputError(f"moves must be one of {', '.join(MOVES)}; got {moves!r}")
-    if method not in METHODS:
-        raise BayespsfInputError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
-    return Settings(
-        seed=_whole("seed", seed, 0, 2**64 - 1),
-        walkers=walkers,
-        ess=_positive("ess", ess, MAX_ESS),
-        max_steps=_whole("max_steps", max_steps, 1),
-        moves=moves,
-        method=method,
-        max_seconds=None if max_seconds is None else _positive("max_seconds", max_seconds, 1e9),
-    )
-
-
-class IndependenceMove(emcee.moves.MHMove):
-    """Independence Metropolis-Hastings: every walker proposes a fresh draw from a fixed
-    multivariate Student-t ``t_dof(centre, scale)``, accepted with probability
-    ``min(1, pi(z') g(z) / (pi(z) g(z')))`` (Tierney, Ann. Stat. 22 (1994), sec. 2.3.3).
-
-    With ``centre`` and ``scale`` from the Laplace approximation at the maximum-likelihood fit
-    (a function of the data only, so the chain is a valid Markov chain), proposals are nearly
-    independent draws from a near-Gaussian posterior; the t's heavier tails keep the importance
-    ratio bounded where the posterior's tails are heavier than the Laplace Gaussian's.
-    """
-
-    def __init__(self, centre, scale, dof: float = 5.0):
-        self.centre = np.asarray(centre, dtype=np.float64)
-        self.cholesky = np.linalg.cholesky(np.asarray(scale, dtype=np.float64))
-        self.whiten = np.linalg.inv(self.cholesky)  # z - centre -> independent coordinates
-        self.dof = float(dof)
-        super().__init__(self._propose, ndim=len(self.centre))
-
-    def _log_kernel(self, u) -> np.ndarray:
-        return -0.5 * (self.dof + len(self.centre)) * np.log1p(np.sum(u * u, axis=-1) / self.dof)
-
-    def log_density(self, z) -> np.ndarray:
-        """Log proposal density up to a constant."""
-        return self._log_kernel((np.asarray(z) - self.centre) @ self.whiten.T)
-
-    def draw(self, n: int, random) -> tuple[np.ndarray, np.ndarray]:
-        """``n`` draws (a NumPy RandomState's stream) and their log density."""
-        radius = np.sqrt(self.dof / random.chisquare(self.dof, n))
-        u = radius[:, None] * random.standard_normal((n, len(self.centre)))
-        return self.centre + u @ self.cholesky.T, self._log_kernel(u)
-
-    def _propose(self, coords, random):
-        new, log_new = self.draw(len(coords), random)
-        return new, self.log_density(coords) - log_new
+from bayespsf.sampler_settings import MOVES, Settings, check_settings
+from bayespsf.stack_posterior import cheap_posteriors, laplace_in_z, random_streams
 
 
 def _moves(name: str, proposal: IndependenceMove | None):
@@ -156,31 +58,26 @@ def _moves(name: str, proposal: IndependenceMove | None):
     raise BayespsfInputError(f"moves must be one of {', '.join(MOVES)}; got {name!r}")
 
 
-def _start(counts, model, walkers, rng):
+def _start(counts, model, walkers, rng, fits=None):
     """Walkers around the MLE, spread by its Laplace SDs (in sampling coordinates), and the
-    Laplace proposal of ``IndependenceMove`` (``None`` if the fit failed).
+    Laplace proposal of ``IndependenceMove`` (``None`` if the fit failed); ``fits`` is the
+    ROI's ``fit_mle`` table if already made.
 
     A centre outside the prior's support (an informative prior that excludes the MLE) is
     moved to its edge; walkers that cannot be placed near it are drawn from the prior.
     """
-    fits = fit_mle(counts, model)
+    fits = fit_mle(counts, model) if fits is None else fits
     fit = fits.iloc[0]
-    names = list(PARAMETER_NAMES)
     proposal = None
     if fit["converged"]:
-        centre = fit[names].to_numpy(float)
-        sd = fit[[f"sd_{n}" for n in names]].to_numpy(float)
+        z0, cov = (a[0] for a in laplace_in_z(fits, model))
+        proposal = IndependenceMove(z0, cov)
+        centre, dz = model.from_unconstrained(z0), np.sqrt(np.diagonal(cov))
     else:  # a poor start: the sampler's burn-in has more to do, and the result says so
-        centre = start_values(model.to_photons(counts[None]), model)[0]
-        sd = np.array([model.pixel_size / 4] * 2 + [0.1 * centre[2], 0.1 * centre[3]])
-        sd = np.concatenate([sd, [0.1 * centre[4], 0.1 * centre[5] + 0.1]])
-    low, high = model.prior_bounds()  # the support includes its ends
-    centre = np.clip(centre, low, high)
-    z0 = model.to_unconstrained(centre)
-    to_z = np.array([1.0, 1.0, 1 / centre[2], 1 / centre[3], 1 / centre[4], 1.0])
-    dz = sd * to_z
-    if fit["converged"]:
-        proposal = IndependenceMove(z0, covariance(fits)[0] * np.outer(to_z, to_z))
+        low, high = model.prior_bounds()  # the support includes its ends
+        centre = np.clip(start_values(model.to_photons(counts[None]), model)[0], low, high)
+        z0 = model.to_unconstrained(centre)
+        dz = np.array([model.pixel_size / 4] * 2 + [0.1, 0.1, 0.1, 0.1 * centre[5] + 0.1])
     proposals = itertools.chain(
         (z0 + 0.5 * dz * rng.standard_normal((walkers, 6)) for _ in range(100)),
         (model.to_unconstrained(model.sample_prior(walkers, rng)) for _ in range(100)),
@@ -247,37 +144,6 @@ def _autocorrelation_time(segment):
     return integrated_time(segment[:, moving]), stuck
 
 
-def _importance(counts, model, proposal, mle_ok, settings, seed_sequence):
-    """({"draws", "info"}, None) from importance sampling, or (None, why not)."""
-    if proposal is None:
-        return None, "no Laplace proposal (the MLE did not converge, or a start was given)"
-    draw_seq, resample_seq = seed_sequence.spawn(2)
-    z, weights, khat = importance_draws(
-        counts,
-        model,
-        proposal,
-        settings.ess,
-        int(50 * settings.ess),
-        np.random.RandomState(np.random.MT19937(draw_seq)),
-    )
-    achieved = 1.0 / np.sum(weights * weights)
-    if khat > KHAT_MAX or achieved < settings.ess:
-        return None, f"k-hat {khat:.2f}, ESS {achieved:.0f} of {len(z)} draws: MCMC used"
-    n = CHAINS * int(achieved // CHAINS)
-    index = systematic_resample(weights, n, np.random.default_rng(resample_seq))
-    params = model.from_unconstrained(z[index]).reshape(CHAINS, n // CHAINS, 6)
-    info = {
-        **asdict(settings),
-        "draws_scored": len(z),
-        "khat": khat,
-        "ess": float(achieved),
-        "converged": bool(mle_ok),
-        "mle_converged": bool(mle_ok),
-        "stuck_walkers": 0,
-    }
-    return {"draws": params, "info": info}, None
-
-
 def _within_budget(chunk: int, steps: int, elapsed: float, settings: Settings) -> int:
     """The next chunk, shortened so that it ends near the wall-clock budget (if any) at the
     speed seen so far; at least one step."""
@@ -336,11 +202,14 @@ def sample_posterior(
         around the maximum-likelihood fit, spread by its Laplace SDs.
     progress : bool, optional
         One line per chunk on stderr (steps, tau, ESS); default: when stderr is a terminal.
-    method : {"mcmc", "importance"}
-        ``importance``: Pareto-smoothed importance sampling from the Laplace proposal
-        (``bayespsf.importance``) when its k-hat is <= 0.7 and the ESS target is reached
-        within 50 x ``ess`` draws; otherwise (and without a converged MLE, or with ``start``)
-        the emcee run, with the reason in ``info["importance"]``.
+    method : {"mcmc", "auto", "laplace", "importance"}
+        ``mcmc`` (default): the emcee run. ``importance``: Pareto-smoothed importance sampling
+        from the Laplace proposal where its k-hat is <= 0.7 and the ESS target is reached
+        within 50 x ``ess`` draws. ``laplace``: draws from the Laplace approximation (no
+        check). ``auto``: the Laplace where a pilot of its draws shows it accurate, else
+        importance sampling where its k-hat passes, else the chain (``bayespsf.
+        stack_posterior``). Without a converged MLE, with ``start``, or where the diagnostic
+        fails, the emcee run; ``info["method"]`` says what ran and ``info["why"]`` why.
     max_seconds : float, optional
         Wall-clock budget of the chain in seconds; a run that exhausts it stops with
         ``converged = False``. Default: none (``max_steps`` bounds the run).
@@ -366,32 +235,37 @@ def sample_posterior(
         max_seconds=max_seconds,
     )  # fmt: skip
     walkers, ess, max_steps = settings.walkers, settings.ess, settings.max_steps
-    start_seq, emcee_seq = np.random.SeedSequence(settings.seed).spawn(2)
-    proposal, fit = None, None
+    streams = random_streams(settings.seed)
+    proposal, fit, fits, fallback = None, None, None, None
+    if method != "mcmc":
+        if start is None:
+            fits = fit_mle(c[None], model)
+            cheap = cheap_posteriors(c[None], model, fits, [settings.seed], settings)[0]
+            if cheap["draws"] is not None:
+                return Posterior.from_draws(
+                    cheap["draws"].reshape(CHAINS, -1, 6),
+                    tau=np.ones(6),
+                    info=cheap["info"],
+                    counts=c,
+                    model=model,
+                    truth=truth,
+                    scene=scene,
+                )
+            fallback = cheap["info"]["why"]
+        else:
+            fallback = "chain: a start was given, so there is no Laplace proposal"
     if start is None:
-        z0, fit, proposal = _start(c, model, walkers, np.random.default_rng(start_seq))
+        z0, fit, proposal = _start(c, model, walkers, np.random.default_rng(streams["start"]),
+                                   fits)  # fmt: skip
         mle_ok = bool(fit["converged"])
     else:
         z0, mle_ok = finite_array("start", start), True
         if z0.shape != (walkers, 6):
             raise BayespsfInputError(f"start must have shape ({walkers}, 6), got {z0.shape}")
-    fallback = None
-    if method == "importance":
-        result, fallback = _importance(c, model, proposal, mle_ok, settings, emcee_seq)
-        if result is not None:
-            return Posterior.from_draws(
-                result["draws"],
-                tau=np.ones(6),
-                info=result["info"],
-                counts=c,
-                model=model,
-                truth=truth,
-                scene=scene,
-            )
     sampler = emcee.EnsembleSampler(
         walkers, 6, model.log_posterior, args=(c,), vectorize=True, moves=_moves(moves, proposal)
     )
-    sampler.random_state = np.random.RandomState(np.random.MT19937(emcee_seq)).get_state()
+    sampler.random_state = np.random.RandomState(np.random.MT19937(streams["chain"])).get_state()
     state, previous, stopped = z0, None, "max_steps"
     tau = np.full(6, np.nan)
     burn, stuck, chunk = 0, 0, settings.chunk
@@ -452,7 +326,7 @@ def sample_posterior(
         tau=tau,
         info={
             **asdict(settings),
-            "method": "mcmc",  # what ran; a fallback from importance sampling says why below
+            "method": "mcmc",  # what ran; "requested" what was asked, "why" why the chain ran
             "steps": int(sampler.iteration),
             "burn": burn,
             "thin": thin,
@@ -462,7 +336,8 @@ def sample_posterior(
             "acceptance": acceptance,
             "stopped": stopped.split(":")[0],
             **report,
-            **({} if fallback is None else {"importance": fallback}),
+            "requested": settings.method,
+            **({} if fallback is None else {"why": fallback}),
         },
         counts=c,
         model=model,

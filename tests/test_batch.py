@@ -26,7 +26,7 @@ from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
 
 # short capped runs: the tests are about plumbing and reproducibility, not convergence
-OPTIONS = {"max_steps": 60, "walkers": 12}
+OPTIONS = {"max_steps": 60, "walkers": 12, "method": "mcmc"}
 N_MOLECULES = 4
 
 
@@ -93,7 +93,7 @@ scene = scenes.load("ideal")
 counts, truth = simulate(scene, {n}, seed=11)
 truths = truth[["x0", "y0", "s_x", "s_y", "N", "b"]].to_numpy(float)
 sample_many(counts, Model.from_scene(scene), seed=3, workers=1, truths=truths,
-            store=sys.argv[1], max_steps={max_steps}, walkers={walkers})
+            store=sys.argv[1], max_steps={max_steps}, walkers={walkers}, method="mcmc")
 """
 
 

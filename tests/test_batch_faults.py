@@ -16,7 +16,7 @@ from bayespsf.batch import sample_many
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
 
-FAST = {"ess": 50, "max_steps": 60}
+FAST = {"ess": 50, "max_steps": 60, "method": "mcmc"}
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def test_bad_rois_are_rows_and_the_rest_is_sampled(stack):
     bad = counts.copy()
     bad[1, 3, 4] = np.nan
     bad[2] = 7.0
-    table = sample_many(bad, model, workers=1, method="importance", **FAST)
+    table = sample_many(bad, model, workers=1, **{**FAST, "method": "importance"})
     assert table["status"].tolist()[1:3] == ["refused", "refused"]
     assert "NaN" in table.loc[1, "message"] and "same value" in table.loc[2, "message"]
     assert (
@@ -63,7 +63,8 @@ from bayespsf.batch import sample_many
 from bayespsf.model import Model
 scene = scenes.load("emccd-typical")
 counts, _ = simulate(scene, 40, seed=1)
-sample_many(counts, Model.from_scene(scene), workers=2, store=sys.argv[1], ess=4000)
+sample_many(counts, Model.from_scene(scene), workers=2, store=sys.argv[1], ess=4000,
+            method="mcmc")
 """
 
 

@@ -40,8 +40,11 @@ def test_tiers_err_as_their_approximations_predict(frontier):
     # the accurate tier against the reference: Monte Carlo error only; SD of the relative SD
     # error ~ sqrt(1/(2*2000) + 1/(2*4000)) = 1.9% at the ESS these runs reach, so 6% is 3 SDs
     assert np.all(err.xs("table", level="tier") < 0.06)
+    # importance sampling stops near its ESS target (its first batch is ess / 0.77 draws):
+    # 3 SDs of the relative SD error at the ESS it reached, against a reference of ESS ~4000
     importance = summary[summary["method"] == "importance"]
-    assert np.all(importance["SD error (RMS)"] < 0.06)
+    tolerance = 3 * np.sqrt(1 / (2 * importance["median ESS"]) + 1 / (2 * 4000))
+    assert np.all(importance["SD error (RMS)"] < tolerance)
     # the Poisson tier ignores the EM register's excess noise (variance 2 lam, not lam), so its
     # posterior is too narrow by about 1/sqrt(2): an SD error near 0.29
     assert np.all(err.xs("poisson", level="tier") > 0.2)

@@ -82,11 +82,11 @@ def test_fit_command_tif_and_camera_file(tmp_path, capsys):
     post = Posterior.load(out / "molecule-000001.nc")
     assert post.draws()["s_x"].mean() == pytest.approx(summary.loc[1, "s_x_mean"], rel=1e-12)
     assert cli.main([*args, "--out", str(out), "--workers", "1"]) == 0  # resumes: nothing to do
-    assert "ROI 1 (mcmc): converged" in capsys.readouterr().out
-    fast = tmp_path / "fit-importance"
-    args = [*args[:-1], "400", "--method", "importance", "--out", str(fast), "--workers", "1"]
+    assert "ROI 1 (importance): converged" in capsys.readouterr().out  # auto, the default
+    chain = tmp_path / "fit-mcmc"
+    args = [*args[:-1], "400", "--method", "mcmc", "--out", str(chain), "--workers", "1"]
     assert cli.main(args) == 0
-    assert set(pd.read_csv(fast / "summary.csv")["method"]) == {"importance"}
+    assert set(pd.read_csv(chain / "summary.csv")["method"]) == {"mcmc"}
 
 
 def test_fit_command_errors_name_the_file(tmp_path):

@@ -6,9 +6,17 @@ import pytest
 
 from bayespsf import scenes, simulate
 from bayespsf.batch import sample_many
-from bayespsf.importance import CHAINS, KHAT_MAX, psis, systematic_resample
+from bayespsf.importance import (
+    CHAINS,
+    KHAT_MAX,
+    ImportanceRun,
+    IndependenceMove,
+    first_batch,
+    psis,
+    systematic_resample,
+)
 from bayespsf.model import Model
-from bayespsf.sampling import IndependenceMove, Settings, _importance, _start, sample_posterior
+from bayespsf.sampling import _start, sample_posterior
 
 
 def test_psis_of_nearly_equal_ratios_is_nearly_uniform():
@@ -50,7 +58,7 @@ def test_importance_posterior_agrees_with_mcmc(roi):
     counts, model = roi
     a = sample_posterior(counts, model, seed=1, ess=2000, method="importance")
     b = sample_posterior(counts, model, seed=1, ess=2000)
-    assert a.info["method"] == "importance" and "importance" not in a.info
+    assert a.info["method"] == "importance" and a.info["why"].startswith("importance")
     assert a.info["khat"] <= KHAT_MAX and a.info["ess"] >= 2000
     assert len(a.draws()) == CHAINS * int(a.info["ess"] // CHAINS)
     sa, sb = a.summary(), b.summary()
@@ -67,19 +75,34 @@ def test_same_seed_same_importance_draws(roi):
     np.testing.assert_array_equal(a.draws().to_numpy(), b.draws().to_numpy())
 
 
-def test_a_poor_proposal_falls_back_to_mcmc_and_says_why(roi):
+def test_a_poor_proposal_stops_on_its_khat_and_a_given_start_runs_the_chain(roi):
     counts, model = roi
     c = model.check_counts(counts)
-    _, ok, proposal = _start(c, model, 32, np.random.default_rng(0))
+    _, _, proposal = _start(c, model, 32, np.random.default_rng(0))
     narrow = IndependenceMove(proposal.centre, 1e-4 * proposal.cholesky @ proposal.cholesky.T)
-    result, why = _importance(
-        c, model, narrow, ok, Settings(ess=400.0, method="importance"),
-        np.random.SeedSequence(0),
-    )  # fmt: skip
-    assert result is None and "k-hat" in why and "MCMC used" in why
+    run = ImportanceRun(narrow, 400.0, 20_000, np.random.RandomState(0))
+    while not run.done:
+        run.take(model.log_posterior(run.propose(), c))
+    # a proposal 100x too narrow: its ratios have a heavy tail, seen in the first batch
+    assert run.khat > KHAT_MAX and len(run.weights) == first_batch(400.0)
     start = proposal.centre + 1e-3 * np.random.default_rng(1).standard_normal((32, 6))
     post = sample_posterior(c, model, seed=0, start=start, method="importance", max_steps=100)
-    assert "no Laplace proposal" in post.info["importance"] and post.info["steps"] == 100
+    assert "a start was given" in post.info["why"] and post.info["steps"] == 100
+    assert post.info["method"] == "mcmc" and post.info["requested"] == "importance"
+
+
+def test_an_importance_run_adds_draws_until_its_ess_target(roi):
+    counts, model = roi
+    c = model.check_counts(counts)
+    _, _, proposal = _start(c, model, 32, np.random.default_rng(0))
+    run = ImportanceRun(proposal, 3000.0, 150_000, np.random.RandomState(1))
+    rounds = 0
+    while not run.done:
+        run.take(model.log_posterior(run.propose(), c))
+        rounds += 1
+    assert run.achieved >= 3000 and run.khat <= KHAT_MAX
+    # the first batch (ess / 0.77 draws) rarely suffices; the second is sized to finish
+    assert rounds <= 3 and len(run.weights) < 2 * first_batch(3000.0)
 
 
 def test_sample_many_rows_say_the_method(roi):
@@ -88,4 +111,4 @@ def test_sample_many_rows_say_the_method(roi):
     assert table.loc[0, "method"] == "importance"
     assert table.loc[0, "s_x_ess"] >= 300
     with pytest.raises(ValueError, match="method"):
-        sample_posterior(counts, model, method="laplace")
+        sample_posterior(counts, model, method="nuts")

@@ -32,7 +32,7 @@ def typical():
         ("max_seconds", float("nan"), "max_seconds must be"),
         ("max_seconds", 0, "max_seconds must be"),
         ("seed", -1, "seed must be"),
-        ("method", "nuts", "method must be one of mcmc, importance"),
+        ("method", "nuts", "method must be one of mcmc, auto, laplace, importance"),
     ],
 )
 def test_settings_that_would_never_end_are_refused_by_name(typical, setting, value, words):

@@ -47,9 +47,14 @@ def study(doc: str, argv, name: str, posteriors: bool = True, arguments=None):
 
 
 def _stem(args, name: str) -> str:
-    """Output stem: ``name``, ``_importance`` for importance-sampled posteriors, ``_quick``."""
-    importance = getattr(args, "method", "mcmc") == "importance"
-    return name + ("_importance" if importance else "") + ("_quick" if args.quick else "")
+    """Output stem: ``name``, ``_<method>`` for posteriors not made by the chain alone
+    (``_auto``, ``_importance``, ``_laplace``), ``_quick``."""
+    return name + _method_suffix(args) + ("_quick" if args.quick else "")
+
+
+def _method_suffix(args) -> str:
+    method = getattr(args, "method", "mcmc")
+    return "" if method == "mcmc" else f"_{method}"
 
 
 def finish(args, name: str, table, text: str, started: float, summary: str | None = None):
@@ -76,9 +81,10 @@ def add_run_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--method",
-        choices=("mcmc", "importance"),
+        choices=("mcmc", "auto", "importance", "laplace"),
         default="mcmc",
-        help="posterior by emcee (default) or by Laplace importance sampling (PSIS)",
+        help="posterior by emcee (default); auto: the batched engine (Laplace where its pilot "
+        "passes, else importance sampling, else emcee); importance; laplace",
     )
     return p
 
@@ -109,7 +115,7 @@ class Runner:
         from bayespsf.batch import sample_many
 
         method = getattr(self.args, "method", "mcmc")
-        study = self.study + ("_importance" if method == "importance" else "")
+        study = self.study + _method_suffix(self.args)
         store = None if self.args.store is None else self.args.store / study / point
         print(f"  {point}: {len(counts)} posteriors", flush=True)
         return sample_many(
