@@ -83,10 +83,14 @@ def test_throughput_benchmark_quick():
     # MLE is not asserted: its bias is what the benchmark reports)
     import throughput
 
-    peers, scaling, cold = throughput.main(["--quick"])
-    assert len(peers) == 16 and np.all(peers["ROIs/s"] > 0)
+    peers, scaling, cold, parallel = throughput.main(["--quick"])
+    assert len(peers) == 2 * 12 and np.all(peers["ROIs/s"] > 0)
     ours = peers[peers["method"] == "bayespsf fit_mle (stack, with Laplace)"]
     assert np.all(np.abs(ours["s_x - truth (nm)"]) < 4 * ours["SE (nm)"])
+    batched = peers[peers["method"].str.startswith("bayespsf sample_many")]
+    assert len(batched) == 6
+    assert np.all(np.abs(batched["s_x - truth (nm)"]) < 4 * batched["SE (nm)"])
+    assert len(parallel) == 4 and np.all(parallel["ROIs/s"] > 0)
     assert set(scaling["varied"]) == {"roi", "N", "stack"} and np.all(scaling["peak MB"] > 0)
     assert scaling["converged"].min() > 0.9
     assert len(cold) == 2 and np.all(cold["first fit (s)"] > 0)
