@@ -182,15 +182,17 @@ def expected_counts_and_jacobian(params, roi: int, pixel_size: float, pixel_mode
     px, dpx_dx0, dpx_ds = _axis(p[..., 0], p[..., 2], roi, a, pixel_model, True)
     py, dpy_dy0, dpy_ds = _axis(p[..., 1], p[..., 3], roi, a, pixel_model, True)
     n = p[..., 4][..., None, None]
-    profile = py[..., :, None] * px[..., None, :]
+    n_py, n_dpy, n_dpys = n * py[..., :, None], n * dpy_dy0[..., :, None], n * dpy_ds[..., :, None]
+    px, dpx_dx0, dpx_ds = px[..., None, :], dpx_dx0[..., None, :], dpx_ds[..., None, :]
     jac = np.empty((*p.shape[:-1], 6, roi, roi))
-    jac[..., 0, :, :] = n * py[..., :, None] * dpx_dx0[..., None, :]
-    jac[..., 1, :, :] = n * dpy_dy0[..., :, None] * px[..., None, :]
-    jac[..., 2, :, :] = n * py[..., :, None] * dpx_ds[..., None, :]
-    jac[..., 3, :, :] = n * dpy_ds[..., :, None] * px[..., None, :]
-    jac[..., 4, :, :] = profile
+    # each product written straight into its slice (no temporaries of the Jacobian's size)
+    np.multiply(n_py, dpx_dx0, out=jac[..., 0, :, :])
+    np.multiply(n_dpy, px, out=jac[..., 1, :, :])
+    np.multiply(n_py, dpx_ds, out=jac[..., 2, :, :])
+    np.multiply(n_dpys, px, out=jac[..., 3, :, :])
+    np.multiply(py[..., :, None], px, out=jac[..., 4, :, :])
     jac[..., 5, :, :] = 1.0
-    mu = n * py[..., :, None] * px[..., None, :] + p[..., 5][..., None, None]
+    mu = n_py * px + p[..., 5][..., None, None]
     return mu, jac
 
 

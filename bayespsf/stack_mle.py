@@ -10,7 +10,10 @@ shrinks tenfold, one that does not is refused and ``lambda`` grows tenfold. A RO
 converged when its Newton decrement ``g' M^-1 g`` falls below ``DECREMENT`` (the log-likelihood
 is within ~1e-10 of its maximum, a step far below one standard deviation). All the arithmetic of
 an iteration is one array pass over the active ROIs of a block: the stack's cost is a few dozen
-vectorised likelihood calls, not a Python loop per ROI.
+vectorised likelihood calls, not a Python loop per ROI. Each trial point is evaluated once,
+``-log L`` with its gradient and metric (``_evaluate``: one PSF pass, and one camera pass for
+the log-likelihood and the score together), and a ROI keeps those of the point it stands on, so
+a step costs one evaluation whether it is taken or refused.
 
 The box, the flags and the Laplace SDs are those of ``bayespsf.fit_mle`` (same search box, same
 observed information by differences of the analytic gradient), so the two paths give the same
@@ -69,14 +72,49 @@ def _objective(model, counts, p):
 def _gradient_and_metric(model, counts, p):
     """Gradient of ``-log L`` and the expected information, both in ``u``: (n, 6), (n, 6, 6)."""
     lam, jac = model.expected_and_jacobian(p)
-    score = model.camera._score(counts, lam)
+    return _in_internal(model, p, lam, jac, model.camera._score(counts, lam))
+
+
+def _evaluate(model, counts, p):
+    """``_objective`` and ``_gradient_and_metric`` at once, the same numbers from one PSF pass
+    and one camera pass (``camera._log_likelihood_and_score``): (n,), (n, 6), (n, 6, 6). The
+    gradient and metric are NaN where ``-log L`` is not finite (never formed there)."""
+    lam, jac = model.expected_and_jacobian(p)
+    log_l, score = model.camera._log_likelihood_and_score(counts, lam)
+    f = -log_l.sum(axis=(-2, -1))
+    finite = np.isfinite(f)
+    if finite.all():
+        return f, *_in_internal(model, p, lam, jac, score)
+    grad, metric = np.full((len(p), 6), np.nan), np.full((len(p), 6, 6), np.nan)
+    grad[finite], metric[finite] = _in_internal(
+        model, p[finite], lam[finite], jac[finite], score[finite]
+    )
+    return f, grad, metric
+
+
+def _in_internal(model, p, lam, jac, score):
+    """The gradient of ``-log L`` (the Jacobian times the per-pixel score) and the expected
+    information, in ``u``, from the pixels' expected counts, Jacobian and score."""
     # the metric only steers the steps (the optimum is where the gradient vanishes): pixels
     # below METRIC_FLOOR, where a camera's tabulated information ends, are scored at the floor
     fisher = model.camera._fisher_information(np.maximum(lam, METRIC_FLOOR))
     chain = _chain(p, model.pixel_size)
-    grad = -np.einsum("nkxy,nxy->nk", jac, score) * chain
-    metric = np.einsum("nkxy,nlxy,nxy->nkl", jac, jac, fisher)
-    return grad, metric * chain[:, :, None] * chain[:, None, :]
+    grad = -_contract(jac, score) * chain
+    return grad, _information(jac, fisher) * chain[:, :, None] * chain[:, None, :]
+
+
+def _contract(jac, pixels):
+    """``sum_xy jac[n, k, x, y] pixels[n, x, y]`` (n, 6), as one batched matrix product."""
+    n = len(jac)
+    return (jac.reshape(n, 6, -1) @ pixels.reshape(n, -1, 1))[..., 0]
+
+
+def _information(jac, fisher):
+    """``J' diag(F) J`` per ROI (n, 6, 6), as one batched matrix product (BLAS, not einsum's
+    three-operand loop)."""
+    n = len(jac)
+    j = jac.reshape(n, 6, -1)
+    return (j * fisher.reshape(n, 1, -1)) @ j.transpose(0, 2, 1)
 
 
 def crlb(model, p) -> np.ndarray:
@@ -86,7 +124,7 @@ def crlb(model, p) -> np.ndarray:
     the information is singular."""
     lam, jac = model.expected_and_jacobian(p)
     fisher = model.camera._fisher_information(np.maximum(lam, METRIC_FLOOR))
-    information = np.einsum("nkxy,nlxy,nxy->nkl", jac, jac, fisher)
+    information = _information(jac, fisher)
     out = np.full((len(p), 6), np.nan)
     for i, matrix in enumerate(information):
         try:
@@ -99,7 +137,7 @@ def crlb(model, p) -> np.ndarray:
 def gradient(model, counts, p):
     """Gradient of ``-log L`` in the parameters ``x0 y0 s_x s_y N b``: (n, 6)."""
     lam, jac = model.expected_and_jacobian(p)
-    return -np.einsum("nkxy,nxy->nk", jac, model.camera._score(counts, lam))
+    return -_contract(jac, model.camera._score(counts, lam))
 
 
 def observed_information(model, counts, p):
@@ -147,7 +185,9 @@ def _maximise_block(model, counts, starts):
     a = model.pixel_size
     low, high = box(model.roi)
     u = np.clip(to_internal(starts, a), low, high)
-    f = _objective(model, counts, from_internal(u, a))
+    # -log L, gradient and metric at each ROI's current point, computed with the trial step
+    # that moved it there: a refused step costs no new evaluation
+    f, gradients, metrics = _evaluate(model, counts, from_internal(u, a))
     damping = np.full(len(u), 1e-3)
     done, failed = np.zeros(len(u), dtype=bool), np.zeros(len(u), dtype=bool)
     message = np.full(len(u), f"iteration limit ({MAX_ITERATIONS})", dtype=object)
@@ -156,8 +196,7 @@ def _maximise_block(model, counts, starts):
         if active.size == 0:
             break
         ua = u[active]
-        grad, metric = _gradient_and_metric(model, counts[active], from_internal(ua, a))
-        grad, metric = _freeze_bounds(ua, grad, metric, low, high)
+        grad, metric = _freeze_bounds(ua, gradients[active], metrics[active], low, high)
         diagonal = np.einsum("nkk->nk", metric)
         decrement = np.einsum("nk,nk->n", grad, _solve(metric, grad))
         finished = decrement < DECREMENT
@@ -171,10 +210,13 @@ def _maximise_block(model, counts, starts):
             break
         lm = metric + (damping[active][:, None] * diagonal)[:, :, None] * np.eye(6)
         trial = np.clip(ua + _solve(lm, -grad), low, high)
-        f_trial = _objective(model, counts[active], from_internal(trial, a))
+        f_trial, grad_trial, metric_trial = _evaluate(
+            model, counts[active], from_internal(trial, a)
+        )
         better = np.isfinite(f_trial) & (f_trial <= f[active])
-        u[active[better]] = trial[better]
-        f[active[better]] = f_trial[better]
+        moved = active[better]
+        u[moved], f[moved] = trial[better], f_trial[better]
+        gradients[moved], metrics[moved] = grad_trial[better], metric_trial[better]
         damping[active] = np.where(better, damping[active] / 10, damping[active] * 10)
         stuck = damping[active] > 1e12  # no step lowers -log L: stationary in float64
         done[active[stuck]] = True

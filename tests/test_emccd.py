@@ -272,3 +272,20 @@ def test_bad_inputs_are_named():
         cam.fisher_information(1.0, method="F2")
     with pytest.raises(ValueError, match="rng"):
         cam.sample(1.0, rng=None)
+
+
+def test_fisher_table_evaluation_is_the_spline():
+    # the compiled evaluation of the Fisher table is the spline of log(lam I) in log10 lam
+    # (knots included), inf at lam == 0, quadrature off the grid
+    from bayespsf.cameras import _emccd_fisher
+
+    spline = _emccd_fisher._table(0.25)
+    lam = np.concatenate([10 ** np.random.default_rng(2).uniform(-6, 6, 5000),
+                          10.0 ** spline.x, [1e-6, 1e6]])  # fmt: skip
+    want = np.exp(spline(np.log10(lam))) / lam
+    np.testing.assert_allclose(_emccd_fisher.fisher_information(lam, 0.25), want, rtol=1e-14)
+    edge = np.array([[0.0, 2e6], [5e-7, 1.0]])
+    got = _emccd_fisher.fisher_information(edge, 0.25)
+    assert got.shape == (2, 2) and got[0, 0] == np.inf
+    direct = _emccd_fisher.fisher_times_lam(edge[[0, 1], [1, 0]], 0.25) / edge[[0, 1], [1, 0]]
+    np.testing.assert_allclose(got[[0, 1], [1, 0]], direct, rtol=1e-14)

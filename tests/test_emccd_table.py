@@ -98,3 +98,37 @@ def test_below_the_grid_far_counts_use_the_quadrature():
     exact = EMCCD(gain=1.0, readout_sd=0.25).log_likelihood(t, lam)
     fast = EMCCD(gain=1.0, readout_sd=0.25, likelihood="table").log_likelihood(t, lam)
     np.testing.assert_allclose(fast, exact, rtol=1e-12, atol=1e-7)
+
+
+@pytest.mark.parametrize("params", REALISTIC, ids=lambda p: f"G{p['gain']:g}-s{p['readout_sd']:g}")
+def test_score_is_the_derivative_of_the_interpolant(params):
+    # the tier's score is the patches' exact derivative (one pass with log p): it matches
+    # central differences of the tier's own log-likelihood (step 1e-5 lam: truncation and
+    # rounding ~1e-9 of the score's scale 1/sqrt(lam)), the near and bulk grids both covered
+    cam = EMCCD(**params, likelihood="table")
+    rng = np.random.default_rng(5)
+    lam = 10 ** rng.uniform(-5, 4.5, 20_000)
+    counts = cam.sample(lam, rng)
+    h = 1e-5 * lam
+    differences = (cam.log_likelihood(counts, lam + h) - cam.log_likelihood(counts, lam - h)) / (
+        2 * h
+    )
+    score = cam.score(counts, lam)
+    assert np.all(np.abs(score - differences) * np.sqrt(lam) < 1e-6)
+    log_p, both = cam._log_likelihood_and_score(counts, lam)
+    assert np.array_equal(log_p, cam.log_likelihood(counts, lam))
+    assert np.array_equal(both, score)
+
+
+def test_score_off_the_grids_is_differences_of_the_tier():
+    # where the table does not interpolate (lam == 0, below LAM_MIN, off the grid) the score is
+    # the base class's differences of the tier's log-likelihood, as before
+    from bayespsf.cameras.base import Camera
+
+    params = REALISTIC[1]
+    cam = EMCCD(**params, likelihood="table")
+    g = params["gain"] / params["e_per_adu"]
+    off = params["offset"]
+    lam = np.array([0.0, 1e-7, 5.0, 2e5])
+    counts = np.array([off + 3.0, off + 10.0, off + 200.0 * g, off + 2e5 * g])
+    assert np.array_equal(cam.score(counts, lam), Camera._score(cam, counts, lam))

@@ -72,3 +72,27 @@ def test_crlb_columns_are_the_bound_at_the_fit():
     fits = fit_mle(counts, model, laplace=False)
     bound = fits[[f"crlb_{n}" for n in NAMES]].to_numpy()
     np.testing.assert_allclose(bound.mean(axis=0), theory.crlb(scene).to_numpy(), rtol=0.02)
+
+
+@pytest.mark.parametrize("name", ["emccd-typical", "ideal", "scmos-typical"])
+def test_one_pass_evaluation_equals_the_separate_ones(name):
+    # the iteration evaluates -log L, gradient and metric together at each trial
+    # (camera._log_likelihood_and_score); the numbers are those of the separate functions, and
+    # the gradient and metric are NaN (not formed) where -log L is not finite
+    from bayespsf import stack_mle
+
+    scene = scenes.load(name)
+    model = Model.from_scene(scene)
+    counts, truth = simulate(scene, 6, seed=4)
+    p = truth[NAMES].to_numpy()
+    f, grad, metric = stack_mle._evaluate(model, counts, p)
+    np.testing.assert_allclose(f, stack_mle._objective(model, counts, p), rtol=1e-15)
+    want_grad, want_metric = stack_mle._gradient_and_metric(model, counts, p)
+    np.testing.assert_allclose(grad, want_grad, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(metric, want_metric, rtol=1e-12, atol=0)
+    if name == "ideal":  # a pixel with counts but no expected photons: -log L = inf
+        far = p.copy()
+        far[0] = (1e4, 1e4, 50.0, 50.0, 1000.0, 0.0)  # every pixel's lam underflows to 0
+        f, grad, metric = stack_mle._evaluate(model, counts, far)
+        assert f[0] == np.inf and np.isnan(grad[0]).all() and np.isnan(metric[0]).all()
+        assert np.isfinite(f[1:]).all() and np.isfinite(grad[1:]).all()

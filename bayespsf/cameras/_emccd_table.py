@@ -14,7 +14,9 @@ In gain units (``t = electrons / gain``, ``r = readout_sd / gain``) the law depe
 What is interpolated is the smooth residual ``log p + eta**2`` (``log J + eta**2``): each cell
 stores the 16 power-basis coefficients of a bicubic Hermite patch, with derivatives from cubic
 splines along each axis. Interpolation costs one read of 16 contiguous numbers and ~40
-arithmetic operations per pixel, with no special function, in a compiled (numba) loop.
+arithmetic operations per pixel, with no special function, in a compiled (numba) loop. The
+same pass can return the interpolant's exact derivative by lam (the score the MLE needs,
+``log_and_score_table``), so a fit reads each pixel's patch once per iteration.
 
 Below LAM_MIN the law's second-order expansion in lam is used (``_emccd_law.log_small_lam``,
 closed form; a spot without background has pixels there) where its neglected third-order term,
@@ -110,12 +112,17 @@ class Table:
         lam = np.broadcast_to(lam, t.shape)
         return log_density(t.ravel(), lam.ravel(), self.r).reshape(t.shape)
 
-    def log_p(self, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
-        """``log p(t | lam)`` for 1-D ``t`` and ``lam > 0``: interpolated, exact outside."""
+    def log_p(self, t: np.ndarray, lam: np.ndarray, score: np.ndarray | None = None):
+        """``log p(t | lam)`` for 1-D ``t`` and ``lam > 0``: interpolated, exact outside.
+
+        With ``score`` (an array like ``t``), also fills it with ``d log p / d lam`` of the
+        interpolant, from the same patches in the same pass; NaN off the grids (where ``log p``
+        is the exact quadrature).
+        """
         out = np.empty(t.shape)
         misses = _interpolate(
             t, lam, self.coef, self.xi[0], self.xi.size, self.eta[0], self.eta.size,
-            self.tau[0], self.tau.size, self.near_offset, self.r, out,
+            self.tau[0], self.tau.size, self.near_offset, self.r, out, score,
         )  # fmt: skip
         if misses:
             outside = np.isnan(out)
@@ -124,8 +131,16 @@ class Table:
 
 
 @numba.njit(cache=True, nogil=True)
-def _interpolate(t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset, r, out):
+def _interpolate(t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset, r, out,
+                 score=None):  # fmt: skip
     """Bicubic patch evaluation, one pixel at a time; NaN (and a count) for off-grid points.
+
+    With ``score`` (an array like ``out``) also the interpolant's exact derivative by lam, from
+    the same patch: with ``a``, ``s`` the cell coordinates of ``log lam`` and of the count
+    (``tau``, or ``eta = v(t) - sqrt(lam)`` in the bulk), ``d/dlam = P_a / (lam XI_STEP) +
+    (2 eta - P_s / ETA_STEP) / (2 sqrt(lam))`` in the bulk (``P_s`` term absent near the
+    offset, where ``tau`` does not depend on lam). The patches are C1 across cells, so this is
+    continuous; it is NaN where ``out`` is.
 
     A compiled loop: in NumPy the same arithmetic on 7 200 pixels is ~2.4x slower (16
     strided column passes; measured in benchmarks/README.md).
@@ -133,9 +148,11 @@ def _interpolate(t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset,
     misses = 0
     for k in range(t.size):
         tk = t[k]
-        eta = tk / np.sqrt(np.sqrt(tk * tk + r * r)) - np.sqrt(lam[k])
+        root = np.sqrt(lam[k])
+        eta = tk / np.sqrt(np.sqrt(tk * tk + r * r)) - root
         row = (np.log(lam[k]) - xi0) / XI_STEP
-        if abs(tk) < NEAR * r:
+        near = abs(tk) < NEAR * r
+        if near:
             col = (tk / r - tau0) / TAU_STEP
             columns = n_tau - 1
             first = near_offset
@@ -145,6 +162,8 @@ def _interpolate(t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset,
             first = 0
         if not (0.0 <= row < n_xi - 1 and 0.0 <= col < columns and tk > -NEAR * r):
             out[k] = np.nan
+            if score is not None:
+                score[k] = np.nan
             misses += 1
             continue
         i = int(row)
@@ -157,6 +176,17 @@ def _interpolate(t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset,
         q2 = c[8] + s * (c[9] + s * (c[10] + s * c[11]))
         q3 = c[12] + s * (c[13] + s * (c[14] + s * c[15]))
         out[k] = q0 + a * (q1 + a * (q2 + a * q3)) - eta * eta
+        if score is not None:
+            d_row = (q1 + a * (2.0 * q2 + 3.0 * a * q3)) / (lam[k] * XI_STEP)
+            if near:
+                score[k] = d_row + eta / root
+            else:
+                d0 = c[1] + s * (2.0 * c[2] + 3.0 * s * c[3])
+                d1 = c[5] + s * (2.0 * c[6] + 3.0 * s * c[7])
+                d2 = c[9] + s * (2.0 * c[10] + 3.0 * s * c[11])
+                d3 = c[13] + s * (2.0 * c[14] + 3.0 * s * c[15])
+                d_col = d0 + a * (d1 + a * (d2 + a * d3))
+                score[k] = d_row + (2.0 * eta - d_col / ETA_STEP) / (2.0 * root)
     return misses
 
 
@@ -173,16 +203,37 @@ def table_for(r: float) -> Table:
 
 def log_table(t, lam, r):
     """Log density of the EMCCD law with readout ``r > 0`` (gain units), ``lam >= 0``."""
+    return _log_table(t, lam, r, None)
+
+
+def log_and_score_table(t, lam, r):
+    """``log_table`` and its derivative by lam where it interpolates (``R_MIN <= r <= R_MAX``,
+    ``lam >= LAM_MIN``, the point on a grid): the patches' exact derivative, from the same
+    compiled pass as the log density. The score is NaN elsewhere (quadrature, the small-lam
+    expansion, the readout alone at ``lam == 0``), where the caller differentiates
+    ``log_table`` numerically."""
+    t, lam = np.broadcast_arrays(np.asarray(t, float), np.asarray(lam, float))
+    score = np.full(t.shape, np.nan)
+    return _log_table(t, lam, r, score), score
+
+
+def _log_table(t, lam, r, score):
+    """``log_table``, filling ``score`` (an array of the broadcast shape, or None) where the
+    table interpolates."""
     if not R_MIN <= r <= R_MAX:
         return law.log_exact(t, lam, r)
     t, lam = np.broadcast_arrays(np.asarray(t, float), np.asarray(lam, float))
     shape = t.shape
     t, lam = np.ascontiguousarray(t).ravel(), np.ascontiguousarray(lam).ravel()
+    flat = None if score is None else score.reshape(-1)  # a view: filled in place
     on_grid = lam >= LAM_MIN
     if on_grid.all():
-        return table_for(float(r)).log_p(t, lam).reshape(shape)
+        return table_for(float(r)).log_p(t, lam, flat).reshape(shape)
     out = -lam + law.log_normal_pdf(t, r)  # lam == 0: readout noise only
-    out[on_grid] = table_for(float(r)).log_p(t[on_grid], lam[on_grid])
+    part = None if score is None else np.empty(int(on_grid.sum()))
+    out[on_grid] = table_for(float(r)).log_p(t[on_grid], lam[on_grid], part)
+    if score is not None:
+        flat[on_grid] = part
     # below the grid: closed form, not quadrature (a pixel far from a spot without background)
     below = (lam > 0) & ~on_grid
     tiny = below & (lam * (np.abs(t) + r) <= SMALL_LAM_REACH)

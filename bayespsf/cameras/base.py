@@ -65,6 +65,11 @@ class Camera(ABC):
         with np.errstate(invalid="ignore"):  # -inf - -inf: no density, no derivative
             return (up - down) / (high - low)
 
+    def _log_likelihood_and_score(self, counts: np.ndarray, expected: np.ndarray):
+        """``(_log_likelihood, _score)`` at once, for loops that need both at the same point
+        (the stack MLE); cameras that can share work between the two override it."""
+        return self._log_likelihood(counts, expected), self._score(counts, expected)
+
     def variance(self, expected) -> np.ndarray:
         """Variance of the counts, in ADU^2, given expected photons (its exact second moment)."""
         return self._variance(nonnegative_array("expected", expected))

@@ -126,6 +126,11 @@ class EMCCD(Camera):
         """``r = readout_sd / gain``: the one number (with lam) the law in gain units needs."""
         return self.readout_sd / self.gain
 
+    @property
+    def _log_jacobian(self) -> float:
+        """``log(e_per_adu / gain)``: a density in gain units to one in ADU."""
+        return float(np.log(self.e_per_adu / self.gain))
+
     def gain_units(self, counts):
         """Counts in ADU as electrons over gain, ``t = (counts - offset) e_per_adu / gain``."""
         return (np.asarray(counts, dtype=np.float64) - self.offset) * (self.e_per_adu / self.gain)
@@ -161,7 +166,7 @@ class EMCCD(Camera):
 
     def _log_likelihood(self, counts, expected):
         t = self.gain_units(counts)
-        log_jacobian = np.log(self.e_per_adu / self.gain)
+        log_jacobian = self._log_jacobian
         r = self.readout_in_gain_units
         tier = self.likelihood
         if tier == "exact" and r > 0:
@@ -193,11 +198,14 @@ class EMCCD(Camera):
         return self.offset + electrons / self.e_per_adu
 
     def _score(self, counts, expected):
-        """``d log p / d lam`` in closed form for each tier but ``table`` (and ``high-gain``
-        with readout): the exact tier by quadrature with readout (``log_and_score_exact``), the
-        Bessel ratio without; ``gaussian`` and ``poisson`` from their formulas. Elsewhere, and
-        at ``lam == 0`` with readout, by differences of the tier's own log-likelihood. Without
-        readout at ``lam == 0`` the one-sided derivative is ``+inf`` above the offset."""
+        """``d log p / d lam`` in closed form for each tier but ``high-gain`` with readout:
+        the exact tier by quadrature with readout (``log_and_score_exact``), the Bessel ratio
+        without; the ``table`` tier as the exact derivative of its interpolant
+        (``_emccd_table.score_table``) where it interpolates; ``gaussian`` and ``poisson`` from
+        their formulas. Elsewhere (``high-gain`` with readout, the ``table`` tier off its grids),
+        and at ``lam == 0`` with readout, by differences of the tier's own log-likelihood.
+        Without readout at ``lam == 0`` the one-sided derivative is ``+inf`` above the
+        offset."""
         t = self.gain_units(counts)
         r = self.readout_in_gain_units
         tier = self.likelihood
@@ -207,6 +215,8 @@ class EMCCD(Camera):
             return _gaussian_score(t, expected, r)
         if r == 0:
             return _readout_free_score(t, expected)
+        if tier == "table":
+            return self._log_likelihood_and_score(counts, expected)[1]
         if tier != "exact":
             return super()._score(counts, expected)
         t, lam = np.broadcast_arrays(t, expected)
@@ -217,6 +227,20 @@ class EMCCD(Camera):
             zero = ~positive
             out[zero] = super()._score(np.asarray(counts, float)[zero], lam[zero])
         return out
+
+    def _log_likelihood_and_score(self, counts, expected):
+        """The ``table`` tier with readout: log p and its derivative from one compiled pass over
+        the table (``_emccd_table.log_and_score_table``), the score by differences of the
+        tier's log-likelihood where it does not interpolate. Other tiers: the two methods."""
+        if self.likelihood != "table" or self.readout_in_gain_units == 0:
+            return super()._log_likelihood_and_score(counts, expected)
+        t = self.gain_units(counts)
+        log_p, score = _emccd_table.log_and_score_table(t, expected, self.readout_in_gain_units)
+        missing = np.isnan(score)
+        if missing.any():
+            c, lam = np.broadcast_arrays(np.asarray(counts, float), expected)
+            score[missing] = super()._score(c[missing], lam[missing])
+        return log_p + self._log_jacobian, score
 
     def _variance(self, expected):
         """``(2 lam G^2 + readout_sd^2) / e_per_adu^2`` (ADU^2)."""
