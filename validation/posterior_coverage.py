@@ -15,7 +15,7 @@ Prior (all configurations): x0, y0 uniform over the central pixel; s_x, s_y log-
 [100, 180] nm; N log-uniform on [300, 3000] photons; b uniform on [2, 20] photons per pixel.
 
     python validation/posterior_coverage.py [--quick] [--workers K | --scheduler ADDRESS]
-        [--method importance] [--molecules N] [--configurations 0,1]
+        [--method auto|importance|laplace] [--molecules N] [--configurations 0,1]
 """
 
 from __future__ import annotations
@@ -206,6 +206,10 @@ def main(argv=None):
     s_x = table[table["parameter"] == "s_x"].set_index("configuration")
     verdict["coverage 68% of s_x"] = s_x["coverage 68%"]
     verdict["coverage 95% of s_x"] = s_x["coverage 95%"]
+    verdict["posteriors by"] = [
+        ", ".join(f"{k} {v}" for k, v in ranks[label]["method"].value_counts().items())
+        for label in verdict.index
+    ]
     text = (
         f"# Calibration per camera and likelihood tier ({molecules} molecules each)\n\n"
         "## Summary\n\n"
