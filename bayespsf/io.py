@@ -1,8 +1,15 @@
-"""Reading ROI stacks: NumPy (.npy) and TIFF (.tif/.tiff, via tifffile, page by page)."""
+"""Reading ROI stacks: NumPy (.npy) and TIFF (.tif/.tiff, via tifffile, page by page).
+
+The checks of a file (it exists, is not a directory, has a known extension, is a TIFF whose
+chain of pages is whole and whose pages share one shape) are shared with
+``bayespsf.movie.read_movie``.
+"""
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -18,20 +25,10 @@ def read_rois(path) -> np.ndarray:
     extension, no images, TIFF pages of different shapes (named), wrong number of dimensions,
     non-square or even-sized ROIs, complex, boolean or non-finite values.
     """
-    path = Path(path)
-    if not path.exists():
-        raise BayespsfInputError(f"{path}: no such file")
-    if path.is_dir():
-        raise BayespsfInputError(f"{path} is a directory, not a ROI stack (.npy or .tif)")
-    suffix = path.suffix.lower()
-    if suffix not in (".npy", ".tif", ".tiff"):
-        raise BayespsfInputError(f"{path}: unknown file type {suffix!r} (use .npy or .tif)")
-    try:
-        data = np.load(path, allow_pickle=False) if suffix == ".npy" else _read_tiff(path)
-    except BayespsfInputError:
-        raise
-    except Exception as exc:  # the readers raise many kinds for a damaged file
-        raise BayespsfInputError(f"{path}: cannot read it, damaged or truncated ({exc})") from exc
+    path = checked_path(path, (".npy", ".tif", ".tiff"), "a ROI stack", ".npy or .tif")
+    with named_read_errors(path):
+        npy = path.suffix.lower() == ".npy"
+        data = np.load(path, allow_pickle=False) if npy else _read_tiff(path)
     try:
         data = finite_array("counts", data)
     except BayespsfInputError as exc:
@@ -47,9 +44,43 @@ def read_rois(path) -> np.ndarray:
     return data
 
 
+def checked_path(path, suffixes: tuple[str, ...], what: str, extensions: str) -> Path:
+    """``path`` as a ``Path`` that exists, is a file and ends in one of ``suffixes``;
+    ``what`` and ``extensions`` name the expected kind of file in the messages."""
+    path = Path(path)
+    if not path.exists():
+        raise BayespsfInputError(f"{path}: no such file")
+    if path.is_dir():
+        raise BayespsfInputError(f"{path} is a directory, not {what} ({extensions})")
+    suffix = path.suffix.lower()
+    if suffix not in suffixes:
+        raise BayespsfInputError(f"{path}: unknown file type {suffix!r} (use {extensions})")
+    return path
+
+
+@contextmanager
+def named_read_errors(path: Path) -> Iterator[None]:
+    """Turn whatever a reader raises for a damaged file into a ``BayespsfInputError`` naming
+    ``path`` (the readers raise many kinds); our own errors pass through."""
+    try:
+        yield
+    except BayespsfInputError:
+        raise
+    except Exception as exc:
+        raise BayespsfInputError(f"{path}: cannot read it, damaged or truncated ({exc})") from exc
+
+
 def _read_tiff(path: Path) -> np.ndarray:
     """Every page of a TIFF, read page by page; pages of different shapes are an error that
     names them (reading the first page's series alone analysed only part of such a file)."""
+    with open_tiff(path) as (tif, complaints):
+        return _tiff_pages(path, tif, complaints)
+
+
+@contextmanager
+def open_tiff(path: Path):
+    """An open ``tifffile.TiffFile`` and the ``_TiffComplaints`` that collect what tifffile
+    logs while it is open (``tiff_page_shape`` judges them)."""
     import tifffile
 
     complaints = _TiffComplaints()
@@ -59,7 +90,7 @@ def _read_tiff(path: Path) -> np.ndarray:
     logger.setLevel(logging.WARNING)  # another library may have raised it (picasso: CRITICAL)
     try:
         with tifffile.TiffFile(path) as tif:
-            return _tiff_pages(path, tif, complaints)
+            yield tif, complaints
     finally:
         logger.setLevel(level)
         logger.removeHandler(complaints)
@@ -78,10 +109,16 @@ class _TiffComplaints(logging.Handler):
         self.messages.append(record.getMessage())
 
 
-def _tiff_pages(path: Path, tif, complaints: _TiffComplaints) -> np.ndarray:
-    """The pages of an open TIFF as one array. Only what tifffile logs while walking the chain
-    of pages marks a file as truncated: a tag it cannot read (logged on opening) leaves the
-    image readable, as ``tifffile.imread`` reads it."""
+def tiff_page_shape(
+    path: Path, tif, complaints: _TiffComplaints, what: str = "a ROI stack", items: str = "ROIs"
+) -> tuple[int, ...]:
+    """The one shape of every page of an open TIFF, after checking the file: no pages, a broken
+    chain of pages (truncated), pages of different shapes (named) and pages without image data
+    are errors naming ``path``; ``what`` and ``items`` name what the file should hold.
+
+    Only what tifffile logs while walking the chain of pages marks a file as truncated: a tag it
+    cannot read (logged on opening) leaves the image readable, as ``tifffile.imread`` reads it.
+    """
     opening = list(complaints.messages)
     complaints.messages.clear()
     pages = tif.pages
@@ -98,10 +135,19 @@ def _tiff_pages(path: Path, tif, complaints: _TiffComplaints) -> np.ndarray:
         listed = ", ".join(f"page {i} {shapes[i]}" for i in odd[:5])
         raise BayespsfInputError(
             f"{path}: its pages differ in shape (page 0 {first}; {listed}"
-            f"{' ...' if len(odd) > 5 else ''}); a ROI stack has pages of one shape"
+            f"{' ...' if len(odd) > 5 else ''}); {what} has pages of one shape"
         )
     if first == () or 0 in first:  # an image directory without (or with empty) image data
-        raise BayespsfInputError(f"{path}: no ROIs, its pages hold no image data (shape {first})")
-    if count == 1:
+        raise BayespsfInputError(
+            f"{path}: no {items}, its pages hold no image data (shape {first})"
+        )
+    return first
+
+
+def _tiff_pages(path: Path, tif, complaints: _TiffComplaints) -> np.ndarray:
+    """The pages of an open TIFF as one array (checked by ``tiff_page_shape``)."""
+    tiff_page_shape(path, tif, complaints)
+    pages = tif.pages
+    if len(pages) == 1:
         return pages[0].asarray()
     return np.stack([page.asarray() for page in pages])

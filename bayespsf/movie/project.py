@@ -1,0 +1,138 @@
+"""Temporal projections of a movie (mean, median, max, standard deviation over frames), with
+peak memory bounded independently of the number of frames."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bayespsf.errors import BayespsfInputError
+
+KINDS = ("mean", "median", "max", "std")
+
+
+def project(
+    movie,
+    kind: str = "mean",
+    frames: slice | range | None = None,
+    block: int | None = None,
+    budget: int = 256 * 2**20,
+) -> np.ndarray:
+    """One image ``(h, w)`` (float64) summarising the movie's frames pixel by pixel.
+
+    Parameters
+    ----------
+    movie : Movie
+        From ``read_movie`` (or any object with ``shape``, ``dtype`` and ``frames(start,
+        stop, rows=...)``).
+    kind : {"mean", "median", "max", "std"}
+        ``mean``: the average count per pixel over the frames; ``median``: the median over the
+        frames (the mean of the two middle values for an even number of frames, as
+        ``numpy.median``); ``max``: the largest count; ``std``: the population standard
+        deviation over the frames (``ddof=0``, as ``numpy.std``), in the movie's counts.
+    frames : slice or range, optional
+        Which frames (by default all of them); a step skips frames.
+    block : int, optional
+        Frames read at a time by mean, max and std (by default as many as fit ``budget``).
+    budget : int
+        Bytes of working memory to aim for (default 256 MiB): it sets ``block`` and, for the
+        median, the height of the band of rows whose frames are held at a time.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(h, w)``, float64.
+
+    Notes
+    -----
+    mean, max and std stream blocks of frames. The mean and the variance are combined across
+    blocks by the pairwise update of Chan, Golub & LeVeque, "Algorithms for computing the
+    sample variance: analysis and recommendations", Am. Stat. 37 (1983) 242: each block's mean
+    and sum of squared deviations (two passes over the block, in float64) merge as
+    ``M2 = M2_a + M2_b + δ² n_a n_b / n`` with ``δ`` the difference of the block means, which
+    avoids the cancellation of a sum of squares. The median needs every frame of a pixel at
+    once: it is taken over tiles of all (selected) frames of a band of rows, the band chosen
+    so that a tile (and ``numpy.median``'s working copy) stays under ``budget``; the movie is
+    then read once per band (memory-mapped files only the band's rows).
+    """
+    if kind not in KINDS:
+        raise BayespsfInputError(f"kind must be one of {', '.join(KINDS)}; got {kind!r}")
+    if isinstance(budget, bool) or not isinstance(budget, int | np.integer) or budget < 1:
+        raise BayespsfInputError(f"budget must be a positive number of bytes, got {budget!r}")
+    span = _span(movie, frames)
+    h, w = movie.shape[1:]
+    itemsize = np.dtype(movie.dtype).itemsize
+    if block is None:  # the block in the file's type, in float64 and its deviations
+        block = max(1, budget // (h * w * (itemsize + 16)))
+    elif isinstance(block, bool) or not isinstance(block, int | np.integer) or block < 1:
+        raise BayespsfInputError(f"block must be a whole number of frames >= 1, got {block!r}")
+    if kind == "median":
+        rows = max(1, budget // (2 * len(span) * w * itemsize))
+        return _median(movie, span, int(block), int(rows))
+    if kind == "max":
+        peak = None
+        for data in _blocks(movie, span, int(block)):
+            top = data.max(axis=0)
+            peak = top if peak is None else np.maximum(peak, top)
+        return peak.astype(np.float64)
+    count, mean, m2 = 0, np.zeros((h, w)), np.zeros((h, w))
+    for data in _blocks(movie, span, int(block)):
+        count, mean, m2 = _merge(count, mean, m2, data.astype(np.float64))
+    return mean if kind == "mean" else np.sqrt(m2 / count)
+
+
+def _merge(count: int, mean: np.ndarray, m2: np.ndarray, data: np.ndarray):
+    """Chan, Golub & LeVeque (1983): the count, mean and sum of squared deviations of the
+    frames so far merged with those of a new block ``data`` (k, h, w)."""
+    k = data.shape[0]
+    block_mean = data.mean(axis=0)
+    data -= block_mean
+    block_m2 = np.einsum("kij,kij->ij", data, data)
+    total = count + k
+    delta = block_mean - mean
+    mean = mean + delta * (k / total)
+    m2 = m2 + block_m2 + delta**2 * (count * k / total)
+    return total, mean, m2
+
+
+def _median(movie, span: range, block: int, rows: int) -> np.ndarray:
+    """The median over frames, a band of ``rows`` rows at a time."""
+    h, w = movie.shape[1:]
+    out = np.empty((h, w))
+    tile = np.empty((len(span), min(rows, h), w), movie.dtype)
+    for top in range(0, h, rows):
+        band = slice(top, min(top + rows, h))
+        height = band.stop - band.start
+        filled = 0
+        for data in _blocks(movie, span, block, band):
+            tile[filled : filled + len(data), :height] = data
+            filled += len(data)
+        out[band] = np.median(tile[:, :height], axis=0)
+    return out
+
+
+def _span(movie, frames) -> range:
+    """The frames to project, as an increasing range."""
+    n = movie.shape[0]
+    if frames is None:
+        span = range(n)
+    elif isinstance(frames, slice | range):
+        if isinstance(frames, range):
+            frames = slice(frames.start, frames.stop, frames.step)
+        span = range(n)[frames]
+    else:
+        raise BayespsfInputError(f"frames must be a slice or a range, got {frames!r}")
+    span = span if span.step > 0 else span[::-1]
+    if len(span) == 0:
+        raise BayespsfInputError(f"frames={frames!r} selects none of the movie's {n} frames")
+    return span
+
+
+def _blocks(movie, span: range, block: int, rows: slice | None = None):
+    """The frames of ``span``, ``block`` of them at a time (read in one call where they are
+    consecutive, one by one where the span skips frames)."""
+    for i in range(0, len(span), block):
+        part = span[i : i + block]
+        if part.step == 1:
+            yield movie.frames(part.start, part.stop, rows=rows)
+        else:
+            yield np.stack([movie.frames(f, f + 1, rows=rows)[0] for f in part])

@@ -1,0 +1,253 @@
+"""Reading movies: TIFF, OME-TIFF, ImageJ hyperstacks, multi-file series and ``.npy``, frame
+by frame, never the whole movie at once."""
+
+from __future__ import annotations
+
+import glob
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from bayespsf.errors import BayespsfInputError
+from bayespsf.io import checked_path, named_read_errors
+from bayespsf.movie._frames import NpyFrames
+from bayespsf.movie._metadata import FileMetadata
+from bayespsf.movie._tiff import check_channel, checked_dtype, tiff_frames
+
+_TIFF = (".tif", ".tiff")
+
+
+def read_movie(path, *, channel: int | None = None) -> Movie:
+    """Open a movie for reading frame by frame.
+
+    Parameters
+    ----------
+    path : str, Path or list of them
+        A ``.tif``/``.tiff`` file (plain multi-page TIFF, OME-TIFF or ImageJ hyperstack), a
+        ``.npy`` file of shape ``(frames, height, width)`` (or one 2-D frame), or several TIFF
+        files forming one movie: a list (taken in the order given) or a glob pattern such as
+        ``"run1_*.tif"`` (matches taken in name order, numbers compared as numbers). The
+        frames of a series are concatenated; its files must have frames of one shape and type.
+    channel : int, optional
+        Which channel of a multi-channel OME or ImageJ file to read (from 0). Required when
+        the file has more than one channel.
+
+    Returns
+    -------
+    Movie
+        Nothing is read but the file's structure and metadata. Uncompressed image data are
+        memory-mapped, compressed data decoded page by page when frames are asked for.
+
+    Notes
+    -----
+    T and Z (and any other axis but C) of an OME or ImageJ file become frames, flattened in
+    the file's order (``Movie.metadata["axes"]`` says which). ``pixel_size`` (nm) and
+    ``exposure`` (s) come from the OME metadata (``PhysicalSizeX`` in its unit; a plane's
+    ``ExposureTime``, else ``TimeIncrement``) or the ImageJ metadata (the XResolution tag in
+    ``unit``; ``finterval``); ``TimeIncrement`` and ``finterval`` are the frame interval, an
+    upper bound on the exposure. Where the file says nothing they are None, and the caller
+    takes them from the user's camera file (its ``[geometry] pixel_size``).
+
+    Raises
+    ------
+    BayespsfInputError
+        Naming the file and the problem: missing, a directory, unknown extension, unreadable,
+        damaged or truncated, no images, pages of different shapes (named), frames that are
+        not 2-D, complex or boolean values, no frames, several channels without ``channel``,
+        files of a series that disagree.
+    """
+    paths = _paths(path)
+    suffixes = _TIFF if len(paths) > 1 else (*_TIFF, ".npy")
+    extensions = "a list of .tif files" if len(paths) > 1 else ".tif, .tiff or .npy"
+    readers, calibrations = [], []
+    for file in paths:
+        file = checked_path(file, suffixes, "a movie", extensions)
+        if file.suffix.lower() == ".npy":
+            reader, calibration = _npy_frames(file, channel), FileMetadata()
+        else:
+            reader, calibration = tiff_frames(file, channel)
+        readers.append(reader)
+        calibrations.append(calibration)
+    first = readers[0]
+    for reader in readers[1:]:
+        if (reader.frame_shape, reader.dtype) != (first.frame_shape, first.dtype):
+            raise BayespsfInputError(
+                f"{reader.path}: frames {reader.frame_shape} of {reader.dtype}, but {first.path} "
+                f"has frames {first.frame_shape} of {first.dtype}; the files of one movie "
+                "have frames of one shape and type"
+            )
+    movie = Movie(readers, calibrations[0], channel)
+    if movie.n_frames == 0 or 0 in movie.shape:
+        raise BayespsfInputError(f"{movie.path}: an empty movie (shape {movie.shape})")
+    return movie
+
+
+class Movie:
+    """A movie on disk: frames ``(n_frames, height, width)`` read on demand.
+
+    Attributes
+    ----------
+    path : Path or tuple of Path
+        The file, or the files of a series in frame order.
+    shape : tuple of int
+        ``(frames, height, width)``.
+    n_frames : int
+    dtype : numpy.dtype
+        The file's data type (in native byte order).
+    pixel_size : float or None
+        Pixel size in nm from the file's metadata.
+    exposure : float or None
+        Exposure (or, where only that is recorded, frame interval) in s from the metadata.
+    metadata : dict
+        Where each came from: ``metadata["pixel_size"]`` and ``metadata["exposure"]`` are
+        ``"OME"``, ``"ImageJ"`` or None; ``exposure_field`` names the field, ``axes`` the
+        file's axes and ``channel`` the channel read, where these apply.
+
+    Frames are read in the file's data type; a movie used as an array (``movie[10:20]``,
+    ``to_dask``) reads only the frames indexed. Files decoded page by page stay open until
+    ``close`` (or the end of a ``with`` block, or the movie's collection).
+    """
+
+    ndim = 3
+
+    def __init__(self, readers, calibration: FileMetadata, channel: int | None):
+        self._readers = list(readers)
+        self._starts = np.cumsum([0] + [r.n for r in self._readers])
+        self._channel = channel
+        paths = tuple(r.path for r in self._readers)
+        self.path: Path | tuple[Path, ...] = paths[0] if len(paths) == 1 else paths
+        self.n_frames = int(self._starts[-1])
+        self.shape: tuple[int, int, int] = (self.n_frames, *self._readers[0].frame_shape)
+        self.dtype: np.dtype = self._readers[0].dtype
+        self.pixel_size = calibration.pixel_size
+        self.exposure = calibration.exposure
+        self.metadata = dict(calibration.metadata)
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def __repr__(self) -> str:
+        name = self.path
+        if isinstance(name, tuple):
+            name = f"{name[0]} + {len(name) - 1} files"
+        size = time = "None"
+        if self.pixel_size is not None:
+            size = f"{self.pixel_size:.4g} nm ({self.metadata['pixel_size']})"
+        if self.exposure is not None:
+            time = f"{self.exposure:.4g} s ({self.metadata['exposure']})"
+        return (
+            f"Movie('{name}', frames={self.shape[0]}, height={self.shape[1]}, "
+            f"width={self.shape[2]}, dtype={self.dtype}, pixel_size={size}, exposure={time})"
+        )
+
+    def frames(self, start: int = 0, stop: int | None = None, *, rows=None) -> np.ndarray:
+        """Frames ``start`` to ``stop`` (excluded; Python slice rules) as an array ``(k, h, w)``
+        in the file's data type; ``rows`` (a slice) reads only those rows of each frame."""
+        span = range(self.n_frames)[start:stop]
+        rows = slice(None) if rows is None else rows
+        parts = []
+        for offset, reader in zip(self._starts, self._readers, strict=False):
+            low, high = max(span.start, offset), min(span.stop, offset + reader.n)
+            if low < high:
+                parts.append(reader.read(int(low - offset), int(high - offset), rows))
+        if not parts:
+            return np.empty((0, len(range(self.shape[1])[rows]), self.shape[2]), self.dtype)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def frame(self, i: int) -> np.ndarray:
+        """Frame ``i`` (negative counts from the end) as an array ``(h, w)``."""
+        i = range(self.n_frames)[i]
+        return self.frames(i, i + 1)[0]
+
+    def blocks(self, size: int, start: int = 0, stop: int | None = None) -> Iterator:
+        """``(first frame, frames)`` for consecutive blocks of ``size`` frames (the last may
+        be shorter) from ``start`` to ``stop``; one block is in memory at a time."""
+        if isinstance(size, bool) or not isinstance(size, int | np.integer) or size < 1:
+            raise BayespsfInputError(f"size must be a whole number of frames >= 1, got {size!r}")
+        span = range(self.n_frames)[start:stop]
+        for first in range(span.start, span.stop, size):
+            yield first, self.frames(first, min(first + size, span.stop))
+
+    def __getitem__(self, key) -> np.ndarray:
+        key = key if isinstance(key, tuple) else (key,)
+        head, rest = key[0], key[1:]
+        if isinstance(head, int | np.integer):
+            return self.frame(int(head))[rest]
+        if not isinstance(head, slice):
+            raise TypeError(f"index a movie's frames with an integer or a slice, not {head!r}")
+        span = range(self.n_frames)[head]
+        if len(span) == 0:
+            return self.frames(0, 0)[(slice(None), *rest)]
+        low, high = min(span[0], span[-1]), max(span[0], span[-1]) + 1
+        return self.frames(low, high)[np.asarray(span) - low][(slice(None), *rest)]
+
+    def to_dask(self, frames_per_chunk: int = 64):
+        """A lazy ``dask.array`` of the movie, chunked by ``frames_per_chunk`` frames; frames
+        are read when a chunk is computed."""
+        import dask.array as da
+        from dask.base import tokenize
+
+        files = self.path if isinstance(self.path, tuple) else (self.path,)
+        stamp = [(str(f), f.stat().st_mtime_ns, f.stat().st_size) for f in files]
+        return da.from_array(
+            self,
+            chunks=(frames_per_chunk, *self.shape[1:]),
+            name=f"movie-{tokenize(stamp, self._channel)}",
+            meta=np.empty((0, 0, 0), self.dtype),
+            lock=False,
+            fancy=False,
+        )
+
+    def close(self) -> None:
+        """Close the files held open (a later read reopens them)."""
+        for reader in self._readers:
+            getattr(reader, "close", lambda: None)()
+
+    def __enter__(self) -> Movie:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __reduce__(self):  # reopened from the files, not copied (dask's distributed workers)
+        files = list(self.path) if isinstance(self.path, tuple) else self.path
+        return _reopen, (files, self._channel)
+
+
+def _reopen(path, channel):
+    return read_movie(path, channel=channel)
+
+
+def _paths(path) -> list[Path]:
+    """The files of a movie: one path, a list of paths, or a glob pattern's matches in name
+    order (numbers compared as numbers: ``frame_2`` before ``frame_10``)."""
+    if isinstance(path, list | tuple):
+        if not path:
+            raise BayespsfInputError("an empty list of movie files")
+        return [Path(p) for p in path]
+    text = str(path)
+    if isinstance(path, str) and any(c in text for c in "*?[") and not Path(text).exists():
+        matches = sorted(glob.glob(text), key=_name_order)
+        if not matches:
+            raise BayespsfInputError(f"{text}: no files match this pattern")
+        return [Path(m) for m in matches]
+    return [Path(path)]
+
+
+def _name_order(name: str) -> list:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def _npy_frames(path: Path, channel: int | None) -> NpyFrames:
+    with named_read_errors(path):
+        data = np.load(path, mmap_mode="r", allow_pickle=False)
+    check_channel(path, channel, 1, [])
+    dtype = checked_dtype(path, data.dtype)
+    if data.ndim not in (2, 3):
+        raise BayespsfInputError(
+            f"{path}: an array of {data.ndim} dimensions {data.shape}; a movie is "
+            "(frames, height, width) or one 2-D frame"
+        )
+    return NpyFrames(path, data.shape, dtype)
