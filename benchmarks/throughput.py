@@ -121,11 +121,14 @@ def peers(scene_name: str, n: int, posteriors: int, chains: int) -> pd.DataFrame
     sx = [fit_mle(counts[i : i + 1], model)["s_x"].iloc[0] for i in range(few)]
     row("bayespsf fit_mle (stack engine, one ROI per call)", time.perf_counter() - started,
         few, sx)  # fmt: skip
-    for method in ("laplace", "importance", "auto"):
-        sample_many(counts[:4], model, workers=1, method=method)  # warm-up
-        table, seconds = _timed(lambda m=method: sample_many(counts, model, workers=1, method=m))
+    for method, ess in (("laplace", 400), ("importance", 400), ("auto", 400), ("auto", 100)):
+        sample_many(counts[:4], model, workers=1, method=method, ess=ess)  # warm-up
+        table, seconds = _timed(
+            lambda m=method, e=ess: sample_many(counts, model, workers=1, method=m, ess=e)
+        )
         used = ", ".join(f"{k} {v}" for k, v in table["method"].value_counts().items())
-        row(f"bayespsf sample_many {method} (batched; {used})", seconds, n, table["s_x_mean"])
+        row(f"bayespsf sample_many {method}, ESS {ess} (batched; {used})", seconds, n,
+            table["s_x_mean"])  # fmt: skip
     for method, count in (("importance", posteriors), ("mcmc", chains)):
         sample_posterior(counts[-1], model, seed=0, method=method)  # imports arviz once
         started = time.perf_counter()

@@ -84,13 +84,41 @@ def test_throughput_benchmark_quick():
     import throughput
 
     peers, scaling, cold, parallel = throughput.main(["--quick"])
-    assert len(peers) == 2 * 12 and np.all(peers["ROIs/s"] > 0)
+    assert len(peers) == 2 * 13 and np.all(peers["ROIs/s"] > 0)
     ours = peers[peers["method"] == "bayespsf fit_mle (stack, with Laplace)"]
     assert np.all(np.abs(ours["s_x - truth (nm)"]) < 4 * ours["SE (nm)"])
     batched = peers[peers["method"].str.startswith("bayespsf sample_many")]
-    assert len(batched) == 6
+    assert len(batched) == 8
     assert np.all(np.abs(batched["s_x - truth (nm)"]) < 4 * batched["SE (nm)"])
     assert len(parallel) == 4 and np.all(parallel["ROIs/s"] > 0)
     assert set(scaling["varied"]) == {"roi", "N", "stack"} and np.all(scaling["peak MB"] > 0)
     assert scaling["converged"].min() > 0.9
     assert len(cold) == 2 and np.all(cold["first fit (s)"] > 0)
+
+
+def test_movie_benchmark_quick():
+    # a small movie (100 frames of 128 x 128) read and projected: every step timed and its
+    # memory measured (the bound on memory is tested in tests/test_movie_read.py)
+    import movie as movie_benchmark
+
+    table, info = movie_benchmark.main(["--quick"])
+    assert list(table["step"]) == [
+        "read_movie (open, check every page)",
+        "read every frame (blocks of 64)",
+        "project mean",
+        "project median",
+    ]
+    assert np.all(table["seconds"] > 0) and np.all(table["frames"] == 100)
+    assert np.all(table["tracemalloc peak (MB)"] > 0)
+    assert info["peak RSS after (MB)"] >= info["peak RSS before reading (MB)"]
+
+
+def test_auto_choice_benchmark_quick():
+    # dim ROIs never pass the Laplace pilot (weight SD ~0.15 at N = 1000), bright ones mostly do
+    import auto
+
+    table = auto.main(["--quick"]).set_index("N")
+    assert table.loc[1000, "laplace (share)"] == 0.0
+    assert table.loc[1000, "pilot weight SD (median)"] > 0.05
+    assert table.loc[20_000, "laplace (share)"] >= 0.5
+    assert np.allclose(table[["laplace (share)", "importance (share)", "mcmc (share)"]].sum(1), 1)
