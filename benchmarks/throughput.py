@@ -17,10 +17,9 @@ import):
 
 Each method is compiled / warmed up on a few ROIs first (not timed). Reported: ROIs per second,
 the ratio to picasso ``gaussmle`` on the same ROIs, and the mean of s_x minus the truth with its
-standard error (nm) over the timed ROIs. Then ``sample_many`` on one process, two worker
-processes and a Dask cluster of two workers (the speed-up), and a dataset of 10^5 ROIs on two
-workers; for the stack engine, time per ROI against ROI size, photon count and stack size, with
-the peak memory (tracemalloc) of the call.
+standard error (nm) over the timed ROIs. Then, for the stack engine: time per ROI against ROI
+size, photon count and stack size, with the peak memory (tracemalloc) of the call. Workers and
+Dask: ``benchmarks/parallel.py``.
 
     pip install -e ".[bench]"
     python benchmarks/throughput.py            # full run, rewrites its section of README.md
@@ -174,37 +173,6 @@ def scaling(quick: bool) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def parallel(n: int, dataset: int) -> pd.DataFrame:
-    """``sample_many(method="auto")`` on ``n`` emccd-typical ROIs (N = 1000) in this process,
-    on two local worker processes and on a Dask ``LocalCluster`` of two one-thread workers;
-    then a ``dataset`` of ROIs on two local workers (the issue's 10^5 in <= 10 minutes)."""
-    from distributed import Client, LocalCluster
-
-    scene = scenes.load("emccd-typical")
-    model = Model.from_scene(scene)
-    counts, _ = simulate(scene, max(n, dataset), seed=3)
-    sample_many(counts[:4], model, workers=1)  # warm-up
-    rows = []
-
-    def row(how, seconds, count):
-        rows.append({"how": how, "ROIs": count, "seconds": seconds, "ROIs/s": count / seconds})
-
-    _, seconds = _timed(lambda: sample_many(counts[:n], model, workers=1))
-    row("one process", seconds, n)
-    _, seconds = _timed(lambda: sample_many(counts[:n], model, workers=2))
-    row("two local worker processes", seconds, n)
-    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None,
-                      processes=True) as cluster, Client(cluster) as client:  # fmt: skip
-        sample_many(counts[:4], model, executor=client)  # the workers' imports and tables
-        _, seconds = _timed(lambda: sample_many(counts[:n], model, executor=client))
-    row("Dask LocalCluster, 2 workers x 1 thread", seconds, n)
-    _, seconds = _timed(lambda: sample_many(counts[:dataset], model, workers=2))
-    row("two local worker processes (dataset)", seconds, dataset)
-    table = pd.DataFrame(rows)
-    table["speed-up vs one process"] = table["ROIs/s"] / table["ROIs/s"].iloc[0]
-    return table
-
-
 COLD = """
 import time
 started = time.perf_counter()
@@ -239,21 +207,13 @@ def cold_start() -> pd.DataFrame:
 
 
 def markdown(peer_table: pd.DataFrame, scale_table: pd.DataFrame, command: str,
-             cold: pd.DataFrame | None = None,
-             parallel_table: pd.DataFrame | None = None) -> str:  # fmt: skip
+             cold: pd.DataFrame | None = None) -> str:  # fmt: skip
     fmt = {"floatfmt": ".3g", "index": False}
     return (
         "Same ROIs, one thread each; `ROIs/s / gaussmle` is the ratio to picasso's `gaussmle` in "
         "the same run.\n\n"
         f"{peer_table.to_markdown(**fmt)}\n\n"
-        + (
-            ""
-            if parallel_table is None
-            else "`sample_many` (default `method=\"auto\"`, emccd-typical, N = 1000) on one "
-            f"process, two worker processes and a Dask cluster:\n\n"
-            f"{parallel_table.to_markdown(**fmt)}\n\n"
-        )
-        + "The stack engine (`fit_mle`, Laplace included) against ROI size, photon count and stack "
+        "The stack engine (`fit_mle`, Laplace included) against ROI size, photon count and stack "
         "size (emccd-typical otherwise), with the call's peak memory:\n\n"
         f"{scale_table.to_markdown(**fmt)}\n\n"
         + (
@@ -275,13 +235,11 @@ def main(argv=None):
         [peers(name, n, posteriors, chains) for name in ("emccd-typical", "ideal")],
         ignore_index=True,
     )
-    parallel_table = parallel(*((40, 80) if args.quick else (4000, 100_000)))
     scale_table = scaling(args.quick)
     cold = cold_start()
     command = "python benchmarks/throughput.py" + (" --quick" if args.quick else "")
-    text = markdown(peer_table, scale_table, command, cold, parallel_table)
-    publish("throughput", text, args.quick)
-    return peer_table, scale_table, cold, parallel_table
+    publish("throughput", markdown(peer_table, scale_table, command, cold), args.quick)
+    return peer_table, scale_table, cold
 
 
 if __name__ == "__main__":
