@@ -22,4 +22,23 @@ def publish(name: str, text: str, quick: bool) -> None:
         write_section(name, text)
 
 
-__all__ = ["README", "machine", "publish", "write_section"]
+def quick_run(doc: str, argv=None) -> bool:
+    """Parse a benchmark's only option, ``--quick``; True for a quick run."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=doc.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="a small run that prints only")
+    return parser.parse_args(argv).quick
+
+
+def publish_table(name: str, intro: str, table, quick: bool) -> None:
+    """Publish ``intro``, ``table`` as markdown and the command with the machine (``publish``)."""
+    command = f"python benchmarks/{name}.py" + (" --quick" if quick else "")
+    text = (
+        f"{intro}\n\n{table.to_markdown(index=False, floatfmt='.3g')}\n\n"
+        f"Command: `{command}` on {machine()}."
+    )
+    publish(name, text, quick)
+
+
+__all__ = ["README", "machine", "publish", "publish_table", "quick_run", "write_section"]

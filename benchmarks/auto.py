@@ -17,13 +17,12 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import argparse  # noqa: E402
 import re  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-from _report import machine, publish  # noqa: E402
+from _report import publish_table, quick_run  # noqa: E402
 
 from bayespsf import scenes, simulate  # noqa: E402
 from bayespsf.batch import sample_many  # noqa: E402
@@ -56,18 +55,11 @@ def choices(photons, rois: int) -> pd.DataFrame:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="a small run that prints only")
-    args = parser.parse_args(argv)
-    photons = (1000, 20_000) if args.quick else (300, 1000, 3000, 5000, 10_000, 20_000)
-    table = choices(photons, 20 if args.quick else 400)
-    command = "python benchmarks/auto.py" + (" --quick" if args.quick else "")
-    text = (
-        "`sample_many` (`method=\"auto\"`, ESS 400, one process), emccd-typical at each N:\n\n"
-        + table.to_markdown(index=False, floatfmt=".3g")
-        + f"\n\nCommand: `{command}` on {machine()}."
-    )
-    publish("auto", text, args.quick)
+    quick = quick_run(__doc__, argv)
+    photons = (1000, 20_000) if quick else (300, 1000, 3000, 5000, 10_000, 20_000)
+    table = choices(photons, 20 if quick else 400)
+    intro = "`sample_many` (`method=\"auto\"`, ESS 400, one process), emccd-typical at each N:"
+    publish_table("auto", intro, table, quick)
     return table
 
 

@@ -17,12 +17,11 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import argparse  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-from _report import machine, publish  # noqa: E402
+from _report import publish_table, quick_run  # noqa: E402
 
 from bayespsf import scenes, simulate  # noqa: E402
 from bayespsf.batch import sample_many  # noqa: E402
@@ -72,17 +71,10 @@ def parallel(n: int, dataset: int) -> pd.DataFrame:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="a small run that prints only")
-    args = parser.parse_args(argv)
-    table = parallel(*((40, 80) if args.quick else (4000, 100_000)))
-    command = "python benchmarks/parallel.py" + (" --quick" if args.quick else "")
-    text = (
-        "`sample_many` (default `method=\"auto\"`, emccd-typical, N = 1000):\n\n"
-        + table.to_markdown(index=False, floatfmt=".3g")
-        + f"\n\nCommand: `{command}` on {machine()}."
-    )
-    publish("parallel", text, args.quick)
+    quick = quick_run(__doc__, argv)
+    table = parallel(*((40, 80) if quick else (4000, 100_000)))
+    intro = "`sample_many` (default `method=\"auto\"`, emccd-typical, N = 1000):"
+    publish_table("parallel", intro, table, quick)
     return table
 
 
