@@ -114,6 +114,15 @@ def camera_from_scene(scene: Scene, likelihood: str | None = None) -> Camera:
     return SCMOS(cam["gain"], cam["offset"], cam["variance"], likelihood=tier)
 
 
+def _inference_tier(camera: Camera) -> Camera:
+    """``camera``, or for an EMCCD whose likelihood tier was not chosen, the same camera with
+    the inference default (``DEFAULT_TIER``), as a scene gives it."""
+    if isinstance(camera, EMCCD) and not camera.tier_chosen:
+        return EMCCD(camera.gain, camera.readout_sd, camera.offset, camera.e_per_adu,
+                     DEFAULT_TIER["emccd"])  # fmt: skip
+    return camera
+
+
 class Model:
     """One molecule in a square ROI seen through a camera.
 
@@ -122,7 +131,8 @@ class Model:
     roi, pixel_size
         Odd ROI side in pixels; pixel size in nm.
     camera
-        A ``bayespsf.cameras.Camera`` (its ``likelihood`` tier is the model's).
+        A ``bayespsf.cameras.Camera``; its ``likelihood`` tier is the model's. An EMCCD built
+        without choosing a tier gets the ``table`` tier, as scenes give it.
     prior
         The ``[prior]`` table of a scene (kind and parameters per parameter); ``None`` takes
         the scene defaults for this geometry.
@@ -159,7 +169,7 @@ class Model:
             raise BayespsfInputError(f"camera must be a bayespsf camera, got {camera!r}")
         self.roi = int(roi)
         self.pixel_size = float(pixel_size)
-        self.camera = camera
+        self.camera = _inference_tier(camera)
         geometry = {"roi": self.roi, "pixel_size": self.pixel_size}
         self.prior = Scene.from_dict({"geometry": geometry, "prior": prior or {}}).to_dict()[
             "prior"

@@ -138,3 +138,16 @@ def test_sampled_pixel_model_is_eq_a31_everywhere():
     assert "sampled" in repr(model) and "sampled" not in repr(Model.from_scene(scene))
     with pytest.raises(ValueError, match="pixel_model"):
         Model.from_scene(scene, pixel_model="centre")
+
+
+def test_an_emccd_built_by_hand_gets_the_inference_default_tier():
+    # issue 15: a hand-built EMCCD silently inferred with the exact law (18x slower) while a
+    # scene's model took the table; now both take the table, unless a tier was chosen
+
+    camera = EMCCD(200.0, 50.0, 100.0, 12.0)
+    assert camera.likelihood == "exact" and not camera.tier_chosen  # its own calls: reference
+    assert Model(15, 100.0, camera).camera.likelihood == "table"
+    chosen = EMCCD(200.0, 50.0, 100.0, 12.0, likelihood="exact")
+    assert chosen.tier_chosen and Model(15, 100.0, chosen).camera.likelihood == "exact"
+    scene_model = Model.from_scene(scenes.load("emccd-typical"))
+    assert repr(Model(15, 100.0, camera).camera) == repr(scene_model.camera)

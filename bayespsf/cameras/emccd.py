@@ -92,8 +92,12 @@ class EMCCD(Camera):
         Bias added to every pixel, in ADU.
     e_per_adu : float
         Electrons per ADU (the A/D conversion factor), > 0.
-    likelihood : str
-        One of ``TIERS``; see the module docstring.
+    likelihood : str, optional
+        One of ``TIERS``; see the module docstring. Not given: ``exact`` for this camera's own
+        calls (the reference), and ``table`` once the camera is used for inference
+        (``bayespsf.Model`` takes the table tier for a camera whose tier was not chosen, as a
+        scene does), so that inference has one default tier however the camera was made.
+        ``tier_chosen`` says whether it was given.
     """
 
     fisher_methods = FISHER_METHODS
@@ -104,7 +108,7 @@ class EMCCD(Camera):
         readout_sd: float = 0.0,
         offset: float = 0.0,
         e_per_adu: float = 1.0,
-        likelihood: str = "exact",
+        likelihood: str | None = None,
     ):
         self.gain = scalar_in_range("gain", gain, 1.0)
         self.readout_sd = scalar_in_range("readout_sd", readout_sd, 0.0)
@@ -117,6 +121,8 @@ class EMCCD(Camera):
             )
         self.offset = scalar_in_range("offset", offset, -np.inf)
         self.e_per_adu = scalar_in_range("e_per_adu", e_per_adu, 0.0, low_inclusive=False)
+        self.tier_chosen = likelihood is not None
+        likelihood = "exact" if likelihood is None else likelihood
         if likelihood not in TIERS:
             raise BayespsfInputError(f"likelihood must be one of {TIERS}, got {likelihood!r}")
         self.likelihood = likelihood
