@@ -1,0 +1,206 @@
+"""The paper's selection rules, named, configurable and counted.
+
+DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), section "Data acquisition and
+selection": molecules whose time trace shows a single bleaching step were kept, and then only
+those satisfying five conditions entered the width-precision analysis:
+
+1. ``no_drift``: no drift of the centroid against time (here: neither axis' least-squares
+   slope differs from zero by more than ``drift_sigmas`` standard errors);
+2. ``photon_window``: frames whose photon count N lies within ``photon_tolerance`` (20%) of the
+   molecule's mean ⟨N⟩ are valid, and a molecule needs at least ``min_valid_frames`` (75) of
+   them (applied after rule 3 has removed its frames too);
+3. ``snr``: frames with ``I0 / sqrt(I0 + sigma_b^2)`` above ``min_snr`` (2.5), where I0 is the
+   peak pixel's photons minus the mean background and sigma_b^2 the background variance in
+   photons;
+4. ``equal_widths``: the mean s_x and mean s_y of the valid frames differ by at most
+   ``width_difference_nm`` (10 nm) or ``width_difference_fraction`` (5%) of their mean;
+5. ``width_range``: both mean widths lie between ``width_low`` and ``width_high`` (95 and
+   135 nm).
+
+The single bleaching step comes first (``single_step``). The rules run in the order of
+``RULES``: single_step, no_drift, snr, photon_window, equal_widths, width_range (the paper's 1,
+3, 2, 4, 5: the 75 valid frames of rule 2 are frames that pass rule 3 too), each on what the
+previous ones left; frames after a molecule's bleaching step are never valid. The report says
+how many molecules and frames each rule removed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pandas as pd
+
+from bayespsf.errors import BayespsfInputError
+
+MOLECULE_COLUMNS = ("molecule", "steps", "drift_x", "drift_x_se", "drift_y", "drift_y_se")
+FRAME_COLUMNS = ("molecule", "frame", "photons", "peak", "background_var", "s_x", "s_y",
+                 "before_bleach")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Rules:
+    """The selection rules' settings; the defaults are the paper's numbers (module docstring).
+    A rule is switched off by its name in ``skip``."""
+
+    drift_sigmas: float = 3.0
+    photon_tolerance: float = 0.2
+    min_valid_frames: int = 75
+    min_snr: float = 2.5
+    width_difference_nm: float = 10.0
+    width_difference_fraction: float = 0.05
+    width_low: float = 95.0
+    width_high: float = 135.0
+    skip: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        for name in ("drift_sigmas", "min_snr", "width_difference_nm", "width_high"):
+            if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
+                raise BayespsfInputError(f"{name} must be a finite number >= 0")
+        if not 0 < self.photon_tolerance < 1:
+            raise BayespsfInputError("photon_tolerance must be in (0, 1), e.g. 0.2 for 20%")
+        if not 0 <= self.width_low <= self.width_high:
+            raise BayespsfInputError("width_low must be in [0, width_high]")
+        if int(self.min_valid_frames) != self.min_valid_frames or self.min_valid_frames < 1:
+            raise BayespsfInputError("min_valid_frames must be a whole number >= 1")
+        unknown = set(self.skip) - set(RULES)
+        if unknown:
+            raise BayespsfInputError(f"skip names unknown rules {sorted(unknown)}; rules: {RULES}")
+
+
+RULES = ("single_step", "no_drift", "snr", "photon_window", "equal_widths", "width_range")
+
+
+def _require(table: pd.DataFrame, columns, name: str) -> None:
+    missing = [c for c in columns if c not in table]
+    if missing:
+        raise BayespsfInputError(f"{name} lacks the column(s) {missing}")
+
+
+def select(molecules: pd.DataFrame, frames: pd.DataFrame, rules: Rules | None = None):
+    """Apply the rules; returns ``(molecules, frames, report)``.
+
+    ``molecules``: one row per molecule with ``MOLECULE_COLUMNS`` (bleaching steps; centroid
+    slopes and their standard errors in nm per frame). ``frames``: one row per molecule and
+    frame with ``FRAME_COLUMNS`` (photons N, peak photons I0, background variance in photons^2,
+    the frame's width estimates in nm, and whether the frame precedes the bleaching step).
+
+    The returned molecules gain ``selected``, ``rejected_by`` (the first rule that removed the
+    molecule, empty if selected) and ``valid_frames``; the frames gain ``valid`` and
+    ``rejected_by``. ``report`` has one row per rule: molecules and frames it removed and what
+    was left.
+    """
+    rules = Rules() if rules is None else rules
+    _require(molecules, MOLECULE_COLUMNS, "molecules")
+    _require(frames, FRAME_COLUMNS, "frames")
+    mol = molecules.copy()
+    fr = frames.copy()
+    mol["rejected_by"], fr["rejected_by"] = "", ""
+    fr.loc[~fr["before_bleach"].astype(bool), "rejected_by"] = "after bleaching"
+    report = [_row("frames before bleaching", mol, fr, 0, 0)]
+    for rule in RULES:
+        before_m, before_f = _alive(mol).sum(), _valid(fr, mol).sum()
+        if rule not in rules.skip:
+            _APPLY[rule](mol, fr, rules)
+        removed_m = before_m - _alive(mol).sum()
+        removed_f = before_f - _valid(fr, mol).sum()
+        report.append(_row(rule, mol, fr, removed_m, removed_f, skipped=rule in rules.skip))
+    mol["selected"] = mol["rejected_by"] == ""
+    fr["valid"] = _valid(fr, mol)
+    mol["valid_frames"] = (
+        fr[fr["valid"]].groupby("molecule").size().reindex(mol["molecule"]).fillna(0).astype(int)
+    ).to_numpy()
+    table = pd.DataFrame(report)
+    table.attrs = {}  # tables hold plain columns only
+    return mol, fr, table
+
+
+def _alive(mol):
+    return mol["rejected_by"] == ""
+
+
+def _valid(fr, mol):
+    alive = fr["molecule"].isin(mol.loc[_alive(mol), "molecule"])
+    return alive & (fr["rejected_by"] == "")
+
+
+def _reject(mol, which, rule):
+    mol.loc[which & _alive(mol), "rejected_by"] = rule
+
+
+def _single_step(mol, fr, rules):
+    _reject(mol, mol["steps"] != 1, "single_step")
+
+
+def _no_drift(mol, fr, rules):
+    z = np.maximum(np.abs(mol["drift_x"] / mol["drift_x_se"]),
+                   np.abs(mol["drift_y"] / mol["drift_y_se"]))  # fmt: skip
+    _reject(mol, ~(z <= rules.drift_sigmas), "no_drift")  # NaN (too few frames) fails too
+
+
+def _snr(mol, fr, rules):
+    i0 = fr["peak"].to_numpy(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        snr = i0 / np.sqrt(i0 + fr["background_var"].to_numpy(float))
+    bad = ~(snr > rules.min_snr) & (fr["rejected_by"] == "").to_numpy()
+    fr.loc[bad, "rejected_by"] = "snr"
+
+
+def _photon_window(mol, fr, rules):
+    valid = _valid(fr, mol)
+    mean = fr[valid].groupby("molecule")["photons"].mean()
+    ratio = fr["photons"] / fr["molecule"].map(mean)
+    outside = valid & ~(np.abs(ratio - 1) <= rules.photon_tolerance)
+    fr.loc[outside, "rejected_by"] = "photon_window"
+    counts = fr[_valid(fr, mol)].groupby("molecule").size()
+    enough = mol["molecule"].map(counts).fillna(0) >= rules.min_valid_frames
+    _reject(mol, ~enough, "photon_window")
+
+
+def _mean_widths(mol, fr):
+    valid = fr[_valid(fr, mol)].groupby("molecule")[["s_x", "s_y"]].mean()
+    return mol["molecule"].map(valid["s_x"]), mol["molecule"].map(valid["s_y"])
+
+
+def _equal_widths(mol, fr, rules):
+    sx, sy = _mean_widths(mol, fr)
+    limit = np.maximum(rules.width_difference_nm, rules.width_difference_fraction * (sx + sy) / 2)
+    _reject(mol, ~(np.abs(sx - sy) <= limit), "equal_widths")
+
+
+def _width_range(mol, fr, rules):
+    sx, sy = _mean_widths(mol, fr)
+    inside = sx.between(rules.width_low, rules.width_high) & sy.between(
+        rules.width_low, rules.width_high
+    )
+    _reject(mol, ~inside, "width_range")
+
+
+_APPLY = {"single_step": _single_step, "no_drift": _no_drift, "snr": _snr,
+          "photon_window": _photon_window, "equal_widths": _equal_widths,
+          "width_range": _width_range}  # fmt: skip
+
+
+def _row(rule, mol, fr, removed_m, removed_f, skipped=False):
+    return {"rule": rule + (" (skipped)" if skipped else ""),
+            "molecules removed": int(removed_m), "frames removed": int(removed_f),
+            "molecules left": int(_alive(mol).sum()),
+            "frames left": int(_valid(fr, mol).sum())}  # fmt: skip
+
+
+def report_markdown(report: pd.DataFrame, rules: Rules | None = None) -> str:
+    """The selection report as markdown: the rules' settings, then the table in order."""
+    rules = Rules() if rules is None else rules
+    settings = ", ".join(f"{k} = {v}" for k, v in asdict(rules).items() if k != "skip")
+    skipped = f" Skipped: {', '.join(rules.skip)}." if rules.skip else ""
+    return (
+        "# Selection report\n\n"
+        "The selection rules of DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), applied in "
+        "order, each to what the previous ones left (frames after a molecule's bleaching step "
+        f"are never valid). Settings: {settings}.{skipped}\n\n"
+        + report.to_markdown(index=False)
+        + "\n"
+    )
+
+
+__all__ = ["FRAME_COLUMNS", "MOLECULE_COLUMNS", "RULES", "Rules", "report_markdown", "select"]
