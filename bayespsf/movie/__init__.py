@@ -1,11 +1,34 @@
-"""From a movie to molecules: reading movies and projecting them over time (issue 13).
+"""From a movie to molecules (issue 13). Each stage is a plain function usable alone, with an
+array or a table in and out:
 
-Each stage is a plain function usable alone: ``read_movie`` opens a movie for reading frame by
-frame, ``project`` reduces its frames to one image with memory bounded independently of the
-number of frames.
+``read_movie`` opens a movie frame by frame; ``project`` reduces its frames to one image with
+bounded memory; ``detect`` / ``detect_movie`` / ``detect_frames`` find candidate molecules with
+a stated false-positive rate; ``cut_rois`` cuts each molecule's ROIs over time;
+``molecules_over_time`` gives per-frame photons, background and centroid, the bleaching steps
+(``bleach_steps``) and the drift; ``select`` applies the paper's selection rules (``Rules``).
 """
 
+from bayespsf.movie.detect import detect, detect_frames, detect_movie
+from bayespsf.movie.extract import RoiStack, cut_rois, iter_rois
 from bayespsf.movie.project import project
 from bayespsf.movie.read import Movie, read_movie
+from bayespsf.movie.select import Rules, select
+from bayespsf.movie.steps import bleach_steps
+from bayespsf.movie.traces import molecules_over_time, traces
 
-__all__ = ["Movie", "project", "read_movie"]
+__all__ = [
+    "Movie",
+    "RoiStack",
+    "Rules",
+    "bleach_steps",
+    "cut_rois",
+    "detect",
+    "detect_frames",
+    "detect_movie",
+    "iter_rois",
+    "molecules_over_time",
+    "project",
+    "read_movie",
+    "select",
+    "traces",
+]

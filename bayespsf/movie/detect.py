@@ -1,0 +1,322 @@
+"""Detecting molecules (issue 13, item 4): a likelihood-ratio test of "spot + background"
+against "background only" at every pixel, with a threshold set by the expected number of false
+detections per image.
+
+The test. Under Gaussian noise of known per-pixel variance ``v``, an image ``x`` (photons,
+background removed) either holds only noise or a spot ``N g`` of known shape ``g`` (the
+pixel-integrated Gaussian of SD ``psf_sd``, ``bayespsf.psf.expected_counts``) and unknown
+amplitude ``N >= 0``. The generalised likelihood-ratio test replaces ``N`` by its
+maximum-likelihood estimate ``N̂ = Σ g x / v / Σ g² / v`` and reduces to the (prewhitened)
+matched filter ``T = Σ g x / v / sqrt(Σ g² / v)``, which is N(0, 1) under the null and
+N(N sqrt(Σ g² / v), 1) with a spot: Kay, *Fundamentals of Statistical Signal Processing,
+Vol. II: Detection Theory* (Prentice Hall, 1998), sec. 4.3 (matched filter and its detection
+probability ``Q(Q⁻¹(P_FA) - sqrt(d²))``), sec. 4.5 (generalised matched filter for unequal
+variances) and sec. 7.4 (unknown amplitude: the GLRT). ``T`` is computed at every pixel by
+one correlation (``scipy.ndimage.correlate``).
+
+The threshold. With ``n`` pixels and ``t = Φ⁻¹(1 - false_positives / n)``, the expected number
+of background pixels whose ``T`` exceeds ``t`` is ``false_positives`` (linearity of
+expectation); every false candidate is such a pixel, so ``false_positives`` bounds the
+expected number of false candidates per image, and the probability of any (Bonferroni). As
+``T`` is smooth, exceedances cluster and the number of false local maxima is lower (measured
+in ``tests/test_movie_detect.py``). The Gaussian law is the central-limit approximation of a
+sum over the template's pixels: skewed counts (EMCCD, low background, single frames) put more
+mass in the tail than the Gaussian (docs/movies.md gives the measured rates).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from bayespsf import psf
+from bayespsf._checks import finite_array, scalar_in_range
+from bayespsf.errors import BayespsfInputError
+from bayespsf.movie._noise import (
+    camera_noise_variance,
+    estimate_background,
+    estimate_noise_variance,
+    matched_filter,
+    template,
+)
+from bayespsf.movie._peaks import STATUSES, find_peaks
+from bayespsf.movie.extract import frame_span, open_movie, photon_model
+from bayespsf.movie.project import project
+
+__all__ = [
+    "COLUMNS",
+    "camera_noise_variance",
+    "detect",
+    "detect_frames",
+    "detect_movie",
+    "estimate_noise_variance",
+    "iter_detect_frames",
+]
+
+_NAMES = "molecule x y row col score amplitude background status threshold noise_var noise_source"
+COLUMNS = tuple(_NAMES.split())
+
+
+def detect(
+    image,
+    *,
+    psf_sd: float,
+    pixel_size: float,
+    noise_var=None,
+    background=None,
+    false_positives: float = 0.01,
+    roi: int = 25,
+    min_distance: float | None = None,
+) -> pd.DataFrame:
+    """Candidate molecules in one image (photons): local maxima of the matched-filter score.
+
+    Parameters
+    ----------
+    image : array_like, shape (h, w)
+        In photons: a temporal projection of an immobile-molecule movie, or one frame.
+    psf_sd : float
+        SD of the spot's Gaussian in nm (> 0); the template is its pixel integral.
+    pixel_size : float
+        Pixel side in nm (> 0).
+    noise_var : float or array_like (h, w), optional
+        Noise variance per pixel in photons² (``camera_noise_variance`` gives it from the
+        camera law); by default estimated from the image (``estimate_noise_variance``).
+    background : float or array_like (h, w), optional
+        Background in photons per pixel; by default a local mean of the pixels away from spots
+        over a window of three ROI sides (``estimate_background``).
+    false_positives : float
+        Expected number of background pixels above the threshold per image (> 0, below the
+        number of pixels): a bound on the expected number of false candidates per image.
+    roi : int
+        Odd side of the ROI to be cut around each molecule; a candidate whose ROI would cross
+        the image's edge is ``rejected: edge``.
+    min_distance : float, optional
+        Two candidates whose peak pixels are closer than this in rows or in columns (Chebyshev
+        distance, pixels) are both ``rejected: neighbour``; by default ``roi``, so that
+        accepted ROIs never overlap.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per candidate, in image order, with ``COLUMNS``: ``molecule`` (id from 0),
+        ``x``, ``y`` (camera pixels in picasso's convention: column ``j``'s centre is
+        ``x = j``), ``row``, ``col`` (peak pixel), ``score`` (``T``), ``amplitude`` (``N̂``,
+        photons of a spot centred on the peak pixel), ``background`` (photons per pixel),
+        ``status`` (one of ``STATUSES``), ``threshold`` (``t``), ``noise_var`` (photons², at the
+        peak) and ``noise_source`` (``given``, ``camera`` or ``estimated``). ``attrs
+        ["detection"]`` holds the settings, the background's source and the counts by status.
+
+    Notes
+    -----
+    Positions are refined by fitting a Gaussian through the score at the peak pixel and its
+    two neighbours along each axis (a parabola through ``log T``; a parabola through ``T``
+    where a neighbour's score is not positive). The module docstring states the test.
+    """
+    options = (noise_var, background, false_positives, roi, min_distance)
+    return _detect(image, psf_sd, pixel_size, *options)
+
+
+def _detect(
+    image,
+    psf_sd,
+    pixel_size,
+    noise_var,
+    background,
+    false_positives=0.01,
+    roi=25,
+    min_distance=None,
+) -> pd.DataFrame:
+    image = finite_array("image", image)
+    if image.ndim != 2 or min(image.shape) < 3:
+        raise BayespsfInputError(f"image must be 2-D (h, w) with h, w >= 3, got {image.shape}")
+    spot = template(psf_sd, pixel_size)
+    roi, _ = psf._check_geometry(roi, pixel_size)
+    min_distance = (
+        roi if min_distance is None else scalar_in_range("min_distance", min_distance, 0.0)
+    )
+    fp = scalar_in_range("false_positives", false_positives, 0.0, image.size, low_inclusive=False)
+    if fp >= image.size:
+        raise BayespsfInputError(f"false_positives must be below the {image.size} pixels")
+    threshold = float(stats.norm.isf(fp / image.size))
+    estimate = None
+    if noise_var is None or background is None:
+        estimate = estimate_noise_variance(image)
+        if estimate <= 0:
+            raise BayespsfInputError("the image has no noise (adjacent pixels are equal)")
+    if background is None:
+        back = estimate_background(image, spot, 3 * roi, threshold, estimate)
+        back_source = f"local mean ({3 * roi} px)"
+    else:
+        back, back_source = _map("background", background, image.shape), "given"
+    if noise_var is None:
+        var, source = estimate, "estimated"
+    elif callable(noise_var):  # the camera law at the background (detect_movie)
+        var, source = noise_var(back), "camera"
+    else:
+        var, source = _map("noise_var", noise_var, image.shape), "given"
+    if np.any(var <= 0):
+        raise BayespsfInputError("noise_var must be > 0 photons²")
+    score, amplitude = matched_filter(image - back, var, spot)
+    rows, cols, status, dy, dx = find_peaks(score, threshold, roi, min_distance)
+    table = pd.DataFrame(
+        {
+            "molecule": np.arange(rows.size),
+            "x": cols + dx,
+            "y": rows + dy,
+            "row": rows,
+            "col": cols,
+            "score": score[rows, cols],
+            "amplitude": amplitude[rows, cols],
+            "background": np.broadcast_to(back, image.shape)[rows, cols],
+            "status": status,
+            "threshold": threshold,
+            "noise_var": np.broadcast_to(var, image.shape)[rows, cols],
+            "noise_source": source,
+        }
+    )
+    table.attrs["detection"] = {
+        "psf_sd": float(psf_sd),
+        "pixel_size": float(pixel_size),
+        "false_positives": fp,
+        "pixels": int(image.size),
+        "pixels_above": int(np.count_nonzero(score > threshold)),
+        "threshold": threshold,
+        "noise_source": source,
+        "noise_var": float(np.median(var)),
+        "background_source": back_source,
+        "roi": roi,
+        "min_distance": float(min_distance),
+        "counts": {s: int(np.count_nonzero(status == s)) for s in STATUSES},
+    }
+    return table
+
+
+def detect_movie(
+    movie,
+    *,
+    psf_sd: float,
+    pixel_size: float | None = None,
+    camera=None,
+    projection: str = "mean",
+    frames=None,
+    **options,
+) -> pd.DataFrame:
+    """Candidate molecules of an immobile-molecule movie, detected on a temporal projection.
+
+    Parameters
+    ----------
+    movie : Movie or path
+        From ``read_movie`` (or a path it opens).
+    psf_sd, pixel_size
+        As ``detect``; ``pixel_size`` defaults to the Model's, else the movie's metadata.
+    camera : Camera or Model, optional
+        Converts counts (ADU) to photons (``Model.to_photons``) and, for a mean projection,
+        gives the noise variance from the camera law at the background level divided by the
+        number of frames (``camera_noise_variance``). Without it the movie is taken to be in
+        photons and the noise is estimated from the projection.
+    projection : {"mean", "median"}
+        The projection (``bayespsf.movie.project``, memory bounded), over ``frames`` (None:
+        all; a slice or range of consecutive frames).
+    **options
+        ``noise_var``, ``background``, ``false_positives``, ``roi``, ``min_distance``: as
+        ``detect``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        As ``detect``; ``attrs["detection"]`` also names the projection and its frames.
+    """
+    movie = open_movie(movie)
+    if projection not in ("mean", "median"):
+        raise BayespsfInputError(f"projection must be 'mean' or 'median', got {projection!r}")
+    span = frame_span(movie, frames)
+    image = project(movie, projection, frames=span)
+    table = _detect_photons(
+        image,
+        len(span) if projection == "mean" else None,
+        movie,
+        psf_sd,
+        pixel_size,
+        camera,
+        options,
+    )
+    table.attrs["detection"].update(projection=projection, frames=[span.start, span.stop])
+    return table
+
+
+def iter_detect_frames(
+    movie,
+    *,
+    psf_sd: float,
+    pixel_size: float | None = None,
+    camera=None,
+    frames=None,
+    block: int = 16,
+    **options,
+) -> Iterator[pd.DataFrame]:
+    """``detect`` on each frame in turn: one table per frame, with a ``frame`` column first;
+    ``block`` frames are read at a time. Arguments as ``detect_frames``."""
+    movie = open_movie(movie)
+    span = frame_span(movie, frames)
+    for first, data in movie.blocks(block, span.start, span.stop):
+        for i, frame in enumerate(data):
+            table = _detect_photons(frame, 1, movie, psf_sd, pixel_size, camera, options)
+            table.insert(0, "frame", first + i)
+            yield table
+
+
+def detect_frames(movie, **options) -> pd.DataFrame:
+    """Candidates frame by frame (blinking data): ``detect`` on every frame.
+
+    Keywords as ``detect_movie`` (without ``projection``) plus ``block`` (frames read at a
+    time, default 16). Returns one table with a ``frame`` column before ``COLUMNS``;
+    ``molecule`` numbers the rows of the whole table. Memory: one block of frames and the
+    table; ``iter_detect_frames`` yields the per-frame tables instead. With a camera, each
+    frame's noise is the camera law's at its background (one frame).
+    """
+    tables = list(iter_detect_frames(movie, **options))
+    settings = [t.attrs["detection"] for t in tables]
+    table = pd.concat([t for t in tables if len(t)] or tables[:1], ignore_index=True)
+    table["molecule"] = np.arange(len(table))
+    table.attrs["detection"] = settings[0] | {
+        "noise_var": float(np.median([s["noise_var"] for s in settings])),  # over frames
+        "frames": len(tables),
+        "counts": {s: int(np.count_nonzero(table["status"] == s)) for s in STATUSES},
+    }
+    return table
+
+
+def _detect_photons(image, frames, movie, psf_sd, pixel_size, camera, options):
+    """``detect`` on a frame or projection in ADU: converted with ``camera`` (if any), the
+    noise from the camera law over ``frames`` frames (if a camera, a mean and no noise_var)."""
+    if pixel_size is None:
+        pixel_size = getattr(camera, "pixel_size", None) or movie.pixel_size
+        if pixel_size is None:
+            raise BayespsfInputError(
+                "pixel_size: the movie's metadata has none; give pixel_size (nm)"
+            )
+    options = {"noise_var": None, "background": None} | options
+    if camera is not None:
+        model = photon_model(camera)
+        image = model.to_photons(image)
+        if frames is not None and options["noise_var"] is None:
+            options["noise_var"] = lambda back: camera_noise_variance(model, back, frames)
+    return _detect(
+        image,
+        psf_sd,
+        pixel_size,
+        options.pop("noise_var"),
+        options.pop("background"),
+        **options,
+    )
+
+
+def _map(name: str, value, shape) -> np.ndarray:
+    """A scalar or ``shape`` array of finite values."""
+    arr = finite_array(name, value)
+    if arr.ndim and arr.shape != shape:
+        raise BayespsfInputError(f"{name} must be a number or an array {shape}, got {arr.shape}")
+    return arr
