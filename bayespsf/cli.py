@@ -55,7 +55,9 @@ def _simulate(args) -> int:
 
     out = _output_folder(args.out, stem=True)
     scene = _scene_from(args.scene)
-    counts, truth = simulate(scene, args.n, seed=args.seed)
+    if args.movie:
+        return _simulate_movie(args, scene, out)
+    counts, truth = simulate(scene, 1000 if args.n is None else args.n, seed=args.seed)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.save(out.with_suffix(".npy"), counts)
     truth.to_csv(out.with_suffix(".truth.csv"), index_label="image")
@@ -63,6 +65,26 @@ def _simulate(args) -> int:
     print(
         f"wrote {counts.shape[0]} images to {out.with_suffix('.npy')} and the truth table to "
         f"{out.with_suffix('.truth.csv')}"
+    )
+    return 0
+
+
+def _simulate_movie(args, scene, out) -> int:
+    from bayespsf.movie.simulate import simulate_movie
+
+    if "movie" not in scene.to_dict():
+        raise CommandError(
+            f"--movie: the scene {args.scene} declares no [movie] table (the shipped "
+            "paper-movie does; docs/scenes.md, 'Simulated movies')"
+        )
+    if args.n is not None:
+        raise CommandError("-n does not apply with --movie (the scene's movie.frames sets it)")
+    result = simulate_movie(scene, args.seed, out=out)
+    m = scene.movie
+    print(
+        f"{scene!r}\nwrote {m['frames']} frames of {m['height']} x {m['width']} pixels with "
+        f"{len(result.molecules)} molecules: "
+        + ", ".join(str(path) for path in result.files.values())
     )
     return 0
 
@@ -198,10 +220,16 @@ def build_parser() -> argparse.ArgumentParser:
         "simulate",
         help="simulate images of a shipped scene or a scene file",
         description="Simulate N images of a scene (a shipped scene name or a TOML file): "
-        "writes OUT.npy (counts in ADU, shape (n, roi, roi)) and OUT.truth.csv.",
+        "writes OUT.npy (counts in ADU, shape (n, roi, roi)) and OUT.truth.csv. With --movie, "
+        "the movie the scene's [movie] table declares: OUT.ome.tif, OUT.molecules.csv, "
+        "OUT.truth.csv (one row per molecule and frame) and OUT.dark.ome.tif if it declares "
+        "dark frames.",
     )
     sim.add_argument("scene", help="shipped scene name (e.g. paper-fig3) or path to a .toml")
-    sim.add_argument("-n", type=int, default=1000, help="number of images (default 1000)")
+    sim.add_argument("-n", type=int, default=None, help="number of images (default 1000)")
+    sim.add_argument(
+        "--movie", action="store_true", help="simulate the scene's movie (its [movie] table)"
+    )
     sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sim.add_argument("--out", default="simulated", help="output path stem (default: simulated)")
     sim.set_defaults(run=_simulate)

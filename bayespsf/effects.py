@@ -27,7 +27,12 @@ STAGES = ("truth", "expected", "photoelectrons", "electrons", "adu")
 
 @dataclass
 class Batch:
-    """Images being simulated: per-image truth columns and the pixel values at ``stage``."""
+    """Images being simulated: per-image truth columns and the pixel values at ``stage``.
+
+    ``roi`` is the side of square ROIs, read by the effects that draw the signal; the effects
+    after it (background, camera) read only ``image.shape``, so whole movie frames
+    ``(k, height, width)`` pass through them too (``bayespsf.movie.simulate``).
+    """
 
     n: int
     roi: int

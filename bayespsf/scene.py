@@ -285,7 +285,160 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         ),
         Key("likelihood", str, "", "", "likelihood tier for inference ('' = the camera's default)"),
     ),
+    # Optional (OPTIONAL_SECTIONS): the table's presence declares a movie, read only by
+    # bayespsf.movie.simulate; every effect in it applies only when its key is declared.
+    "movie": (
+        Key("frames", int, 100, "frames", "number of frames of the movie", 1, 10_000_000),
+        Key("height", int, 256, "pixels", "frame height (rows)", 1, 100_000),
+        Key("width", int, 256, "pixels", "frame width (columns)", 1, 100_000),
+        Key(
+            "exposure",
+            float,
+            0.0,
+            "s",
+            "time per frame, written as the OME TimeIncrement (the paper's illumination "
+            "intervals: 1 to 500 ms); 0 declares none",
+            0.0,
+            1e5,
+        ),
+        Key(
+            "molecules",
+            int,
+            10,
+            "",
+            "number of molecules, placed uniformly at random (one after another, each where it "
+            "keeps min_spacing and edge)",
+            0,
+            10_000_000,
+        ),
+        Key(
+            "min_spacing",
+            int,
+            25,
+            "pixels",
+            "least distance in rows or in columns (Chebyshev) between two molecules' nearest "
+            "pixels at frame 0, so that ROIs of this side never overlap (the paper's 25 x 25 "
+            "ROIs)",
+            0,
+            100_000,
+        ),
+        Key(
+            "edge",
+            int,
+            12,
+            "pixels",
+            "least number of pixels between a molecule's nearest pixel and the frame's border "
+            "at frame 0 (12: a 25 x 25 ROI fits)",
+            0,
+            100_000,
+        ),
+        Key(
+            "photons_low",
+            float,
+            0.0,
+            "photons",
+            "each molecule's mean photons per frame and fluorophore is log-uniform between "
+            "photons_low and photons_high; 0 stands for emitter.photons",
+            0.0,
+            1e9,
+        ),
+        Key(
+            "photons_high",
+            float,
+            0.0,
+            "photons",
+            "the other end of the log-uniform range (0 stands for emitter.photons)",
+            0.0,
+            1e9,
+        ),
+        Key(
+            "bleach_mean",
+            float,
+            0.0,
+            "frames",
+            "mean of the exponential time at which each fluorophore bleaches in one step; 0 "
+            "declares no bleaching",
+            0.0,
+            1e9,
+        ),
+        Key(
+            "two_fluorophores",
+            float,
+            0.0,
+            "fraction",
+            "fraction of molecules carrying two fluorophores that blink and bleach "
+            "independently (two bleaching steps, which the paper excluded); 0 declares none",
+            0.0,
+            1.0,
+        ),
+        Key(
+            "drift_x",
+            float,
+            0.0,
+            "nm/frame",
+            "stage drift of the whole field along x (columns); 0 declares none",
+            -1e5,
+            1e5,
+        ),
+        Key(
+            "drift_y",
+            float,
+            0.0,
+            "nm/frame",
+            "stage drift of the whole field along y (rows); 0 declares none",
+            -1e5,
+            1e5,
+        ),
+        Key(
+            "moving",
+            float,
+            0.0,
+            "fraction",
+            "fraction of molecules that also move by a random walk; 0 declares none",
+            0.0,
+            1.0,
+        ),
+        Key(
+            "moving_step",
+            float,
+            10.0,
+            "nm",
+            "SD per frame and axis of the moving molecules' random-walk steps",
+            0.0,
+            1e5,
+        ),
+        Key(
+            "blink_on",
+            float,
+            0.0,
+            "frames",
+            "mean on time of a two-state Markov blinking (declare it with blink_off); 0 "
+            "declares no blinking",
+            0.0,
+            1e9,
+        ),
+        Key(
+            "blink_off",
+            float,
+            0.0,
+            "frames",
+            "mean off time of the blinking (declare it with blink_on); 0 declares no blinking",
+            0.0,
+            1e9,
+        ),
+        Key(
+            "dark_frames",
+            int,
+            0,
+            "frames",
+            "frames recorded without light before the movie (camera calibration), written to a "
+            "separate file; 0 declares none",
+            0,
+            1_000_000,
+        ),
+    ),
 }
+OPTIONAL_SECTIONS = ("movie",)  # present in a scene only where declared
 
 _PRIOR_KEY = Key(
     "<parameter>",
@@ -473,9 +626,10 @@ class Scene:
             raise SceneError(f"a scene must be a table (dict), got {type(d).__name__}")
         unknown = sorted(set(d) - set(SCHEMA) - {"prior", *TOP_LEVEL})
         if unknown:
+            required = [s for s in SCHEMA if s not in OPTIONAL_SECTIONS]
             raise SceneError(
                 f"unknown scene table or key {unknown[0]!r}; a scene has "
-                + ", ".join([*TOP_LEVEL, *SCHEMA, "prior"])
+                + ", ".join([*TOP_LEVEL, *required, "prior", *OPTIONAL_SECTIONS])
             )
         out: dict[str, Any] = {}
         for key in TOP_LEVEL:
@@ -484,6 +638,8 @@ class Scene:
                     raise SceneError(f"{key} must be a string, got {d[key]!r}")
                 out[key] = d[key]
         for section in SCHEMA:
+            if section in OPTIONAL_SECTIONS and section not in d:
+                continue
             out[section] = _normalise_section(section, d.get(section, {}))
         if out["optics"]["psf"] == "airy":  # the Airy pattern's width follows from wavelength, na
             for key in ("s0x", "s0y"):
@@ -569,7 +725,8 @@ class Scene:
                 raise SceneError(
                     f"no scene table {section!r}; tables: {', '.join([*SCHEMA, 'prior'])}"
                 )
-            d[section] = _drop_inapplicable(section, {**d[section], **changes}, set(changes))
+            given = {**d.get(section, {}), **changes}
+            d[section] = _drop_inapplicable(section, given, set(changes))
         if d["optics"]["psf"] == "airy" and "emitter" not in sections:
             d["emitter"] = {k: v for k, v in d["emitter"].items() if k not in ("s0x", "s0y")}
         d["prior"] = {
@@ -598,7 +755,9 @@ class Scene:
         return (
             f"Scene({name!r}: {g['roi']}x{g['roi']} px of {g['pixel_size']:g} nm, "
             f"N={e['photons']:g}, {width}, "
-            f"background={self.background['kind']}, camera={c['kind']})"
+            f"background={self.background['kind']}, camera={c['kind']}"
+            + (f", movie of {m['frames']} frames" if (m := self._data.get("movie")) else "")
+            + ")"
         )
 
 
@@ -649,16 +808,22 @@ def _check_consistency(d: Mapping) -> None:
         raise SceneError(f"camera.gain must be >= 1 for an EMCCD, got {cam['gain']:g}")
 
 
+_OPTIONAL_DOC = {
+    "movie": "Optional: the table's presence declares a movie, simulated by "
+    "`bayespsf.movie.simulate.simulate_movie` (`bayespsf simulate SCENE --movie`); "
+    "`bayespsf.simulate` ignores it. Each key below declares one effect; an absent key (or 0) "
+    "declares none. See [Simulated movies](#simulated-movies).",
+}
+
+
 def schema_markdown() -> str:
     """docs/scenes.md's key tables, generated from ``SCHEMA``."""
     lines = []
     for section, keys in SCHEMA.items():
-        lines += [
-            f"## [{section}]",
-            "",
-            "| key | default | unit | allowed | meaning |",
-            "|---|---|---|---|---|",
-        ]
+        lines += [f"## [{section}]", ""]
+        if section in OPTIONAL_SECTIONS:
+            lines += [_OPTIONAL_DOC[section], ""]
+        lines += ["| key | default | unit | allowed | meaning |", "|---|---|---|---|---|"]
         for k in keys:
             cond = f" Applies {_describe_when(section, k)}." if k.when else ""
             default = repr(k.default) if not isinstance(k.default, bool) else str(k.default).lower()

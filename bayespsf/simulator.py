@@ -19,6 +19,8 @@ working memory is one block.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 import pandas as pd
 
@@ -56,7 +58,7 @@ def photon_path(scene: Scene) -> str:
 
 def build_pipeline(scene: Scene) -> list[fx.Effect]:
     """The ordered effects that exactly the scene's declarations call for."""
-    e, g, cam = scene.emitter, scene.geometry, scene.camera
+    e, g = scene.emitter, scene.geometry
     a = g["pixel_size"]
     background = background_effect(scene)
     b_mean = background.moments[0] if background is not None else 0.0
@@ -79,24 +81,41 @@ def build_pipeline(scene: Scene) -> list[fx.Effect]:
         steps.append(fx.WholePhotonNumber())
     if path == "expected":
         steps.append(fx.ExpectedSignal(a))
-        if isinstance(background, fx.PoissonBackground):
-            steps.append(fx.PoissonBackgroundMean(background.mean))
-            background = None
-        steps.append(fx.PoissonPhotons())
-    elif path == "multinomial":
+        return steps + detection_effects(scene, "expected")
+    if path == "multinomial":
         steps.append(fx.MultinomialPhotons(a))
     elif airy:
         o = scene.optics
         steps.append(fx.AiryPhotons(a, o["wavelength"], o["na"], e["width_jitter"], fixed))
     else:
         steps.append(fx.PhotonBinning(a, e["width_jitter"], fixed))
+    return steps + detection_effects(scene, "photoelectrons")
+
+
+def detection_effects(scene: Scene, stage: str) -> list[fx.Effect]:
+    """The effects that turn a signal image into camera counts: the photon draws (from an
+    ``"expected"`` image; none for whole ``"photoelectrons"``), the scene's background law (a
+    Poisson background folded into the expected image) and its camera law.
+
+    They read only the image's shape, so whole frames ``(k, height, width)`` pass through them
+    as ROIs do (``bayespsf.movie.simulate``).
+    """
+    if stage not in ("expected", "photoelectrons"):
+        raise BayespsfInputError(f"stage must be 'expected' or 'photoelectrons', got {stage!r}")
+    background = background_effect(scene)
+    steps: list[fx.Effect] = []
+    if stage == "expected":
+        if isinstance(background, fx.PoissonBackground):
+            steps.append(fx.PoissonBackgroundMean(background.mean))
+            background = None
+        steps.append(fx.PoissonPhotons())
     if background is not None:
         steps.append(background)
-    steps += _camera_effects(cam)
-    return steps
+    return steps + camera_effects(scene.camera)
 
 
-def _camera_effects(cam) -> list[fx.Effect]:
+def camera_effects(cam: Mapping) -> list[fx.Effect]:
+    """The camera law's effects, from photoelectrons to ADU (``cam``: a scene's camera table)."""
     kind = cam["kind"]
     if kind == "photon":
         return [fx.PhotonCounting()]
@@ -156,6 +175,11 @@ def simulate(scene: Scene, n: int, seed: int):
     truth : pandas.DataFrame
         One row per image: ``x0 y0 s_x s_y N b`` (nm, photons, photons/pixel), plus
         ``photons_emitted`` on the photon-by-photon paths.
+
+    Notes
+    -----
+    A scene's ``[movie]`` table does not apply here: the ROIs are those its other tables
+    declare (``bayespsf.movie.simulate.simulate_movie`` simulates the movie).
 
     See Also
     --------

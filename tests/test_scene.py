@@ -24,6 +24,7 @@ from hypothesis import strategies as st
 from bayespsf import scenes
 from bayespsf.errors import BayespsfInputError
 from bayespsf.scene import (
+    OPTIONAL_SECTIONS,
     PRIOR_PARAMETERS,
     SCHEMA,
     Key,
@@ -36,7 +37,7 @@ from bayespsf.scene import (
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs" / "scenes.md"
 SCENE_DIR = ROOT / "bayespsf" / "scenes"
-SHIPPED = ("emccd-typical", "ideal", "paper-fig2", "paper-fig3", "scmos-typical")
+SHIPPED = ("emccd-typical", "ideal", "paper-fig2", "paper-fig3", "paper-movie", "scmos-typical")
 KEYS: dict[str, dict[str, Key]] = {sec: {k.name: k for k in keys} for sec, keys in SCHEMA.items()}
 
 
@@ -288,7 +289,8 @@ def test_empty_scene_is_all_defaults():
             },
         }
     )
-    assert Scene.from_dict({}) == Scene.loads("") == Scene.from_dict({s: {} for s in SCHEMA})
+    required = {s: {} for s in SCHEMA if s not in OPTIONAL_SECTIONS}  # [movie] declares a movie
+    assert Scene.from_dict({}) == Scene.loads("") == Scene.from_dict(required)
 
 
 @pytest.mark.parametrize(

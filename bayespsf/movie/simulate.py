@@ -1,0 +1,415 @@
+"""Simulated movies of a field of immobile molecules: exactly the effects the scene's
+``[movie]`` table declares (issue 13, item 8).
+
+Shaped like the experiment of DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), section
+"Data acquisition and selection": molecules in a TIRF field imaged frame after frame on an
+EMCCD, each bleaching (streptavidin-Cy3 monomers in one step; molecules with two fluorophores
+in two), optionally with stage drift (their selection rule 1), moving molecules, blinking and
+dark frames for the camera's calibration.
+
+Each frame is built as ROIs are (``bayespsf.simulate``): the expected photons of every pixel
+are the pixel-integrated elliptical Gaussian of every emitting molecule (``bayespsf.psf``,
+the model inference uses), computed in a window of +-6 SD around the molecule (the mass
+outside, < 2e-9, is neglected) and added into the frame; the scene's photon statistics,
+background law and camera law then act on the whole frame through the simulator's own effects
+(``bayespsf.simulator.detection_effects``). Dark frames are the camera law alone.
+
+Time: frame ``f`` spans ``[f, f + 1)`` frame times. A fluorophore bleaches at an exponential
+time ``T`` (``movie.bleach_mean``) and blinks as a continuous-time two-state Markov chain
+(``movie.blink_on``, ``movie.blink_off``, started in its stationary state); its photons in a
+frame are its mean photons times the fraction of the frame it was on and not yet bleached, so
+the frame in which it bleaches holds a part of its photons and ``bleach_frame = ceil(T)`` is
+the first frame without it. Positions are constant within a frame: drift and random walks
+step between frames; frame 0 is at the placed positions.
+
+Positions are camera pixels in picasso's convention (as its Localize writes them: the fitted
+offset plus the box's integer centre, ``picasso.localize.locs_from_fits_gauss``, with the
+Gaussian evaluated at integer grid points, ``picasso/gausslq.py``): the centre of column ``j``
+is ``x = j`` and of row ``i`` is ``y = i``; ``x_nm = x * pixel_size``.
+
+Reproducibility: every effect draws from its own stream,
+``SeedSequence(seed, spawn_key=(stream, frame))``, so the same seed gives the same movie on
+any machine, and declaring one effect does not change the draws of another.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bayespsf import effects as fx
+from bayespsf import psf
+from bayespsf.errors import BayespsfInputError
+from bayespsf.scene import Scene, SceneError
+from bayespsf.simulator import camera_effects, detection_effects
+
+MOLECULE_COLUMNS = (
+    "molecule", "x", "y", "x_nm", "y_nm", "s_x", "s_y", "photons", "fluorophores",
+    "bleach_frame", "moving",
+)  # fmt: skip
+TRUTH_COLUMNS = ("molecule", "frame", "x", "y", "photons", "on", "fluorophores_on")
+WINDOW_SDS = 6.0  # the PSF window's half-side in SDs
+_PLACE, _PHOTONS, _FLUOROPHORES, _BLEACH, _MOVING, _BLINK = range(6)  # per-movie streams
+_NOISE, _JITTER, _WALK, _BLINKING, _DARK = range(10, 15)  # per-frame streams
+
+
+def _rng(seed: int, *key: int) -> np.random.Generator:
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key)))
+
+
+def movie_settings(scene: Scene) -> dict:
+    """The scene's ``[movie]`` table, checked against the rest of the scene.
+
+    Raises ``SceneError`` naming the keys when the scene declares no movie, declares effects a
+    movie cannot honour (photon-by-photon widths, the Airy PSF) or a blinking half declared.
+    """
+    if not isinstance(scene, Scene):
+        raise BayespsfInputError(f"scene must be a bayespsf.Scene, got {type(scene).__name__}")
+    if "movie" not in scene.to_dict():
+        raise SceneError("the scene declares no [movie] table (e.g. the shipped paper-movie)")
+    if scene.optics["psf"] != "gaussian":
+        raise SceneError("optics.psf must be 'gaussian' in a movie scene (movies draw its image)")
+    if scene.emitter["width_jitter"] > 0:
+        raise SceneError(
+            "emitter.width_jitter is not used by movies (photons are not binned one by one); "
+            "remove it"
+        )
+    m = dict(scene.movie)
+    if (m["blink_on"] > 0) != (m["blink_off"] > 0):
+        raise SceneError(
+            "movie.blink_on and movie.blink_off declare blinking together: give both > 0 or "
+            f"neither (got {m['blink_on']:g} and {m['blink_off']:g})"
+        )
+    return m
+
+
+@dataclass
+class MovieTruth:
+    """What ``simulate_movie`` made.
+
+    ``molecules``: one row per molecule (``MOLECULE_COLUMNS``). With ``out``, the frames and
+    the truth table are on disk (``files``) and ``frames``, ``dark``, ``truth`` are None;
+    without it they are here: ``frames`` ``(frames, height, width)`` and ``dark``
+    ``(dark_frames, height, width)`` in ADU (dtype ``frame_dtype(scene)``), ``truth`` one row
+    per molecule and frame (``TRUTH_COLUMNS``).
+    """
+
+    molecules: pd.DataFrame
+    truth: pd.DataFrame | None = None
+    frames: np.ndarray | None = None
+    dark: np.ndarray | None = None
+    files: dict[str, Path] = field(default_factory=dict)
+
+
+def place_molecules(scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, y)`` in camera pixels: ``movie.molecules`` positions uniform over the frame, one
+    after another, each where its nearest pixel keeps ``movie.edge`` pixels from the border
+    and ``movie.min_spacing`` (Chebyshev) from every nearest pixel placed before.
+
+    A position is drawn uniformly up to 100 times, then uniformly over the pixels still free;
+    when none is free the placement is impossible: ``SceneError`` naming the keys.
+    """
+    m = movie_settings(scene)
+    h, w, edge, gap, n = m["height"], m["width"], m["edge"], m["min_spacing"], m["molecules"]
+    free = np.zeros((h, w), bool)
+    free[edge : h - edge, edge : w - edge] = True
+    xy = np.empty((n, 2))
+    for k in range(n):
+        for _ in range(100):
+            x, y = rng.uniform([-0.5, -0.5], [w - 0.5, h - 0.5])
+            if free[_nearest(y), _nearest(x)]:
+                break
+        else:
+            cells = np.flatnonzero(free)
+            if cells.size == 0:
+                raise SceneError(
+                    f"cannot place movie.molecules = {n} molecules in {h} x {w} pixels "
+                    f"(movie.height x movie.width) at least movie.min_spacing = {gap} pixels apart "
+                    f"and movie.edge = {edge} pixels from the border: no room for molecule {k + 1}"
+                    "; lower molecules, min_spacing or edge, or enlarge the frame"
+                )
+            row, col = np.divmod(cells[rng.integers(cells.size)], w)
+            x, y = col + rng.uniform(-0.5, 0.5), row + rng.uniform(-0.5, 0.5)
+        xy[k] = x, y
+        r, c = _nearest(y), _nearest(x)
+        free[max(r - gap + 1, 0) : r + gap, max(c - gap + 1, 0) : c + gap] = False
+    return xy[:, 0], xy[:, 1]
+
+
+def _nearest(v):
+    """The nearest pixel of a position (halves rounded up, as ``bayespsf.movie.extract``)."""
+    return np.floor(np.asarray(v) + 0.5).astype(np.int64)
+
+
+@dataclass
+class _Molecules:
+    """Per-molecule constants and the state that evolves from frame to frame."""
+
+    x: np.ndarray  # positions at frame 0, pixels
+    y: np.ndarray
+    photons: np.ndarray  # mean photons per frame of each fluorophore
+    present: np.ndarray  # (n, 2) bool: the molecule carries this fluorophore
+    bleach: np.ndarray  # (n, 2) bleaching time in frames (inf: none)
+    moving: np.ndarray
+    on: np.ndarray  # (n, 2) blinking state
+    next_switch: np.ndarray  # (n, 2) time of the next blinking switch (inf: none)
+    walk: np.ndarray  # (2, n) random-walk displacement so far, nm
+
+    @property
+    def bleach_frame(self) -> np.ndarray:
+        last = np.where(self.present, self.bleach, -np.inf).max(axis=1)
+        return np.ceil(last)
+
+
+def _draw_molecules(scene: Scene, seed: int) -> _Molecules:
+    m, e = movie_settings(scene), scene.emitter
+    n = m["molecules"]
+    x, y = place_molecules(scene, _rng(seed, _PLACE))
+    low, high = (m[k] or e["photons"] for k in ("photons_low", "photons_high"))
+    photons = np.full(n, float(low))
+    if low != high:  # log-uniform between the two
+        photons = np.exp(_rng(seed, _PHOTONS).uniform(math.log(low), math.log(high), n))
+    present = np.ones((n, 2), bool)
+    present[:, 1] = False
+    if m["two_fluorophores"] > 0:
+        present[:, 1] = _rng(seed, _FLUOROPHORES).random(n) < m["two_fluorophores"]
+    bleach = np.full((n, 2), np.inf)
+    if m["bleach_mean"] > 0:
+        bleach = _rng(seed, _BLEACH).exponential(m["bleach_mean"], (n, 2))
+    moving = np.zeros(n, bool)
+    if m["moving"] > 0:
+        moving = _rng(seed, _MOVING).random(n) < m["moving"]
+    on, next_switch = np.ones((n, 2), bool), np.full((n, 2), np.inf)
+    if m["blink_on"] > 0:  # the stationary state, then exponential (memoryless) durations
+        rng = _rng(seed, _BLINK)
+        on = rng.random((n, 2)) < m["blink_on"] / (m["blink_on"] + m["blink_off"])
+        next_switch = rng.exponential(np.where(on, m["blink_on"], m["blink_off"]))
+    return _Molecules(x, y, photons, present, bleach, moving, on, next_switch, np.zeros((2, n)))
+
+
+def _emitting_fraction(mol: _Molecules, frame: int, m: dict, rng) -> np.ndarray:
+    """(n, 2): the fraction of frame ``frame`` each fluorophore emits (on, not yet bleached),
+    advancing the blinking chains to the frame's end."""
+    start, end = float(frame), frame + 1.0
+    stop = np.minimum(mol.bleach, end)
+    now = np.full(mol.on.shape, start)
+    emitting = np.zeros(mol.on.shape)
+    while True:
+        upto = np.minimum(mol.next_switch, end)
+        emitting += np.where(
+            mol.on, np.clip(np.minimum(upto, stop) - np.minimum(now, stop), 0, 1), 0
+        )
+        switch = mol.next_switch < end
+        if not switch.any():
+            return np.where(mol.present, emitting, 0.0)
+        now = np.where(switch, mol.next_switch, end)
+        mol.on = np.where(switch, ~mol.on, mol.on)
+        means = np.where(mol.on, m["blink_on"], m["blink_off"])
+        mol.next_switch = np.where(
+            switch, mol.next_switch + rng.exponential(means), mol.next_switch
+        )
+
+
+def frame_dtype(scene: Scene) -> np.dtype:
+    """uint16 when the camera guarantees whole counts within 16 bits (``camera.quantize`` and
+    ``0 < camera.saturation <= 65535``), else float32."""
+    cam = scene.camera
+    if cam.get("quantize") and 0 < cam.get("saturation", 0) <= 65535:
+        return np.dtype(np.uint16)
+    return np.dtype(np.float32)
+
+
+def _as_frame(counts: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
+    if dtype == np.uint16 and counts.min() < 0:
+        raise BayespsfInputError(
+            f"{what} has counts below 0 ADU, which a 16-bit file cannot hold: raise camera.offset"
+        )
+    return counts.astype(dtype)
+
+
+def _expected_frame(x, y, n_photons, scene: Scene, rng) -> tuple[np.ndarray, str]:
+    """The signal of one frame: expected photons (Poisson statistics) or whole photoelectrons
+    (fixed statistics, a multinomial over each molecule's window), and its stage."""
+    m, e, a = scene.movie, scene.emitter, scene.geometry["pixel_size"]
+    h, w = m["height"], m["width"]
+    fixed = e["photon_statistics"] == "fixed"
+    lit = n_photons > 0
+    half = math.ceil(WINDOW_SDS * max(e["s0x"], e["s0y"]) / a + 0.5)
+    r, c = _nearest(y[lit]), _nearest(x[lit])
+    k = r.size
+    params = np.column_stack(
+        [(x[lit] - c) * a, (y[lit] - r) * a, np.full(k, e["s0x"]), np.full(k, e["s0y"]),
+         np.ones(k), np.zeros(k)]
+    )  # fmt: skip
+    window = psf.expected_counts(params, 2 * half + 1, a)
+    offsets = np.arange(-half, half + 1)
+    rows, cols = r[:, None] + offsets, c[:, None] + offsets
+    inside = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]
+    flat = rows[:, :, None] * w + cols[:, None, :]
+    if fixed:
+        p = np.where(inside, window, 0.0).reshape(k, -1)
+        outside = np.clip(1.0 - p.sum(axis=1, keepdims=True), 0.0, 1.0)
+        drawn = rng.multinomial(n_photons[lit].astype(np.int64), np.hstack([p, outside]))
+        window = drawn[:, :-1].reshape(window.shape).astype(float)
+    else:
+        window = window * n_photons[lit][:, None, None]
+    image = np.bincount(flat[inside], weights=window[inside], minlength=h * w).reshape(h, w)
+    return (np.rint(image) if fixed else image), ("photoelectrons" if fixed else "expected")
+
+
+def iter_movie(scene: Scene, seed: int) -> Iterator[tuple[np.ndarray, pd.DataFrame]]:
+    """Yield ``(counts, truth)`` frame by frame: counts ``(height, width)`` in ADU (float64)
+    and the frame's truth rows (``TRUTH_COLUMNS``). Memory: one frame and the molecules."""
+    m, e, a = movie_settings(scene), scene.emitter, scene.geometry["pixel_size"]
+    _check_seed(seed)
+    mol = _draw_molecules(scene, seed)
+    n = mol.x.size
+    ids = np.arange(n)
+    for f in range(m["frames"]):
+        fraction = _emitting_fraction(mol, f, m, _rng(seed, _BLINKING, f))
+        n_photons = mol.photons * fraction.sum(axis=1)
+        if e["photon_jitter"] > 0:
+            j = e["photon_jitter"]
+            n_photons = n_photons * _rng(seed, _JITTER, f).uniform(1 - j, 1 + j, n)
+        if e["photon_statistics"] == "fixed":
+            n_photons = np.rint(n_photons)
+        if f > 0 and mol.moving.any():
+            steps = _rng(seed, _WALK, f).normal(0.0, m["moving_step"], (2, int(mol.moving.sum())))
+            mol.walk[:, mol.moving] += steps
+        x = mol.x + (m["drift_x"] * f + mol.walk[0]) / a
+        y = mol.y + (m["drift_y"] * f + mol.walk[1]) / a
+        rng = _rng(seed, _NOISE, f)
+        image, stage = _expected_frame(x, y, n_photons, scene, rng)
+        batch = fx.Batch(n=1, roi=0, image=image[None], stage=stage)
+        for step in detection_effects(scene, stage):
+            step(batch, rng)
+        on = (fraction > 0).sum(axis=1)
+        truth = {"molecule": ids, "frame": np.full(n, f), "x": x, "y": y,
+                 "photons": n_photons, "on": on > 0, "fluorophores_on": on}  # fmt: skip
+        yield batch.image[0], pd.DataFrame(truth, columns=list(TRUTH_COLUMNS))
+
+
+def iter_dark_frames(scene: Scene, seed: int) -> Iterator[np.ndarray]:
+    """Yield the ``movie.dark_frames`` dark frames ``(height, width)`` in ADU: no light, so
+    no signal and no background photons, only the camera law (clock-induced charge, the
+    register, readout, offset, ADC)."""
+    m = movie_settings(scene)
+    _check_seed(seed)
+    steps = camera_effects(scene.camera)
+    for k in range(m["dark_frames"]):
+        rng = _rng(seed, _DARK, k)
+        zeros = np.zeros((1, m["height"], m["width"]), np.int64)
+        batch = fx.Batch(n=1, roi=0, image=zeros, stage="photoelectrons")
+        for step in steps:
+            step(batch, rng)
+        yield batch.image[0]
+
+
+def molecule_table(scene: Scene, seed: int) -> pd.DataFrame:
+    """One row per molecule (``MOLECULE_COLUMNS``): position at frame 0 (pixels, picasso's
+    convention, and nm from the centre of pixel (0, 0)), widths (nm), mean photons per frame
+    of each fluorophore, fluorophores, the first frame after the last bleaching step (empty
+    if it is not within the movie) and whether it moves (random walk)."""
+    m, e, a = movie_settings(scene), scene.emitter, scene.geometry["pixel_size"]
+    _check_seed(seed)
+    mol = _draw_molecules(scene, seed)
+    last = mol.bleach_frame
+    bleach = pd.Series(np.where(last < m["frames"], last, np.nan)).astype("Int64")
+    return pd.DataFrame(
+        {"molecule": np.arange(mol.x.size), "x": mol.x, "y": mol.y, "x_nm": mol.x * a,
+         "y_nm": mol.y * a, "s_x": e["s0x"], "s_y": e["s0y"], "photons": mol.photons,
+         "fluorophores": mol.present.sum(axis=1), "bleach_frame": bleach,
+         "moving": mol.moving},
+        columns=list(MOLECULE_COLUMNS),
+    )  # fmt: skip
+
+
+def simulate_movie(scene: Scene, seed: int, out: str | Path | None = None) -> MovieTruth:
+    """Simulate the movie a scene's ``[movie]`` table declares.
+
+    Parameters
+    ----------
+    scene : Scene
+        A scene with a ``[movie]`` table (e.g. ``bayespsf.scenes.load("paper-movie")``).
+    seed : int
+        Non-negative integer; the same seed gives the same movie.
+    out : str or Path, optional
+        A path stem. When given, the movie is written frame by frame (one frame in memory):
+        ``STEM.ome.tif`` (one page per frame, ``frame_dtype(scene)``, OME ``PhysicalSizeX/Y``
+        in µm and ``TimeIncrement`` = ``movie.exposure`` in s when declared),
+        ``STEM.molecules.csv``, ``STEM.truth.csv`` and, when ``movie.dark_frames`` > 0,
+        ``STEM.dark.ome.tif``.
+
+    Returns
+    -------
+    MovieTruth
+        The molecule table, and the frames, dark frames and truth table (in memory without
+        ``out``; on disk, named in ``files``, with it).
+    """
+    molecules = molecule_table(scene, seed)
+    dtype = frame_dtype(scene)
+    frames = (
+        (_as_frame(c, dtype, f"frame {f}"), t) for f, (c, t) in enumerate(iter_movie(scene, seed))
+    )
+    dark = (
+        _as_frame(c, dtype, f"dark frame {k}") for k, c in enumerate(iter_dark_frames(scene, seed))
+    )
+    if out is None:
+        pairs = list(frames)
+        m = scene.movie
+        empty = np.empty((0, m["height"], m["width"]), dtype)
+        return MovieTruth(
+            molecules,
+            pd.concat([t for _, t in pairs], ignore_index=True),
+            np.stack([c for c, _ in pairs]),
+            np.stack(list(dark)) if m["dark_frames"] else empty,
+        )
+    return MovieTruth(molecules, files=_write(scene, Path(out), molecules, frames, dark, dtype))
+
+
+def _write(scene, stem: Path, molecules, frames, dark, dtype) -> dict[str, Path]:
+    m = scene.movie
+    files = {
+        "movie": stem.with_name(stem.name + ".ome.tif"),
+        "molecules": stem.with_name(stem.name + ".molecules.csv"),
+        "truth": stem.with_name(stem.name + ".truth.csv"),
+    }
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    molecules.to_csv(files["molecules"], index=False)
+    with open(files["truth"], "w", newline="") as table:
+        pd.DataFrame(columns=list(TRUTH_COLUMNS)).to_csv(table, index=False)
+
+        def pages():
+            for counts, truth in frames:
+                truth.to_csv(table, index=False, header=False)
+                yield counts
+
+        _write_tiff(files["movie"], pages(), m["frames"], scene, dtype)
+    if m["dark_frames"]:
+        files["dark"] = stem.with_name(stem.name + ".dark.ome.tif")
+        _write_tiff(files["dark"], dark, m["dark_frames"], scene, dtype)
+    return files
+
+
+def _write_tiff(path: Path, pages, n: int, scene: Scene, dtype: np.dtype) -> None:
+    import tifffile
+
+    m, a_um = scene.movie, scene.geometry["pixel_size"] / 1000.0
+    metadata = {"axes": "TYX", "PhysicalSizeX": a_um, "PhysicalSizeXUnit": "µm",
+                "PhysicalSizeY": a_um, "PhysicalSizeYUnit": "µm"}  # fmt: skip
+    if m["exposure"] > 0:
+        metadata.update(TimeIncrement=m["exposure"], TimeIncrementUnit="s")
+    shape = (n, m["height"], m["width"])
+    bigtiff = math.prod(shape) * dtype.itemsize > 2**31
+    with tifffile.TiffWriter(path, bigtiff=bigtiff, ome=True) as tif:
+        tif.write(pages, shape=shape, dtype=dtype, photometric="minisblack", metadata=metadata)
+
+
+def _check_seed(seed) -> None:
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise BayespsfInputError(f"seed must be an integer >= 0, got {seed!r}")
