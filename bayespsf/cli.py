@@ -109,10 +109,11 @@ def _bench(args) -> int:
     return 0
 
 
-def _camera_scene(camera_file: str, roi: int):
+def _camera_scene(camera_file: str, roi: int, pixel_size: float | None = None):
     """The scene of a camera file (``[camera]`` with an explicit ``kind``, ``[geometry]
-    pixel_size``, optional ``[prior]``) for ROIs of side ``roi``. A missing camera table or kind
-    is an error: the counts' units depend on it, so it is never assumed."""
+    pixel_size``, optional ``[prior]``) for ROIs of side ``roi``; ``pixel_size`` (a movie's
+    metadata) stands in where the file gives none. A missing camera table or kind is an error:
+    the counts' units depend on it, so it is never assumed."""
     import tomllib
     from pathlib import Path
 
@@ -129,9 +130,12 @@ def _camera_scene(camera_file: str, roi: int):
             "and the gain, offset and readout noise of the counts); the counts' units depend "
             "on it, so it is never assumed"
         )
-    if "pixel_size" not in table.get("geometry", {}):
+    geometry = table.setdefault("geometry", {})
+    if "pixel_size" not in geometry and pixel_size is not None:
+        geometry["pixel_size"] = pixel_size
+    if "pixel_size" not in geometry:
         raise CommandError(f"{camera_file}: no [geometry] pixel_size (nm)")
-    table["geometry"]["roi"] = roi
+    geometry["roi"] = roi
     return Scene.from_dict(table)
 
 
@@ -194,6 +198,39 @@ def _fit(args) -> int:
         )
     print(f"wrote {out / 'summary.csv'} and {len(table)} result files")
     return 0
+
+
+def _detect(args) -> int:
+    from bayespsf.model import Model
+    from bayespsf.movie import read_movie
+    from bayespsf.movie.pipeline import find_molecules, write
+
+    out = _output_folder(args.out)
+    movie = read_movie(args.movie)
+    scene = _camera_scene(args.camera, args.fit, movie.pixel_size)
+    emitter = scene.to_dict().get("emitter", {})
+    s0 = args.psf_sd
+    if s0 is None and {"s0x", "s0y"} <= set(_declared(args.camera, "emitter")):
+        s0 = 0.5 * (emitter["s0x"] + emitter["s0y"])
+    if s0 is None:
+        raise CommandError(
+            f"give --psf-sd (the spot's SD in nm), or [emitter] s0x and s0y in {args.camera}"
+        )
+    found = find_molecules(movie, Model.from_scene(scene), s0=s0, roi=args.roi, fit=args.fit,
+                           false_positives=args.false_positives,
+                           projection=args.projection)  # fmt: skip
+    paths = write(found, out)
+    selected = int(found.molecules["selected"].sum())
+    print(f"{movie!r}: {len(found.molecules)} candidate molecules, {selected} selected")
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def _declared(camera_file: str, section: str) -> dict:
+    import tomllib
+    from pathlib import Path
+
+    return tomllib.loads(Path(camera_file).read_text(encoding="utf-8")).get(section, {})
 
 
 def _schema(_args) -> int:
@@ -314,6 +351,31 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--scheduler", default=None, help="a Dask scheduler address (a cluster)")
     fit.add_argument("--out", default="bayespsf-fit", help="output folder (default bayespsf-fit)")
     fit.set_defaults(run=_fit)
+    detect = commands.add_parser(
+        "detect",
+        help="molecules of a movie: detection, traces, bleaching steps, the paper's selection",
+        description="Find the immobile molecules of MOVIE (TIFF, OME-TIFF, ImageJ, .npy): "
+        "detection on the mean projection with a stated false-positive rate, each molecule's "
+        "trace, bleaching steps and drift, a fit of each frame before bleaching, and the "
+        "selection rules of DeSantis et al., Opt. Express 18 (2010). Writes candidates.csv, "
+        "molecules.csv, frames.csv and selection.md into --out.",
+    )
+    detect.add_argument("movie", help="the movie: .tif/.tiff/.ome.tif or .npy")
+    detect.add_argument(
+        "--camera", required=True,
+        help="TOML with [camera] (kind, gain, offset, readout) and [geometry] pixel_size "
+        "(nm; optional when the movie's metadata give it), optionally [emitter] s0x, s0y",
+    )  # fmt: skip
+    detect.add_argument("--psf-sd", type=float, default=None, help="the spot's SD in nm")
+    detect.add_argument("--roi", type=int, default=25, help="ROI cut (default 25, the paper's)")
+    detect.add_argument("--fit", type=int, default=15, help="fitted centre (default 15)")
+    detect.add_argument(
+        "--false-positives", type=float, default=0.01,
+        help="expected false detections per projected image (default 0.01)",
+    )  # fmt: skip
+    detect.add_argument("--projection", choices=("mean", "median"), default="mean")
+    detect.add_argument("--out", default="bayespsf-detect", help="output folder")
+    detect.set_defaults(run=_detect)
     return parser
 
 
