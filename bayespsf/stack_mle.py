@@ -105,16 +105,16 @@ def _in_internal(model, p, lam, jac, score):
 
 def _contract(jac, pixels):
     """``sum_xy jac[n, k, x, y] pixels[n, x, y]`` (n, 6), as one batched matrix product."""
-    n = len(jac)
-    return (jac.reshape(n, 6, -1) @ pixels.reshape(n, -1, 1))[..., 0]
+    n, pixel_count = len(jac), pixels[0].size if len(pixels) else 0
+    return (jac.reshape(n, 6, pixel_count) @ pixels.reshape(n, pixel_count, 1))[..., 0]
 
 
 def _information(jac, fisher):
     """``J' diag(F) J`` per ROI (n, 6, 6), as one batched matrix product (BLAS, not einsum's
     three-operand loop)."""
-    n = len(jac)
-    j = jac.reshape(n, 6, -1)
-    return (j * fisher.reshape(n, 1, -1)) @ j.transpose(0, 2, 1)
+    n, pixel_count = len(jac), fisher[0].size if len(fisher) else 0
+    j = jac.reshape(n, 6, pixel_count)
+    return (j * fisher.reshape(n, 1, pixel_count)) @ j.transpose(0, 2, 1)
 
 
 def crlb(model, p) -> np.ndarray:

@@ -96,3 +96,12 @@ def test_one_pass_evaluation_equals_the_separate_ones(name):
         f, grad, metric = stack_mle._evaluate(model, counts, far)
         assert f[0] == np.inf and np.isnan(grad[0]).all() and np.isnan(metric[0]).all()
         assert np.isfinite(f[1:]).all() and np.isfinite(grad[1:]).all()
+
+
+def test_contractions_of_no_rois_are_empty():
+    # a block whose every ROI has -log L = inf (outside a tier's support) forms its gradient
+    # and metric from no ROI at all: empty results, not a reshape error
+    from bayespsf.stack_mle import _contract, _information
+
+    assert _contract(np.empty((0, 6, 15, 15)), np.empty((0, 15, 15))).shape == (0, 6)
+    assert _information(np.empty((0, 6, 15, 15)), np.empty((0, 15, 15))).shape == (0, 6, 6)
