@@ -5,9 +5,11 @@ array or a table in and out:
 bounded memory; ``detect`` / ``detect_movie`` / ``detect_frames`` find candidate molecules with
 a stated false-positive rate; ``cut_rois`` cuts each molecule's ROIs over time;
 ``molecules_over_time`` gives per-frame photons, background and centroid, the bleaching steps
-(``bleach_steps``) and the drift; ``select`` applies the paper's selection rules (``Rules``).
+(``bleach_steps``) and the drift; ``select`` applies the paper's selection rules (``Rules``);
+``dark_calibration`` gives a camera's offset and readout noise from its dark frames.
 """
 
+from bayespsf.movie.calibrate import DarkCalibration, dark_calibration
 from bayespsf.movie.detect import detect, detect_frames, detect_movie
 from bayespsf.movie.extract import RoiStack, cut_rois, iter_rois
 from bayespsf.movie.project import project
@@ -17,11 +19,13 @@ from bayespsf.movie.steps import bleach_steps
 from bayespsf.movie.traces import molecules_over_time, traces
 
 __all__ = [
+    "DarkCalibration",
     "Movie",
     "RoiStack",
     "Rules",
     "bleach_steps",
     "cut_rois",
+    "dark_calibration",
     "detect",
     "detect_frames",
     "detect_movie",
