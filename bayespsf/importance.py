@@ -64,8 +64,6 @@ class IndependenceMove(emcee.moves.MHMove):
         return new, self.log_density(coords) - log_new
 
 
-
-
 def psis(log_ratio: np.ndarray) -> tuple[np.ndarray, float]:
     """Normalised Pareto-smoothed importance weights of ``log_ratio`` and their k-hat."""
     from arviz_stats.base.array import array_stats

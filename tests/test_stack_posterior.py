@@ -49,8 +49,13 @@ def test_a_stack_gives_what_each_roi_gives_alone(dim, dim_auto, method):
     # stack MLE's arithmetic differs from a one-ROI fit's in the last bits only, and the draws
     # follow the fit: 1e-6 relative (a different stream would differ by ~1/sqrt(400))
     counts, truths, model = dim
-    table = dim_auto if method == "auto" else sample_many(
-        counts[:6], model, seed=7, workers=1, method=method, truths=truths[:6], max_steps=3000)
+    table = (
+        dim_auto
+        if method == "auto"
+        else sample_many(
+            counts[:6], model, seed=7, workers=1, method=method, truths=truths[:6], max_steps=3000
+        )
+    )
     picks = [0, 1, 2]
     if method == "auto":  # and a ROI whose importance sampling failed: the chain ran
         picks.append(int(np.flatnonzero(dim_auto["method"] == "mcmc")[0]))
