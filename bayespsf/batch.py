@@ -39,7 +39,6 @@ import pandas as pd
 from bayespsf._checks import real_array
 from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
-from bayespsf.importance import CHAINS
 from bayespsf.model import Model
 from bayespsf.posterior_rows import (  # noqa: F401  (public in bayespsf.batch since issue 5)
     QUANTILES,
@@ -52,8 +51,29 @@ from bayespsf.posterior_rows import (  # noqa: F401  (public in bayespsf.batch s
 )
 
 SAMPLER_OPTIONS = ("ess", "walkers", "max_steps", "moves", "method", "max_seconds")
-CHUNK = 256  # ROIs per task of the batched methods (auto, laplace, importance)
+CHUNK = 256  # most ROIs per task of the batched methods (auto, laplace, importance)
+MIN_CHUNK = 16  # fewest ROIs per task when a stack is split to keep every worker busy
 SCHEDULER_TIMEOUT = 10.0  # seconds to reach a Dask scheduler before the address is called wrong
+
+
+def chunk_count(n: int, parallel: int, ess: float) -> int:
+    """How many tasks ``n`` ROIs are split into for the batched methods: enough for each of
+    the ``parallel`` workers to get one (chunks of at least ``MIN_CHUNK`` ROIs), of at most
+    ``CHUNK`` ROIs at the default ESS of 400 and proportionally fewer above it (a chunk holds
+    about ``50 ess`` draws of six parameters per ROI: 256 ROIs at ESS 20 000 would be ~1.6 GB).
+    A ROI's result does not depend on its chunk."""
+    largest = max(2, min(CHUNK, int(CHUNK * 400.0 / ess)))
+    return max(-(-n // largest), min(parallel, -(-n // MIN_CHUNK)), 1)
+
+
+def _parallelism(runner) -> int:
+    """The number of tasks ``runner`` runs at once (1 in this process)."""
+    if runner is None:
+        return 1
+    client = getattr(runner, "client", None) or getattr(runner, "_client", None)  # Dask's
+    if client is not None and hasattr(client, "scheduler_info"):
+        return max(1, len(client.scheduler_info().get("workers", {})))
+    return int(getattr(runner, "_max_workers", None) or os.cpu_count() or 1)
 
 
 def molecule_seed(seed: int, index: int) -> int:
@@ -70,14 +90,15 @@ def _sample_one(task):
     """Worker side: one molecule's posterior and its summary row (picklable in and out)."""
     from bayespsf.sampling import sample_posterior
 
-    index, counts, model, seed, truth, scene, options = task
+    index, counts, model, seed, truth, scene, options, verdict = task
     started = time.perf_counter()
     try:
         post = sample_posterior(counts, model, seed=seed, truth=truth, scene=scene,
                                 progress=False, **options)  # fmt: skip
     except BayespsfInputError as error:  # e.g. a ROI outside the likelihood tier's support
         return index, None, _outcome_row(index, seed, "failed", str(error))
-    info = dict(post.info, seconds=time.perf_counter() - started)
+    # verdict: the method asked for and why the batched pass left this ROI to the chain
+    info = dict(post.info, **(verdict or {}), seconds=time.perf_counter() - started)
     post.tree.attrs["sampler"] = json.dumps(info)
     row = molecule_row(post, index, seed)
     post.tree.attrs["summary_row"] = json.dumps(row)
@@ -376,16 +397,22 @@ def sample_many(
         runner, owned = _executor(executor, workers)
         try:
             if settings.method != "mcmc":  # the batched methods; the chain where they fail
+                parts = chunk_count(len(todo), _parallelism(runner), settings.ess)
                 chunks = (
                     (chunk, stack[chunk], model, [molecule_seed(seed, i) for i in chunk],
-                     None if truths is None else truths[chunk], settings, saver is not None)
-                    for chunk in np.array_split(todo, max(1, -(-len(todo) // CHUNK)))
+                     None if truths is None else truths[chunk], settings, scene,
+                     None if saver is None else saver.path)
+                    for chunk in np.array_split(todo, parts)
                     if len(chunk)
                 )  # fmt: skip
-                todo = _run_chunks(chunks, runner, saver, rows, bar, stack, model, scene)
+                verdicts = _run_chunks(chunks, runner, rows, bar)
+                todo = sorted(verdicts)
+                options = {**options, "method": "mcmc"}
+            else:
+                verdicts = {}
             tasks = (
                 (i, stack[i], model, molecule_seed(seed, i),
-                 None if truths is None else truths[i], scene, options)
+                 None if truths is None else truths[i], scene, options, verdicts.get(i))
                 for i in todo
             )  # fmt: skip
             _run(tasks, runner, saver, rows, bar)
@@ -419,51 +446,48 @@ def _run(tasks, runner, saver, rows, bar) -> None:
         bar.update(1)
 
 
-def _run_chunks(chunks, runner, saver, rows, bar, stack, model, scene) -> list[int]:
-    """The batched methods chunk by chunk (``_posteriors_of_chunk``); fills ``rows``, writes
-    each posterior if there is a store, and returns the ROIs that need the chain."""
-    from bayespsf.posterior import Posterior
-
-    chain = []
+def _run_chunks(chunks, runner, rows, bar) -> dict[int, dict]:
+    """The batched methods chunk by chunk (``_posteriors_of_chunk``, which also write each
+    posterior to the store if there is one); fills ``rows`` and returns, for each ROI that
+    needs the chain, the method asked for and why the batched pass left it."""
+    chain = {}
     for results in _results(_posteriors_of_chunk, chunks, runner):
-        for index, row, kept in results:
+        for index, row, verdict in results:
             if row is None:
-                chain.append(index)
-                continue
-            if saver is not None:
-                draws, info, truth = kept
-                post = Posterior.from_draws(
-                    draws.reshape(CHAINS, -1, 6), tau=np.ones(6), info=info,
-                    counts=stack[index], model=model, truth=truth, scene=scene,
-                )  # fmt: skip
-                post.tree.attrs["summary_row"] = json.dumps(row)
-                saver.write(index, post)
-            rows[index] = row
+                chain[index] = verdict
+            else:
+                rows[index] = row
         bar.update(len(results) - sum(row is None for _, row, _ in results))
-    return sorted(chain)
+    return chain
 
 
 @one_blas_thread
 def _posteriors_of_chunk(task):
     """Worker side: ``fit_mle`` and the chain-free posteriors (``bayespsf.stack_posterior``)
-    of a chunk of ROIs; per ROI ``(index, summary row or None if the chain is needed, (draws,
-    info, truth) if kept for a store)`` (picklable in and out)."""
+    of a chunk of ROIs, each written to the store (a path, or None) as it is made; per ROI
+    ``(index, summary row, None)``, or ``(index, None, verdict)`` if the chain is needed
+    (picklable in and out)."""
     from bayespsf.estimators import fit_mle
-    from bayespsf.stack_posterior import cheap_posteriors
+    from bayespsf.stack_posterior import as_posterior, cheap_posteriors
 
-    indices, stack, model, seeds, truths, settings, keep = task
+    indices, stack, model, seeds, truths, settings, scene, store = task
     started = time.perf_counter()
     outcomes = cheap_posteriors(stack, model, fit_mle(stack, model), seeds, settings)
     seconds = (time.perf_counter() - started) / len(indices)
     results = []
     for k, (index, outcome) in enumerate(zip(indices, outcomes, strict=True)):
         if outcome["draws"] is None:
-            results.append((int(index), None, None))
+            verdict = {"requested": settings.method, "why": outcome["info"]["why"]}
+            results.append((int(index), None, verdict))
             continue
-        info = dict(outcome["info"], seconds=seconds)
+        outcome = {**outcome, "info": dict(outcome["info"], seconds=seconds)}
         truth = None if truths is None else truths[k]
-        row = draws_row(outcome["draws"], int(index), seeds[k], info, truth)
-        results.append((int(index), row, (outcome["draws"], info, truth) if keep else None))
+        row = draws_row(outcome["draws"], int(index), seeds[k], outcome["info"], truth)
+        if store is not None:
+            post = as_posterior(outcome, stack[k], model, truth, scene)
+            post.tree.attrs["summary_row"] = json.dumps(row)
+            Store(store).write(int(index), post)
+        results.append((int(index), row, None))
     return results
 
 

@@ -62,6 +62,8 @@ def check_settings(
         raise BayespsfInputError(f"moves must be one of {', '.join(MOVES)}; got {moves!r}")
     if method not in METHODS:
         raise BayespsfInputError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    if _positive("ess", ess, MAX_ESS) < 1:  # fewer than one effective draw is no posterior
+        raise BayespsfInputError(f"ess must be a number in [1, {MAX_ESS:g}], got {ess!r}")
     return Settings(
         seed=_whole("seed", seed, 0, 2**64 - 1),
         walkers=walkers,

@@ -38,11 +38,11 @@ from bayespsf._checks import finite_array
 from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle, start_values
-from bayespsf.importance import CHAINS, IndependenceMove
+from bayespsf.importance import IndependenceMove
 from bayespsf.model import Model
 from bayespsf.posterior import Posterior
 from bayespsf.sampler_settings import MOVES, Settings, check_settings
-from bayespsf.stack_posterior import cheap_posteriors, laplace_in_z, random_streams
+from bayespsf.stack_posterior import as_posterior, cheap_posteriors, laplace_in_z, random_streams
 
 
 def _moves(name: str, proposal: IndependenceMove | None):
@@ -242,15 +242,7 @@ def sample_posterior(
             fits = fit_mle(c[None], model)
             cheap = cheap_posteriors(c[None], model, fits, [settings.seed], settings)[0]
             if cheap["draws"] is not None:
-                return Posterior.from_draws(
-                    cheap["draws"].reshape(CHAINS, -1, 6),
-                    tau=np.ones(6),
-                    info=cheap["info"],
-                    counts=c,
-                    model=model,
-                    truth=truth,
-                    scene=scene,
-                )
+                return as_posterior(cheap, c, model, truth, scene)
             fallback = cheap["info"]["why"]
         else:
             fallback = "chain: a start was given, so there is no Laplace proposal"

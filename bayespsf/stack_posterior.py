@@ -122,6 +122,17 @@ def cheap_posteriors(stack, model, fits, seeds, settings) -> list[dict]:
     return out
 
 
+def as_posterior(outcome: dict, counts, model, truth=None, scene=None):
+    """A ``cheap_posteriors`` outcome with draws as a ``Posterior`` (its draws split into
+    ``CHAINS`` chains; no autocorrelation time, as the draws are independent)."""
+    from bayespsf.posterior import Posterior
+
+    return Posterior.from_draws(
+        outcome["draws"].reshape(CHAINS, -1, len(PARAMETER_NAMES)), tau=np.ones(6),
+        info=outcome["info"], counts=counts, model=model, truth=truth, scene=scene,
+    )  # fmt: skip
+
+
 def _info(settings, seed: int, mle_ok: bool, why: str, **facts) -> dict:
     return {**asdict(settings), "seed": seed, "method": "mcmc", "requested": settings.method,
             "why": why, "converged": mle_ok, "mle_converged": mle_ok, "stuck_walkers": 0,

@@ -48,8 +48,12 @@ def parallel(n: int, dataset: int) -> pd.DataFrame:
 
     def row(how, result, seconds, reference=None):
         count = len(result)
-        same = np.nan if reference is None else bool(
-            np.array_equal(result["s_x_mean"].to_numpy(), reference["s_x_mean"].to_numpy())
+        same = (
+            np.nan
+            if reference is None
+            else bool(
+                np.array_equal(result["s_x_mean"].to_numpy(), reference["s_x_mean"].to_numpy())
+            )
         )
         rows.append({"how": how, "ROIs": count, "seconds": seconds, "ROIs/s": count / seconds,
                      "same posteriors as one process": same})  # fmt: skip
@@ -73,7 +77,7 @@ def parallel(n: int, dataset: int) -> pd.DataFrame:
 def main(argv=None):
     quick = quick_run(__doc__, argv)
     table = parallel(*((40, 80) if quick else (4000, 100_000)))
-    intro = "`sample_many` (default `method=\"auto\"`, emccd-typical, N = 1000):"
+    intro = '`sample_many` (default `method="auto"`, emccd-typical, N = 1000):'
     publish_table("parallel", intro, table, quick)
     return table
 

@@ -230,3 +230,13 @@ def test_a_posterior_too_short_to_rank_gets_no_rank_instead_of_an_error():
     row = molecule_row(post, 0, seed=1)
     assert RANK_DRAWS > 20 and np.isnan(row["s_x_rank"]) and row["s_x_truth"] == 100.0
     assert "s_x_rank" not in molecule_row(Posterior.from_draws(draws, tau=np.ones(6)), 0, 1)
+
+
+def test_chunks_keep_every_worker_busy_and_memory_bounded():
+    from bayespsf.batch import CHUNK, MIN_CHUNK, chunk_count
+
+    assert chunk_count(24, 2, 400.0) == 2  # one stack, two workers: two tasks
+    assert chunk_count(MIN_CHUNK, 8, 400.0) == 1  # too few ROIs to split
+    assert chunk_count(10 * CHUNK, 2, 400.0) == 10  # large stacks: chunks of CHUNK
+    assert chunk_count(1000, 1, 20_000.0) == 200  # ESS 20 000: 5 ROIs per chunk
+    assert chunk_count(1000, 1, 1e7) == 500  # never fewer than 2 ROIs per chunk

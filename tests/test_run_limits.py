@@ -24,6 +24,7 @@ def typical():
         ("ess", float("inf"), "ess must be"),
         ("ess", 0, "ess must be"),
         ("ess", -5, "ess must be"),
+        ("ess", 0.01, r"ess must be a number in \[1, 1e\+07\]"),
         ("walkers", "32", "walkers must be an integer"),
         ("walkers", 13, "walkers must be an even number"),
         ("walkers", 32.0, "walkers must be an integer"),
