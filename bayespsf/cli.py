@@ -109,15 +109,20 @@ def _bench(args) -> int:
     return 0
 
 
-def _camera_scene(camera_file: str, roi: int, pixel_size: float | None = None):
-    """The scene of a camera file (``[camera]`` with an explicit ``kind``, ``[geometry]
-    pixel_size``, optional ``[prior]``) for ROIs of side ``roi``; ``pixel_size`` (a movie's
-    metadata) stands in where the file gives none. A missing camera table or kind is an error:
-    the counts' units depend on it, so it is never assumed."""
+CAMERA_KEYS = {  # what a camera file must state for its kind: the counts' units depend on it
+    "photon": (),
+    "emccd": ("gain", "offset", "readout_sd", "e_per_adu"),
+    "scmos": ("gain", "offset", "variance"),
+}
+
+
+def _camera_file(camera_file: str) -> dict:
+    """The tables of a camera file (``[camera]`` with an explicit ``kind`` and, for that kind,
+    every key of ``CAMERA_KEYS``; ``[geometry] pixel_size``, ``[emitter]``, ``[prior]``
+    optional). A missing camera table, kind or key is an error: the counts' units depend on
+    them, so they are never assumed (a default gain would scale every posterior SD)."""
     import tomllib
     from pathlib import Path
-
-    from bayespsf.scene import Scene
 
     try:
         table = tomllib.loads(Path(camera_file).read_text(encoding="utf-8"))
@@ -130,7 +135,25 @@ def _camera_scene(camera_file: str, roi: int, pixel_size: float | None = None):
             "and the gain, offset and readout noise of the counts); the counts' units depend "
             "on it, so it is never assumed"
         )
-    geometry = table.setdefault("geometry", {})
+    missing = [k for k in CAMERA_KEYS.get(camera["kind"], ()) if k not in camera]
+    if missing:
+        raise CommandError(
+            f"{camera_file}: [camera] of kind {camera['kind']!r} must state "
+            f"{', '.join(missing)} (a `bayespsf calibrate` camera file states them all)"
+        )
+    for section in ("geometry", "emitter", "prior"):
+        if not isinstance(table.get(section, {}), dict):
+            raise CommandError(f"{camera_file}: [{section}] must be a table")
+    return table
+
+
+def _camera_scene(table: dict, camera_file: str, roi: int, pixel_size: float | None = None):
+    """The scene of a camera file's tables (``_camera_file``) for ROIs of side ``roi``;
+    ``pixel_size`` (a movie's metadata) stands in where the file gives none."""
+    from bayespsf.scene import Scene
+
+    table = {**table, "geometry": dict(table.get("geometry", {}))}
+    geometry = table["geometry"]
     if "pixel_size" not in geometry and pixel_size is not None:
         geometry["pixel_size"] = pixel_size
     if "pixel_size" not in geometry:
@@ -172,7 +195,7 @@ def _fit(args) -> int:
                 f"{scene.geometry['roi']}"
             )
     else:
-        scene = _camera_scene(args.camera, rois.shape[1])
+        scene = _camera_scene(_camera_file(args.camera), args.camera, rois.shape[1])
     truths = None if args.truth is None else _truth_table(args.truth, rois.shape[0])
     model = Model.from_scene(scene, likelihood=args.likelihood)
     table = sample_many(
@@ -203,14 +226,17 @@ def _fit(args) -> int:
 def _detect(args) -> int:
     from bayespsf.model import Model
     from bayespsf.movie import read_movie
+    from bayespsf.movie.extract import check_sizes
     from bayespsf.movie.pipeline import find_molecules, write
 
     out = _output_folder(args.out)
+    check_sizes(args.roi, args.fit)
     movie = read_movie(args.movie)
-    scene = _camera_scene(args.camera, args.fit, movie.pixel_size)
+    table = _camera_file(args.camera)
+    scene = _camera_scene(table, args.camera, args.fit, movie.pixel_size)
     emitter = scene.to_dict().get("emitter", {})
     s0 = args.psf_sd
-    if s0 is None and {"s0x", "s0y"} <= set(_declared(args.camera, "emitter")):
+    if s0 is None and {"s0x", "s0y"} <= set(table.get("emitter", {})):
         s0 = 0.5 * (emitter["s0x"] + emitter["s0y"])
     if s0 is None:
         raise CommandError(
@@ -224,13 +250,6 @@ def _detect(args) -> int:
     print(f"{movie!r}: {len(found.molecules)} candidate molecules, {selected} selected")
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
-
-
-def _declared(camera_file: str, section: str) -> dict:
-    import tomllib
-    from pathlib import Path
-
-    return tomllib.loads(Path(camera_file).read_text(encoding="utf-8")).get(section, {})
 
 
 def _schema(_args) -> int:

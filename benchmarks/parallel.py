@@ -76,7 +76,7 @@ def parallel(n: int, dataset: int) -> pd.DataFrame:
 
 def main(argv=None):
     quick = quick_run(__doc__, argv)
-    table = parallel(*((40, 80) if quick else (4000, 100_000)))
+    table = parallel(*((16, 32) if quick else (4000, 100_000)))
     intro = '`sample_many` (default `method="auto"`, emccd-typical, N = 1000):'
     publish_table("parallel", intro, table, quick)
     return table

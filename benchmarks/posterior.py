@@ -9,7 +9,8 @@ autocorrelation time of the default moves (``laplace-de``: 0.8 Laplace independe
 The `exact` tier is measured at ESS 400 only (minutes per molecule).
 
     python benchmarks/posterior.py            # full run, rewrites its section of README.md
-    python benchmarks/posterior.py --quick    # one molecule, ESS 400, table tier, prints only
+    python benchmarks/posterior.py --quick    # one molecule, ESS 400 (moves: 100), table tier,
+                                              # prints only
 """
 
 from __future__ import annotations
@@ -69,7 +70,8 @@ def run(quick: bool) -> tuple[pd.DataFrame, pd.DataFrame]:
     moves = []
     for name in ["laplace-de", "de-snooker", "stretch"]:
         for k in range(molecules):
-            post = sample_posterior(counts[k], model, seed=k, ess=400, moves=name, progress=False)
+            post = sample_posterior(counts[k], model, seed=k, ess=100 if quick else 400,
+                                    moves=name, progress=False)  # fmt: skip
             moves.append(
                 {
                     "moves": name,

@@ -175,6 +175,28 @@ def test_camera_file_without_a_camera_is_an_error_not_a_photon_camera(tmp_path):
     camera.write_text("[camera]\nkind = 'photon'\n")
     with pytest.raises(SystemExit, match=r"no \[geometry\] pixel_size"):
         cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+    # an EMCCD file with its kind only ran with gain 100, offset 0, e_per_adu 1: N 6x too low
+    camera.write_text("[geometry]\npixel_size = 100.0\n[camera]\nkind = 'emccd'\ngain = 200.0\n")
+    with pytest.raises(SystemExit, match=r"kind 'emccd' must state offset, readout_sd, e_per_ad"):
+        cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+    camera.write_text("geometry = 3\n[camera]\nkind = 'photon'\n")
+    with pytest.raises(SystemExit, match=r"\[geometry\] must be a table"):
+        cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+
+
+def test_detect_sizes_and_spot_widths_that_cannot_work_are_one_line(tmp_path):
+    import numpy as np
+
+    np.save(tmp_path / "movie.npy", np.full((80, 64, 64), 100, np.uint16))
+    camera = tmp_path / "camera.toml"
+    camera.write_text("[geometry]\npixel_size = 100.0\n[camera]\nkind = 'photon'\n")
+    base = ["detect", str(tmp_path / "movie.npy"), "--camera", str(camera)]
+    for extra, words in (
+        (["--fit", "14"], "fit must be odd"),
+        (["--psf-sd", "1e6"], r"psf_sd \(1e\+06 nm = 1e\+04 pixels of 100 nm\)"),
+    ):
+        with pytest.raises(SystemExit, match=words):
+            cli.main([*base, "--psf-sd", "120", *extra])
 
 
 def test_fit_takes_the_truth_table_simulate_writes_and_keeps_logs_clean(tmp_path):

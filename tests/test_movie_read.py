@@ -183,6 +183,12 @@ def _mixed(tmp_path):
             tif.write(DATA[0, :rows], photometric="minisblack")
 
 
+def _mixed_types(p):
+    with tifffile.TiffWriter(p / "x.tif") as tif:
+        tif.write(DATA[0].astype(np.uint16), photometric="minisblack")
+        tif.write(np.full((9, 11), 3.5, np.float32), photometric="minisblack")
+
+
 @pytest.mark.parametrize(
     "make,words",
     [
@@ -194,6 +200,7 @@ def _mixed(tmp_path):
         (_cut_chain, r"x\.tif: damaged or truncated TIFF"),
         (_cut_data, r"x\.tif: damaged or truncated TIFF \(frame 3's image data end"),
         (_mixed, r"x\.tif: its pages differ in shape .*page 2 \(8, 11\)"),
+        (_mixed_types, r"x\.tif: page 1 holds float32, the first page uint16"),
         (lambda p: _write(p / "x.tif", DATA.astype(np.complex64)), r"x\.tif: complex values"),
         (lambda p: _write(p / "x.tif", DATA > 9), r"x\.tif: boolean values"),
         (
@@ -221,6 +228,7 @@ def _mixed(tmp_path):
         "cut-chain",
         "cut-data",
         "mixed-pages",
+        "mixed-types",
         "complex",
         "boolean",
         "rgb",

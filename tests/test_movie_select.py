@@ -73,7 +73,12 @@ def test_rules_are_configurable_and_can_be_skipped():
     "kwargs, words",
     [({"photon_tolerance": 0}, "photon_tolerance"), ({"min_valid_frames": 0}, "min_valid"),
      ({"width_low": 200.0}, "width_low"), ({"skip": ("nope",)}, "unknown rules"),
-     ({"min_snr": float("nan")}, "min_snr")],
+     ({"min_snr": float("nan")}, "min_snr"),
+     ({"drift_sigmas": "3"}, "drift_sigmas must be a number"),
+     ({"photon_tolerance": None}, "photon_tolerance must be a number"),
+     ({"min_valid_frames": float("inf")}, "min_valid_frames must be a finite number"),
+     ({"width_difference_fraction": float("nan")}, "width_difference_fraction"),
+     ({"skip": "snr"}, r"skip must be a tuple of rule names, e.g. \('snr',\)")],
 )  # fmt: skip
 def test_bad_settings_are_named(kwargs, words):
     with pytest.raises(BayespsfInputError, match=words):

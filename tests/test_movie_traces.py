@@ -225,3 +225,20 @@ def test_bad_inputs_are_named(tmp_path):
         traces(path, ok, Photon(), s0=S0, pixel_size=A, roi=9, fit=5, aperture=3)
     with pytest.raises(BayespsfInputError, match="one-dimensional"):
         bleach_steps(np.zeros((4, 4)))
+
+
+def test_a_step_within_a_frame_is_one_step():
+    """Bleaching at a time T inside a frame leaves that frame at a fraction of the level (as
+    bayespsf's movies and real exposures do): 300 traces of 120 frames, N 500–5000 with
+    EMCCD-like noise (variance 2 N + 100), T uniform in [6, 114): one step, bleach frame
+    ceil(T) within +-1, for >= 97% (measured 295 of 300; 87 of 300 before partial frames were
+    read as the step's own frame: the partial frame was split off as a second step)."""
+    rng = np.random.default_rng(11)
+    t = np.arange(120)
+    hits = 0
+    for _ in range(300):
+        n, bleach = np.exp(rng.uniform(np.log(500), np.log(5000))), rng.uniform(6, 114)
+        level = n * np.clip(bleach - t, 0.0, 1.0)
+        found = bleach_steps(level + np.sqrt(2 * level + 100) * rng.standard_normal(120))
+        hits += found.steps == 1 and abs(found.bleach_frame - np.ceil(bleach)) <= 1
+    assert hits >= 0.97 * 300, hits

@@ -112,15 +112,22 @@ def estimate_background(
     return back
 
 
-def template(psf_sd, pixel_size) -> tuple[np.ndarray, np.ndarray]:
+def template(psf_sd, pixel_size, image_shape=None) -> tuple[np.ndarray, np.ndarray]:
     """The spot's photon fractions along rows and along columns (its pixel integral is their
-    outer product, ``bayespsf.psf.expected_counts``) on ``2 ceil(4 psf_sd / a) + 1`` pixels."""
+    outer product, ``bayespsf.psf.expected_counts``) on ``2 ceil(4 psf_sd / a) + 1`` pixels,
+    which must fit in an image of ``image_shape`` if given."""
     if isinstance(psf_sd, bool) or not isinstance(psf_sd, int | float | np.number):
         raise BayespsfInputError(f"psf_sd must be a number in nm, got {psf_sd!r}")
     if not (np.isfinite(psf_sd) and psf_sd > 0):
         raise BayespsfInputError(f"psf_sd must be > 0 nm and finite, got {psf_sd!r}")
     _, a = psf._check_geometry(1, pixel_size)
     side = 2 * int(np.ceil(4.0 * psf_sd / a)) + 1
+    if image_shape is not None and side > min(image_shape):
+        raise BayespsfInputError(
+            f"psf_sd ({psf_sd:g} nm = {psf_sd / a:.3g} pixels of {a:g} nm) gives a spot "
+            f"template of {side} pixels, larger than the image {tuple(image_shape)}: is it "
+            "in nm?"
+        )
     spot = psf.expected_counts([0.0, 0.0, psf_sd, psf_sd, 1.0, 0.0], side, a)
     fractions = spot.sum(axis=0)
     return fractions, fractions

@@ -86,6 +86,11 @@ def _reader(path: Path, tif, pages, frame_shape, dtype):
     for j, page in enumerate(pages):
         if page is None:
             raise BayespsfInputError(f"{path}: frame {j} is missing from the file")
+        if np.dtype(page.dtype).str[1:] != np.dtype(dtype).str[1:]:  # byte order aside
+            raise BayespsfInputError(
+                f"{path}: page {page.index} holds {np.dtype(page.dtype)}, the first page "
+                f"{np.dtype(dtype)}; a movie's pages must share one data type"
+            )
         if page.parent is not tif:
             raise BayespsfInputError(
                 f"{path}: its metadata place frame {j} in another file "

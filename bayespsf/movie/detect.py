@@ -132,7 +132,7 @@ def _detect(
     image = finite_array("image", image)
     if image.ndim != 2 or min(image.shape) < 3:
         raise BayespsfInputError(f"image must be 2-D (h, w) with h, w >= 3, got {image.shape}")
-    spot = template(psf_sd, pixel_size)
+    spot = template(psf_sd, pixel_size, image.shape)
     roi, _ = psf._check_geometry(roi, pixel_size)
     min_distance = (
         roi if min_distance is None else scalar_in_range("min_distance", min_distance, 0.0)

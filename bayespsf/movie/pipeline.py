@@ -14,10 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
 from bayespsf.movie.detect import detect_movie
-from bayespsf.movie.extract import RoiStack, iter_rois, open_movie
+from bayespsf.movie.extract import RoiStack, check_sizes, iter_rois, open_movie
 from bayespsf.movie.select import Rules, report_markdown, select
 from bayespsf.movie.traces import molecules_over_time
 
@@ -54,7 +55,7 @@ class FoundMolecules:
 
     def report_markdown(self) -> str:
         detected = self.candidates["status"].value_counts()
-        counts = ", ".join(f"{k}: {v}" for k, v in detected.items())
+        counts = ", ".join(f"{k}: {v}" for k, v in detected.items()) or "none"
         return report_markdown(self.report, self.rules) + f"\nCandidates detected: {counts}.\n"
 
 
@@ -133,13 +134,34 @@ def find_molecules(
     """
     movie = open_movie(movie)
     rules = Rules() if rules is None else rules
+    check_sizes(roi, fit)
+    if roi > min(movie.shape[1:]):
+        raise BayespsfInputError(
+            f"roi ({roi}) is larger than the movie's frames ({movie.shape[1]} x {movie.shape[2]}): "
+            "every candidate would lie too close to an edge"
+        )
+    if "photon_window" not in rules.skip and len(movie) < rules.min_valid_frames:
+        raise BayespsfInputError(
+            f"the movie has {len(movie)} frame(s), fewer than the {rules.min_valid_frames} "
+            "valid frames the photon_window rule needs (Rules(min_valid_frames=...) or "
+            "skip=('photon_window',))"
+        )
     candidates = detect_movie(movie, psf_sd=s0, camera=model, projection=projection,
                               false_positives=false_positives, roi=roi)  # fmt: skip
     accepted = candidates[candidates["status"] == "accepted"].reset_index(drop=True)
     if accepted.empty:
-        per_molecule = pd.DataFrame(columns=["molecule", "x", "y", "bleach_frame"])
-        frames = pd.DataFrame()
-        report = pd.DataFrame()
+        per_molecule = pd.DataFrame(
+            {
+                "molecule": accepted["molecule"],
+                "x": accepted["x"],
+                "y": accepted["y"],
+                "bleach_frame": pd.Series(dtype=float),
+                "selected": pd.Series(dtype=bool),
+                "rejected_by": "",
+            }
+        )
+        frames = pd.DataFrame(columns=["molecule", "frame"])
+        report = pd.DataFrame([{"rule": "no molecule accepted by detection"}])
     else:
         per_molecule, per_frame = molecules_over_time(movie, accepted, model, s0=s0, roi=roi,
                                                       fit=fit, block=block)  # fmt: skip
@@ -156,7 +178,10 @@ def find_molecules(
         "y": rejected["y"].to_numpy(), "selected": False,
         "rejected_by": "detection: " + rejected["status"].str.replace("rejected: ", ""),
     })  # fmt: skip
-    molecules = pd.concat([per_molecule, others], ignore_index=True)
+    columns = list(dict.fromkeys([*per_molecule.columns, *others.columns]))
+    parts = [t for t in (per_molecule, others) if len(t)]  # pandas warns on empty parts
+    molecules = pd.concat(parts, ignore_index=True) if parts else per_molecule
+    molecules = molecules.reindex(columns=columns)
     molecules["selected"] = molecules["selected"].astype(bool)
     molecules["bleach_frame"] = molecules["bleach_frame"].astype("Int64")
     molecules = molecules.sort_values("molecule", ignore_index=True)

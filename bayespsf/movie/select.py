@@ -54,15 +54,25 @@ class Rules:
     skip: tuple[str, ...] = ()
 
     def __post_init__(self):
-        for name in ("drift_sigmas", "min_snr", "width_difference_nm", "width_high"):
-            if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
-                raise BayespsfInputError(f"{name} must be a finite number >= 0")
+        numbers = ("drift_sigmas", "photon_tolerance", "min_valid_frames", "min_snr",
+                   "width_difference_nm", "width_difference_fraction", "width_low",
+                   "width_high")  # fmt: skip
+        for name in numbers:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float | np.number):
+                raise BayespsfInputError(f"{name} must be a number, got {value!r}")
+            if not np.isfinite(value) or value < 0:
+                raise BayespsfInputError(f"{name} must be a finite number >= 0, got {value!r}")
         if not 0 < self.photon_tolerance < 1:
             raise BayespsfInputError("photon_tolerance must be in (0, 1), e.g. 0.2 for 20%")
         if not 0 <= self.width_low <= self.width_high:
             raise BayespsfInputError("width_low must be in [0, width_high]")
         if int(self.min_valid_frames) != self.min_valid_frames or self.min_valid_frames < 1:
             raise BayespsfInputError("min_valid_frames must be a whole number >= 1")
+        if isinstance(self.skip, str):
+            raise BayespsfInputError(
+                f"skip must be a tuple of rule names, e.g. ({self.skip!r},), got {self.skip!r}"
+            )
         unknown = set(self.skip) - set(RULES)
         if unknown:
             raise BayespsfInputError(f"skip names unknown rules {sorted(unknown)}; rules: {RULES}")

@@ -113,7 +113,9 @@ def bleach_steps(
     parameters (a mean, a variance, a location) ``3 log n``; the default ``c = 4`` keeps the
     false-step rate on constant traces at 0.1–0.3% (docs/movies.md). Each step is
     then placed by the exact least-squares scan (a Gaussian likelihood with one variance)
-    over all split points between its neighbours.
+    over all split points between its neighbours. A one-frame level between its neighbours
+    is the frame in which a step happened (a fluorophore bleaching within a frame holds part
+    of that frame's exposure): the two change points around it count as one step.
     """
     y = finite_array("trace", trace)
     if y.ndim != 1:
@@ -133,6 +135,7 @@ def bleach_steps(
         cuts = _refine(y, pelt.predict(pen=penalty * np.log(n))[:-1])
         if jump > 1:
             cuts = _refine(y, _eliminate(cost, cuts, penalty * np.log(n), min_size))
+        cuts = _merge_transitions(y, cuts)
     bounds = [0, *cuts, n]
     levels = tuple(float(y[lo:hi].mean()) for lo, hi in pairwise(bounds))
     bleach = cuts[-1] if cuts and levels[-1] < levels[-2] else None
@@ -162,6 +165,24 @@ def _refine(y: np.ndarray, cuts: list[int]) -> list[int]:
         k = np.arange(lo + 1, hi)
         cuts[i] = int(k[np.argmin(sse(lo, k) + sse(k, hi))])
     return cuts
+
+
+def _merge_transitions(y: np.ndarray, cuts: list[int]) -> list[int]:
+    """One step where two change points enclose a single frame whose level lies between its
+    neighbours' levels: the frame in which the step happened, which holds a fraction of the
+    exposure at each level (a fluorophore bleaching within a frame). The step's change point
+    is the first frame at the new level."""
+    bounds = [0, *cuts, len(y)]
+    level = [float(y[lo:hi].mean()) for lo, hi in pairwise(bounds)]
+    merged = []
+    for i, cut in enumerate(cuts):
+        after = i + 1 < len(cuts) and cuts[i + 1] == cut + 1
+        between = after and min(level[i], level[i + 2]) <= level[i + 1] <= max(
+            level[i], level[i + 2]
+        )
+        if not between:
+            merged.append(cut)
+    return merged
 
 
 def _eliminate(cost: _GaussianSegments, cuts: list[int], pen: float, min_size: int) -> list:
