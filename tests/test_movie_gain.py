@@ -1,0 +1,90 @@
+"""ADU per photon from a movie's molecules (bayespsf.movie.gain), against the simulator's
+declared camera: paper-movie's EMCCD has gain 200 and 12 e- per ADU, so M = 16.667 ADU per
+photon, and its molecules' photons fluctuate uniformly within +-20% between frames (a relative
+variance of 0.2^2 / 3 = 0.01333)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bayespsf import scenes
+from bayespsf.errors import BayespsfInputError
+from bayespsf.movie.gain import gain_from_molecules
+from bayespsf.movie.simulate import simulate_movie
+
+M_TRUE = 200.0 / 12.0
+
+
+@pytest.fixture(scope="module")
+def movie(tmp_path_factory):
+    """150 frames of 128 x 128 pixels, 12 single immobile molecules (N 500-5000 per frame)
+    bleaching after 100 frames on average; the truth gives each molecule's frames before its
+    bleaching frame (the frame that holds part of its exposure excluded)."""
+    scene = scenes.load("paper-movie").replace(movie={
+        "frames": 150, "height": 128, "width": 128, "molecules": 12, "bleach_mean": 100.0,
+        "two_fluorophores": 0.0, "moving": 0.0, "dark_frames": 0,
+    })  # fmt: skip
+    truth = simulate_movie(scene, seed=5, out=tmp_path_factory.mktemp("gain") / "m")
+    frames = pd.read_csv(truth.files["truth"])
+    bleach = truth.molecules.set_index("molecule")["bleach_frame"]
+    last = frames["molecule"].map(bleach.astype(float)).fillna(np.inf) - 1
+    before = frames[frames["frame"] < last]
+    return truth.files["movie"], truth.molecules, before
+
+
+def test_the_declared_adu_per_photon_lies_in_the_interval(movie):
+    # one movie: the truth inside the 95% interval (a biased estimator, e.g. Eq. photonConv
+    # without the fluctuation term, reads ~30% high here), and the interval narrow (< 10%)
+    path, molecules, before = movie
+    gain = gain_from_molecules(path, molecules, before)
+    low, high = gain.interval
+    assert low <= M_TRUE <= high, str(gain)
+    assert high - low < 0.1 * M_TRUE
+    assert not gain.per_molecule["outlier"].any() and len(gain.per_molecule) >= 10
+    # the fitted photon fluctuation: its inverse-variance mean within 4 SEs of 0.2^2 / 3
+    phi = gain.per_molecule["fluctuation"]
+    assert abs(phi.mean() - 0.04 / 3) < 4 * phi.std(ddof=1) / np.sqrt(len(phi))
+    assert "ADU per photon" in str(gain) and "DeSantis" in str(gain)
+
+
+def test_frames_across_a_bleaching_step_are_a_fluctuation_not_an_outlier(movie):
+    # all frames of one bleaching molecule: the step adds p (1 - p) S_i^2 to its pixels'
+    # variance, which the fluctuation term takes; its estimate stays within 4 SEs of the truth
+    path, molecules, before = movie
+    bleached = molecules.loc[molecules["bleach_frame"].notna(), "molecule"].iloc[0]
+    every = pd.DataFrame({"molecule": bleached, "frame": np.arange(150)})
+    frames = pd.concat([before[before["molecule"] != bleached], every])
+    row = gain_from_molecules(path, molecules, frames).per_molecule.set_index("molecule")
+    assert not row.loc[bleached, "outlier"]
+    assert abs(row.loc[bleached, "adu_per_photon"] - M_TRUE) < 4 * row.loc[bleached, "se"]
+    assert row.loc[bleached, "fluctuation"] > 0.1  # p (1 - p) >~ 0.1 for p in 0.1..0.9
+
+
+def test_moving_molecules_are_flagged_and_left_out(tmp_path):
+    # 5 of 9 molecules walk 20 nm per frame: their pixels' variance is not photon noise
+    # (measured 47-241 ADU per photon); exactly they are flagged, and the 4 others cover M
+    scene = scenes.load("paper-movie").replace(movie={
+        "frames": 150, "height": 128, "width": 128, "molecules": 9, "bleach_mean": 100.0,
+        "two_fluorophores": 0.0, "moving": 0.25, "moving_step": 20.0, "dark_frames": 0,
+    })  # fmt: skip
+    truth = simulate_movie(scene, seed=5, out=tmp_path / "m")
+    frames = pd.read_csv(truth.files["truth"])
+    bleach = truth.molecules.set_index("molecule")["bleach_frame"].astype(float)
+    before = frames[frames["frame"] < frames["molecule"].map(bleach).fillna(np.inf) - 1]
+    gain = gain_from_molecules(truth.files["movie"], truth.molecules, before)
+    flagged = gain.per_molecule.set_index("molecule")["outlier"]
+    moving = truth.molecules.set_index("molecule")["moving"].astype(bool)
+    assert moving.sum() == 5 and flagged.equals(moving.reindex(flagged.index).rename("outlier"))
+    assert gain.interval[0] <= M_TRUE <= gain.interval[1]
+
+
+def test_bad_inputs_are_named(movie):
+    path, molecules, before = movie
+    with pytest.raises(BayespsfInputError, match="at least 2 molecules"):
+        gain_from_molecules(path, molecules, before[before["frame"] < 5])
+    with pytest.raises(BayespsfInputError, match=r"frames must be a table with columns"):
+        gain_from_molecules(path, molecules, before.drop(columns="frame"))
+    with pytest.raises(BayespsfInputError, match="excess must be"):
+        gain_from_molecules(path, molecules, before, excess=0.0)
+    with pytest.raises(BayespsfInputError, match="periphery"):
+        gain_from_molecules(path, molecules, before, roi=15, fit=15)
