@@ -224,6 +224,8 @@ def _fit(args) -> int:
 
 
 def _detect(args) -> int:
+    from pathlib import Path
+
     from bayespsf.model import Model
     from bayespsf.movie import read_movie
     from bayespsf.movie.extract import check_sizes
@@ -246,9 +248,32 @@ def _detect(args) -> int:
                            false_positives=args.false_positives,
                            projection=args.projection)  # fmt: skip
     paths = write(found, out)
+    paths["camera.toml"] = out / "camera.toml"  # the camera file used, verbatim
+    paths["camera.toml"].write_text(Path(args.camera).read_text(encoding="utf-8"))
     selected = int(found.molecules["selected"].sum())
     print(f"{movie!r}: {len(found.molecules)} candidate molecules, {selected} selected")
     print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def _calibrate(args) -> int:
+    from pathlib import Path
+
+    from bayespsf.movie.camera_file import calibrate_camera
+
+    out = Path(args.out)
+    if out.is_dir():
+        raise CommandError(f"--out {out} is a folder; give the camera file's name")
+    _output_folder(str(out.parent))
+    calibration = calibrate_camera(
+        args.movie, args.dark, kind=args.kind, s0=args.psf_sd, pixel_size=args.pixel_size,
+        e_per_adu=args.e_per_adu, roi=args.roi, fit=args.fit,
+    )  # fmt: skip
+    command = "bayespsf calibrate " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(calibration.toml(command))
+    print(calibration.gain)
+    print(f"wrote {out}")
     return 0
 
 
@@ -395,12 +420,43 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--projection", choices=("mean", "median"), default="mean")
     detect.add_argument("--out", default="bayespsf-detect", help="output folder")
     detect.set_defaults(run=_detect)
+    calibrate = commands.add_parser(
+        "calibrate",
+        help="a camera file from dark frames and a movie of immobile molecules",
+        description="Offset and readout noise from DARK (frames without light), then the ADU "
+        "per photon by Eq. photonConv of DeSantis et al., Opt. Express 18 (2010) over the "
+        "movie's selected immobile molecules (as `bayespsf detect` finds them), combined with "
+        "a 95%% interval. Writes a camera file (TOML) for --camera, its provenance in comments.",
+    )
+    calibrate.add_argument("movie", help="the movie: .tif/.tiff/.ome.tif or .npy")
+    calibrate.add_argument("--dark", required=True, help="dark frames of the same camera")
+    calibrate.add_argument(
+        "--kind",
+        choices=("emccd", "scmos"),
+        default="emccd",
+        help="emccd (excess noise 2) or scmos, also a CCD (excess 1)",
+    )
+    calibrate.add_argument("--psf-sd", type=float, required=True, help="the spot's SD in nm")
+    calibrate.add_argument(
+        "--pixel-size", type=float, default=None, help="nm (default: the movie's metadata)"
+    )
+    calibrate.add_argument(
+        "--e-per-adu",
+        type=float,
+        default=1.0,
+        help="EMCCD electrons per ADU to state (default 1: the gain is then ADU per photon)",
+    )
+    calibrate.add_argument("--roi", type=int, default=25, help="ROI cut (default 25)")
+    calibrate.add_argument("--fit", type=int, default=15, help="fitted centre (default 15)")
+    calibrate.add_argument("--out", default="camera.toml", help="the camera file to write")
+    calibrate.set_defaults(run=_calibrate)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command; bad input ends it with one line ``bayespsf: ...`` (exit status 1)."""
     args = build_parser().parse_args(argv)
+    args.argv = None if argv is None else list(argv)[1:]
     from bayespsf.errors import BayespsfInputError
 
     try:

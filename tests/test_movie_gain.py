@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bayespsf import scenes
+from bayespsf import cli, scenes
 from bayespsf.errors import BayespsfInputError
 from bayespsf.movie.gain import gain_from_molecules
 from bayespsf.movie.simulate import simulate_movie
@@ -22,20 +22,20 @@ def movie(tmp_path_factory):
     bleaching frame (the frame that holds part of its exposure excluded)."""
     scene = scenes.load("paper-movie").replace(movie={
         "frames": 150, "height": 128, "width": 128, "molecules": 12, "bleach_mean": 100.0,
-        "two_fluorophores": 0.0, "moving": 0.0, "dark_frames": 0,
+        "two_fluorophores": 0.0, "moving": 0.0, "dark_frames": 20,
     })  # fmt: skip
     truth = simulate_movie(scene, seed=5, out=tmp_path_factory.mktemp("gain") / "m")
     frames = pd.read_csv(truth.files["truth"])
     bleach = truth.molecules.set_index("molecule")["bleach_frame"]
     last = frames["molecule"].map(bleach.astype(float)).fillna(np.inf) - 1
     before = frames[frames["frame"] < last]
-    return truth.files["movie"], truth.molecules, before
+    return truth.files["movie"], truth.molecules, before, truth.files["dark"]
 
 
 def test_the_declared_adu_per_photon_lies_in_the_interval(movie):
     # one movie: the truth inside the 95% interval (a biased estimator, e.g. Eq. photonConv
     # without the fluctuation term, reads ~30% high here), and the interval narrow (< 10%)
-    path, molecules, before = movie
+    path, molecules, before, _ = movie
     gain = gain_from_molecules(path, molecules, before)
     low, high = gain.interval
     assert low <= M_TRUE <= high, str(gain)
@@ -50,7 +50,7 @@ def test_the_declared_adu_per_photon_lies_in_the_interval(movie):
 def test_frames_across_a_bleaching_step_are_a_fluctuation_not_an_outlier(movie):
     # all frames of one bleaching molecule: the step adds p (1 - p) S_i^2 to its pixels'
     # variance, which the fluctuation term takes; its estimate stays within 4 SEs of the truth
-    path, molecules, before = movie
+    path, molecules, before, _ = movie
     bleached = molecules.loc[molecules["bleach_frame"].notna(), "molecule"].iloc[0]
     every = pd.DataFrame({"molecule": bleached, "frame": np.arange(150)})
     frames = pd.concat([before[before["molecule"] != bleached], every])
@@ -79,7 +79,7 @@ def test_moving_molecules_are_flagged_and_left_out(tmp_path):
 
 
 def test_bad_inputs_are_named(movie):
-    path, molecules, before = movie
+    path, molecules, before, _ = movie
     with pytest.raises(BayespsfInputError, match="at least 2 molecules"):
         gain_from_molecules(path, molecules, before[before["frame"] < 5])
     with pytest.raises(BayespsfInputError, match=r"frames must be a table with columns"):
@@ -88,3 +88,41 @@ def test_bad_inputs_are_named(movie):
         gain_from_molecules(path, molecules, before, excess=0.0)
     with pytest.raises(BayespsfInputError, match="periphery"):
         gain_from_molecules(path, molecules, before, roi=15, fit=15)
+
+
+def test_calibrate_writes_a_camera_file_that_detect_reads(movie, tmp_path, capsys):
+    # dark frames give offset 100 ADU and readout 50 e- / 12 (+ 1/12 ADU^2 of rounding); the
+    # molecules give M; the file states gain = M e_per_adu, and `bayespsf detect` reads it
+    path, _, _, dark = movie
+    out = tmp_path / "cal" / "camera.toml"
+    assert cli.main(["calibrate", str(path), "--dark", str(dark), "--psf-sd", "120",
+                     "--e-per-adu", "12", "--out", str(out)]) == 0  # fmt: skip
+    assert "ADU per photon" in capsys.readouterr().out
+    text = out.read_text()
+    assert text.startswith("# made by: bayespsf calibrate ") and "--dark" in text
+    table = cli._camera_file(str(out))
+    camera = table["camera"]
+    assert camera["kind"] == "emccd" and camera["e_per_adu"] == 12.0
+    assert table["geometry"]["pixel_size"] == 79.0  # from the movie's OME metadata
+    low, high = (float(v) for v in text.split("95% interval ")[1].split(")")[0].split(" to "))
+    assert low <= M_TRUE <= high and camera["gain"] == pytest.approx(12.0 * (low + high) / 2)
+    assert camera["offset"] == pytest.approx(100.0, abs=0.05)
+    assert camera["readout_sd"] == pytest.approx(12.0 * np.sqrt((50 / 12) ** 2 + 1 / 12), rel=0.01)
+    model = cli._camera_scene(table, str(out), 15)  # what `bayespsf detect --camera` builds
+    assert model.camera["gain"] == camera["gain"]
+
+
+def test_calibrate_inputs_that_cannot_work_are_one_line(movie, tmp_path):
+    path, _, _, dark = movie
+    np.save(tmp_path / "small.npy", np.full((20, 64, 64), 100, np.uint16))
+    for args, words in (
+        (["--dark", str(tmp_path / "small.npy")], r"dark frames \(64, 64\) and movie frames"),
+        (["--dark", str(dark), "--kind", "photon"], None),
+        (["--dark", str(dark), "--e-per-adu", "0"], "e_per_adu must be"),
+        (["--dark", str(path), "--out", str(tmp_path)], "is a folder"),
+    ):
+        with pytest.raises(SystemExit, match=words):
+            cli.main(["calibrate", str(path), "--psf-sd", "120", *args])
+    with pytest.raises(SystemExit, match="no background light"):  # the movie as its own dark
+        cli.main(["calibrate", str(dark), "--dark", str(dark), "--psf-sd", "120",
+                  "--out", str(tmp_path / "c.toml")])  # fmt: skip

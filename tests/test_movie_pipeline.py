@@ -112,6 +112,7 @@ def test_detect_command_writes_the_tables_and_report(movie, tmp_path, capsys):
     assert molecules.columns[:6].tolist() == first
     assert len(molecules) == len(pd.read_csv(out / "candidates.csv"))
     assert "DeSantis" in (out / "selection.md").read_text()
+    assert (out / "camera.toml").read_text() == camera.read_text()  # the camera file, recorded
     assert f"{len(molecules)} candidate molecules" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="psf-sd"):
         camera.write_text(camera.read_text().split("[emitter]")[0])
