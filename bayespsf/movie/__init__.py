@@ -6,12 +6,14 @@ bounded memory; ``detect`` / ``detect_movie`` / ``detect_frames`` find candidate
 a stated false-positive rate; ``cut_rois`` cuts each molecule's ROIs over time;
 ``molecules_over_time`` gives per-frame photons, background and centroid, the bleaching steps
 (``bleach_steps``) and the drift; ``select`` applies the paper's selection rules (``Rules``);
-``dark_calibration`` gives a camera's offset and readout noise from its dark frames.
+``dark_calibration`` gives a camera's offset and readout noise from its dark frames, and
+``gain_from_molecules`` its ADU per photon from the movie's immobile molecules (Eq. photonConv).
 """
 
 from bayespsf.movie.calibrate import DarkCalibration, dark_calibration
 from bayespsf.movie.detect import detect, detect_frames, detect_movie
 from bayespsf.movie.extract import RoiStack, cut_rois, iter_rois
+from bayespsf.movie.gain import GainEstimate, gain_from_molecules
 from bayespsf.movie.project import project
 from bayespsf.movie.read import Movie, read_movie
 from bayespsf.movie.select import Rules, select
@@ -20,6 +22,7 @@ from bayespsf.movie.traces import molecules_over_time, traces
 
 __all__ = [
     "DarkCalibration",
+    "GainEstimate",
     "Movie",
     "RoiStack",
     "Rules",
@@ -29,6 +32,7 @@ __all__ = [
     "detect",
     "detect_frames",
     "detect_movie",
+    "gain_from_molecules",
     "iter_rois",
     "molecules_over_time",
     "project",

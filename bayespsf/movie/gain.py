@@ -65,7 +65,8 @@ class GainEstimate:
     interval : tuple of float
         The 95% interval (Student's t, molecules - 1 degrees of freedom): the error bar.
     per_molecule : pandas.DataFrame
-        ``molecule``, ``frames``, ``adu_per_photon``, ``se``, ``fluctuation`` (the fitted
+        ``molecule``, ``x``, ``y``, ``frames`` (the number used), ``adu_per_photon``,
+        ``se``, ``fluctuation`` (the fitted
         relative variance ``phi`` of its photons between frames), ``peak_photons`` and
         ``outlier`` (left out of the combination).
     excess : float
@@ -136,6 +137,8 @@ def gain_from_molecules(
     sums = _moments(movie, chosen, use, roi, fit, block)
     rows = [_one_molecule(mid, *sums[mid], roi, fit, centre, excess) for mid in chosen["molecule"]]
     per_molecule = pd.DataFrame(rows)
+    per_molecule.insert(1, "x", chosen["x"].to_numpy())
+    per_molecule.insert(2, "y", chosen["y"].to_numpy())
     return _combine(per_molecule, excess)
 
 
