@@ -1,15 +1,18 @@
-"""Movies: reading and projecting a large movie frame by frame, with its peak memory.
+"""Movies: reading, projecting and detecting on a large movie frame by frame, with its peak
+memory.
 
-Writes a 2 000-frame 512 x 512 uint16 movie (1 GiB; Poisson counts around 100) with tifffile in
-a temporary directory (removed afterwards), in a separate process so that writing it does not
-count in this process's peak memory; then opens it with ``bayespsf.movie.read_movie``, reads
-every frame in blocks of 64, and projects the mean and the median over all frames (default
-memory budget, 256 MiB). Per step: time, time per frame, the peak of Python's traced
-allocations (tracemalloc: NumPy arrays included, memory-mapped file pages not) and the growth
-of the process's peak resident memory (``resource.getrusage``: file pages mapped while a step
-runs included); each step is timed in a first run and traced in a second (tracemalloc slows
-Python-level code). The file has just been written, so it is read from the page cache: the times
-are those of a warm file, not of a disk.
+Writes a 2 000-frame 512 x 512 uint16 movie (1 GiB; photon counts: a background of 100 photons
+per pixel and 144 immobile spots of 300 photons per frame, SD 1.3 pixels, 40 pixels apart on a
+grid; Poisson noise) with tifffile in a temporary directory (removed afterwards), in a separate
+process so that writing it does not count in this process's peak memory; then opens it with
+``bayespsf.movie.read_movie``, reads every frame in blocks of 64, projects the mean and the
+median over all frames (default memory budget, 256 MiB), and detects the molecules on the mean
+projection (``detect_movie``, a photon-counting camera, 100 nm pixels). Per step: time, time
+per frame, the peak of Python's traced allocations (tracemalloc: NumPy arrays included, memory-
+mapped file pages not) and the growth of the process's peak resident memory
+(``resource.getrusage``: file pages mapped while a step runs included); each step is timed in a
+first run and traced in a second (tracemalloc slows Python-level code). The file has just been
+written, so it is read from the page cache: the times are those of a warm file, not of a disk.
 
     python benchmarks/movie.py            # full run, rewrites its section of README.md
     python benchmarks/movie.py --quick    # 100 frames of 128 x 128, prints only (the tests)
@@ -30,16 +33,25 @@ import pandas as pd
 import tifffile  # noqa: F401  (imported here, so that opening the movie is timed without it)
 from _report import machine, publish
 
-from bayespsf.movie import project, read_movie
+from bayespsf.cameras import Photon
+from bayespsf.model import MIN_ROI, Model
+from bayespsf.movie import detect_movie, project, read_movie
 
 WRITE = """
 import sys
 import numpy as np
 import tifffile
 
+from bayespsf import psf
+
 path, n, h, w = sys.argv[1], *map(int, sys.argv[2:])
 rng = np.random.default_rng(13)
-frames = (rng.poisson(100.0, (h, w)).astype(np.uint16) for _ in range(n))
+lam = np.full((h, w), 100.0)
+for r in range(20, h - 20, 40):
+    for c in range(20, w - 20, 40):
+        spot = psf.expected_counts([0.0, 0.0, 130.0, 130.0, 300.0, 0.0], 15, 100.0)
+        lam[r - 7 : r + 8, c - 7 : c + 8] += spot
+frames = (rng.poisson(lam).astype(np.uint16) for _ in range(n))
 tifffile.imwrite(path, frames, shape=(n, h, w), dtype=np.uint16, photometric="minisblack")
 """
 
@@ -88,12 +100,17 @@ def run(quick: bool = False) -> tuple[pd.DataFrame, dict]:
               lambda: sum(len(b) for _, b in movie.blocks(64)))  # fmt: skip
         for kind in ("mean", "median"):
             _step(rows, f"project {kind}", n, lambda kind=kind: project(movie, kind))
+        model = Model(MIN_ROI, 100.0, Photon())
+        found = _step(rows, "detect_movie (mean projection, then detection)", n,
+                      lambda: detect_movie(movie, psf_sd=130.0, camera=model))  # fmt: skip
         movie.close()
         info = {
             "movie": f"{n} frames of {h} x {w} uint16, {path.stat().st_size / 2**30:.3g} GiB",
             "written in (s)": written,
             "peak RSS before reading (MB)": baseline,
             "peak RSS after (MB)": _peak_rss_mb(),
+            "spots": len(range(20, h - 20, 40)) * len(range(20, w - 20, 40)),
+            "accepted candidates": int((found["status"] == "accepted").sum()),
         }
     return pd.DataFrame(rows), info
 
@@ -104,7 +121,8 @@ def markdown(table: pd.DataFrame, info: dict, command: str) -> str:
         f"Movie: {info['movie']} (written by tifffile in {info['written in (s)']:.1f} s, in "
         "another process). Peak RSS of this process: "
         f"{info['peak RSS before reading (MB)']:.0f} MB after imports, "
-        f"{info['peak RSS after (MB)']:.0f} MB at the end.\n\n"
+        f"{info['peak RSS after (MB)']:.0f} MB at the end. Detection accepted "
+        f"{info['accepted candidates']} candidates for {info['spots']} spots.\n\n"
         f"{table.to_markdown(**fmt)}\n\n"
         f"Command: `{command}` on {machine()}."
     )

@@ -106,7 +106,9 @@ def test_movie_benchmark_quick():
         "read every frame (blocks of 64)",
         "project mean",
         "project median",
+        "detect_movie (mean projection, then detection)",
     ]
+    assert info["accepted candidates"] == info["spots"] == 9  # bright, well-separated spots
     assert np.all(table["seconds"] > 0) and np.all(table["frames"] == 100)
     assert np.all(table["tracemalloc peak (MB)"] > 0)
     assert info["peak RSS after (MB)"] >= info["peak RSS before reading (MB)"]
