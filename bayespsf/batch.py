@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf._checks import real_array
+from bayespsf._progress import progress_bar
 from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
@@ -393,7 +394,7 @@ def sample_many(
             if problem is not None:
                 rows[i] = _outcome_row(i, molecule_seed(seed, i), "refused", problem)
         todo = [i for i in range(n) if i not in rows]
-        bar = _progress(n, len(rows), progress)
+        bar = progress_bar(n, progress, initial=len(rows), unit="molecule")
         runner, owned = _executor(executor, workers)
         try:
             if settings.method != "mcmc":  # the batched methods; the chain where they fail
@@ -495,17 +496,6 @@ def _outcome_row(index: int, seed: int, status: str, message: str) -> dict:
     """The summary row of a molecule without a posterior: its status and the reason."""
     return {"molecule": int(index), "seed": int(seed), "converged": False, "status": status,
             "message": message}  # fmt: skip
-
-
-def _progress(total, done, progress):
-    from tqdm import tqdm
-
-    show = progress or (progress is None and sys.stderr.isatty())
-
-    class Bar(tqdm):
-        monitor_interval = 0  # no monitor thread: the next run may still fork its workers
-
-    return Bar(total=total, initial=done, disable=not show, unit="molecule", file=sys.stderr)
 
 
 __all__ = ["coverage", "local_executor", "molecule_row", "molecule_seed", "sample_many"]

@@ -139,3 +139,13 @@ def test_movies_the_rules_cannot_use_are_named(tmp_path):
     assert not found.molecules["selected"].any()
     assert found.molecules["rejected_by"].str.startswith("detection").all()
     assert "no molecule accepted" in found.report_markdown()
+
+
+def test_progress_bars_only_when_asked_or_on_a_terminal(movie, capsys):
+    scene, stem, _, _ = movie
+    model = Model.from_scene(scene)
+    find_molecules(stem.with_suffix(".ome.tif"), model, s0=120.0, progress=True)
+    err = capsys.readouterr().err
+    assert "traces" in err and "fits" in err and "frame" in err
+    find_molecules(stem.with_suffix(".ome.tif"), model, s0=120.0)  # stderr is not a terminal
+    assert capsys.readouterr().err == ""

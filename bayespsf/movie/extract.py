@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf._checks import finite_array
+from bayespsf._progress import progress_bar
 from bayespsf.cameras import Camera
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import MIN_ROI, Model
@@ -182,14 +183,19 @@ def frame_span(movie: Movie, frames) -> range:
 
 
 def iter_rois(
-    movie, molecules, *, roi: int = 25, fit: int = 15, frames=None, block: int = 64
-) -> Iterator[RoiStack]:
+    movie, molecules, *, roi: int = 25, fit: int = 15, frames=None, block: int = 64,
+    progress: bool | None = None, desc: str | None = None,
+) -> Iterator[RoiStack]:  # fmt: skip
     """ROIs one block of frames at a time: a ``RoiStack`` per block of at most ``block``
     frames, its ROIs ordered by molecule, then frame. Arguments as ``cut_rois``; only one
-    block (``block * M * roi**2`` values, and the rows the ROIs span) is in memory."""
+    block (``block * M * roi**2`` values, and the rows the ROIs span) is in memory.
+    ``progress``: a bar of frames named ``desc`` (default: when stderr is a terminal)."""
     plan = _Plan(movie, molecules, roi, fit, frames)
-    for first, cut in plan.blocks(block):
-        yield RoiStack(cut.reshape(-1, roi, roi), plan.table(first, first + cut.shape[1]), fit)
+    with progress_bar(len(plan.span), progress, unit="frame", desc=desc) as bar:
+        for first, cut in plan.blocks(block):
+            table = plan.table(first, first + cut.shape[1])
+            yield RoiStack(cut.reshape(-1, roi, roi), table, fit)
+            bar.update(cut.shape[1])
 
 
 def cut_rois(

@@ -68,7 +68,7 @@ def fit_model(model: Model, fit: int) -> Model:
 
 
 def frame_fits(movie, molecules, model: Model, *, roi=25, fit=15, frames=None, block=64,
-               until=None):  # fmt: skip
+               until=None, progress=None):  # fmt: skip
     """Per (molecule, frame): the maximum-likelihood fit of the central ``fit`` × ``fit`` ROI
     (``fit_mle``'s stack engine, one block of frames at a time), the peak photons above the
     background ``I0`` and the background variance ``sigma_b^2`` in photons from the ROI's
@@ -80,7 +80,8 @@ def frame_fits(movie, molecules, model: Model, *, roi=25, fit=15, frames=None, b
     fitting = fit_model(model, fit)
     ring_pixels = roi * roi - fit * fit
     parts = []
-    for stack in iter_rois(movie, molecules, roi=roi, fit=fit, frames=frames, block=block):
+    for stack in iter_rois(movie, molecules, roi=roi, fit=fit, frames=frames, block=block,
+                           progress=progress, desc="fits"):  # fmt: skip
         keep = np.ones(len(stack), dtype=bool)
         if until is not None:
             end = stack.table["molecule"].map(until)
@@ -112,6 +113,7 @@ def find_molecules(
     projection: str = "mean",
     rules: Rules | None = None,
     block: int = 64,
+    progress: bool | None = None,
 ) -> FoundMolecules:
     """Detect, trace, fit and select the molecules of an immobile-molecule movie.
 
@@ -131,6 +133,8 @@ def find_molecules(
         The selection rules (default: the paper's numbers).
     block : int
         Frames read at a time.
+    progress : bool, optional
+        Progress bars of the traces and the fits on stderr (default: when it is a terminal).
     """
     movie = open_movie(movie)
     rules = Rules() if rules is None else rules
@@ -164,9 +168,11 @@ def find_molecules(
         report = pd.DataFrame([{"rule": "no molecule accepted by detection"}])
     else:
         per_molecule, per_frame = molecules_over_time(movie, accepted, model, s0=s0, roi=roi,
-                                                      fit=fit, block=block)  # fmt: skip
+                                                      fit=fit, block=block,
+                                                      progress=progress)  # fmt: skip
         until = per_molecule.set_index("molecule")["bleach_frame"]
-        fitted = frame_fits(movie, accepted, model, roi=roi, fit=fit, block=block, until=until)
+        fitted = frame_fits(movie, accepted, model, roi=roi, fit=fit, block=block, until=until,
+                            progress=progress)  # fmt: skip
         frames = per_frame.merge(fitted, on=["molecule", "frame"], how="left",
                                  suffixes=("", "_roi"))  # fmt: skip
         bleach = frames["molecule"].map(until)

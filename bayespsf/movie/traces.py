@@ -43,6 +43,7 @@ def traces(
     aperture: float = 2.5,
     frames=None,
     block: int = 64,
+    progress: bool | None = None,
 ) -> pd.DataFrame:
     """Photons, background and centroid of every molecule in every frame.
 
@@ -99,7 +100,8 @@ def traces(
     spot = psf.expected_counts(np.column_stack([unit, np.zeros(len(ids))]), fit, a)[:, disc]
     enclosed = spot.sum(axis=1)
     parts = []
-    for stack in iter_rois(movie, molecules, roi=roi, fit=fit, frames=frames, block=block):
+    for stack in iter_rois(movie, molecules, roi=roi, fit=fit, frames=frames, block=block,
+                           progress=progress, desc="traces"):  # fmt: skip
         m = np.repeat(np.arange(len(ids)), len(stack) // len(ids))
         background = stack.periphery_background(model)
         b, b_se = background["b"].to_numpy(), background["b_se"].to_numpy()
