@@ -11,9 +11,7 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.select import Rules
-from bayespsf.movie.simulate import simulate_movie
-
-MATCH = 1.5  # pixels: a candidate within this distance of a true molecule found it
+from bayespsf.movie.simulate import match_truth, simulate_movie
 
 
 @pytest.fixture(scope="module")
@@ -31,15 +29,9 @@ def movie(tmp_path_factory):
 
 
 def matched(found, truth):
-    """Index of the true molecule each candidate found (-1: none within MATCH pixels). A
-    moving molecule's spot wanders (a random walk of ~6 pixels here) and smears the mean
-    projection: candidates within 10 pixels of its start are attributed to it."""
-    c = found.candidates[["x", "y"]].to_numpy()
-    t = truth[["x", "y"]].to_numpy()
-    distance = np.max(np.abs(c[:, None, :] - t[None, :, :]), axis=-1)
-    reach = np.where(truth["moving"].to_numpy(bool), 10.0, MATCH)
-    near = distance <= reach[None, :]
-    return np.where(near.any(axis=1), np.where(near, distance, np.inf).argmin(axis=1), -1)
+    """Index of the true molecule each candidate found (-1: none within 1.5 pixels; 10 for a
+    moving molecule, whose random walk of ~6 pixels here smears the mean projection)."""
+    return match_truth(found.candidates, truth)
 
 
 def test_every_immobile_molecule_is_found_and_nothing_else(movie):

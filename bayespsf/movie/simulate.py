@@ -410,6 +410,22 @@ def _write_tiff(path: Path, pages, n: int, scene: Scene, dtype: np.dtype) -> Non
         tif.write(pages, shape=shape, dtype=dtype, photometric="minisblack", metadata=metadata)
 
 
+def match_truth(candidates: pd.DataFrame, molecules: pd.DataFrame, reach: float = 1.5,
+                moving_reach: float = 10.0) -> np.ndarray:  # fmt: skip
+    """For each candidate (``x``, ``y``), the row of the true molecule it found in
+    ``molecules`` (a ``MovieTruth.molecules`` table), or -1: the nearest within ``reach``
+    pixels (Chebyshev distance to the molecule's frame-0 position), or within
+    ``moving_reach`` of a moving molecule, whose random walk smears its spot over the mean
+    projection."""
+    c = candidates[["x", "y"]].to_numpy(float)
+    t = molecules[["x", "y"]].to_numpy(float)
+    distance = np.max(np.abs(c[:, None, :] - t[None, :, :]), axis=-1)
+    limit = np.where(molecules["moving"].to_numpy(bool), moving_reach, reach)
+    near = distance <= limit[None, :]
+    nearest = np.where(near, distance, np.inf).argmin(axis=1)
+    return np.where(near.any(axis=1), nearest, -1)
+
+
 def _check_seed(seed) -> None:
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise BayespsfInputError(f"seed must be an integer >= 0, got {seed!r}")
