@@ -159,6 +159,8 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> np.ndarray:
         log_g.append(-0.5 * np.sum(u * u, axis=1))
     scored = score(model, stack[usable], pilots) if usable else []
     left = [i for i in todo if factors[i] is None]
+    for i in left:
+        out[i]["info"]["why"] = "chain: the Laplace covariance is not positive definite"
     wanted = CHAINS * int(np.ceil(settings.ess / CHAINS))
     for i, lp, lg in zip(usable, scored, log_g, strict=True):
         weight_sd = _weight_sd(lp - lg)
@@ -172,8 +174,8 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> np.ndarray:
             continue
         u = rngs[i].standard_normal((2 * wanted, 6))
         z = laplace[i][0] + u @ factors[i].T
-        params = model.from_unconstrained(z[np.isfinite(model.log_prior(
-            model.from_unconstrained(z)))][:wanted])  # fmt: skip
+        params = model.from_unconstrained(z)
+        params = params[np.isfinite(model.log_prior(params))][:wanted]  # within the prior
         params = params[: CHAINS * (len(params) // CHAINS)]
         relation = "<=" if passed else ">"
         out[i]["draws"] = params
