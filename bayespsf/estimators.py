@@ -275,8 +275,9 @@ ENGINES = ("stack", "scipy")
 
 @one_blas_thread
 def fit_mle(
-    counts, model: Model, start=None, laplace: bool = True, engine: str = "stack"
-) -> pd.DataFrame:
+    counts, model: Model, start=None, laplace: bool = True, engine: str = "stack",
+    crlb: bool = True,
+) -> pd.DataFrame:  # fmt: skip
     """Maximum likelihood under the model's camera law (any tier), with the Laplace SDs.
 
     ``engine="stack"`` (default): every ROI of the stack advances together in a vectorised
@@ -303,6 +304,9 @@ def fit_mle(
     laplace : bool
         Add the Laplace SDs and correlations.
     engine : {"stack", "scipy"}
+    crlb : bool
+        Add the ``crlb_<p>`` columns (NaN without): the expected information at every fit
+        (for sCMOS, a quadrature per pixel, the costliest step of a fit).
     """
     if engine not in ENGINES:
         raise BayespsfInputError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
@@ -332,7 +336,7 @@ def fit_mle(
     message[~finite] = "non-finite estimate"
     ok &= finite & ~runaway & ~on_bound
     bound = np.full((len(fit), 6), np.nan)
-    if ok.any():
+    if crlb and ok.any():
         with np.errstate(invalid="ignore"):  # a negative diagonal (not invertible): NaN
             bound[ok] = _in_blocks(lambda p: stack_mle.crlb(model, p), params[ok])
     cov = np.full((len(fit), 6, 6), np.nan)

@@ -97,7 +97,7 @@ def _in_internal(model, p, lam, jac, score):
     information, in ``u``, from the pixels' expected counts, Jacobian and score."""
     # the metric only steers the steps (the optimum is where the gradient vanishes): pixels
     # below METRIC_FLOOR, where a camera's tabulated information ends, are scored at the floor
-    fisher = model.camera._fisher_information(np.maximum(lam, METRIC_FLOOR))
+    fisher = model.camera._step_information(np.maximum(lam, METRIC_FLOOR))
     chain = _chain(p, model.pixel_size)
     grad = -_contract(jac, score) * chain
     return grad, _information(jac, fisher) * chain[:, :, None] * chain[:, None, :]
@@ -210,9 +210,17 @@ def _maximise_block(model, counts, starts):
             break
         lm = metric + (damping[active][:, None] * diagonal)[:, :, None] * np.eye(6)
         trial = np.clip(ua + _solve(lm, -grad), low, high)
-        f_trial, grad_trial, metric_trial = _evaluate(
-            model, counts[active], from_internal(trial, a)
+        # a step that is not finite (an overflowing metric) is refused like a worse one
+        f_trial = np.full(len(active), np.inf)
+        grad_trial, metric_trial = (
+            np.full((len(active), 6), np.nan),
+            np.full((len(active), 6, 6), np.nan),
         )
+        real = np.isfinite(trial).all(axis=1)
+        if real.any():
+            f_trial[real], grad_trial[real], metric_trial[real] = _evaluate(
+                model, counts[active[real]], from_internal(trial[real], a)
+            )
         better = np.isfinite(f_trial) & (f_trial <= f[active])
         moved = active[better]
         u[moved], f[moved] = trial[better], f_trial[better]

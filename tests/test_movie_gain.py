@@ -126,3 +126,24 @@ def test_calibrate_inputs_that_cannot_work_are_one_line(movie, tmp_path):
     with pytest.raises(SystemExit, match="no background light"):  # the movie as its own dark
         cli.main(["calibrate", str(dark), "--dark", str(dark), "--psf-sd", "120",
                   "--out", str(tmp_path / "c.toml")])  # fmt: skip
+
+
+def test_calibrate_an_scmos_camera(tmp_path):
+    # a CCD/sCMOS of one gain 2.17 ADU per photoelectron, offset 100 ADU, variance 12 ADU^2:
+    # excess noise 1; the file states gain, offset and variance (+1/12 ADU^2 of rounding)
+    from bayespsf import Scene
+    from bayespsf.movie.camera_file import calibrate_camera
+
+    table = scenes.load("paper-movie").to_dict()
+    table["camera"] = {"kind": "scmos", "gain": 2.17, "offset": 100.0, "variance": 12.0,
+                       "quantize": True, "saturation": 65535.0}  # fmt: skip
+    table["movie"].update(frames=150, height=128, width=128, molecules=12, bleach_mean=100.0,
+                          two_fluorophores=0.0, moving=0.0, dark_frames=20)  # fmt: skip
+    files = simulate_movie(Scene.from_dict(table), seed=5, out=tmp_path / "s").files
+    cal = calibrate_camera(files["movie"], files["dark"], kind="scmos", s0=120.0)
+    low, high = cal.gain.interval
+    assert low <= 2.17 <= high, str(cal.gain)
+    camera = cal.camera_table()
+    assert camera["kind"] == "scmos" and set(camera) == {"kind", "gain", "offset", "variance"}
+    assert camera["offset"] == pytest.approx(100.0, abs=0.05)
+    assert camera["variance"] == pytest.approx(12.0 + 1 / 12, rel=0.02)

@@ -70,6 +70,12 @@ class Camera(ABC):
         (the stack MLE); cameras that can share work between the two override it."""
         return self._log_likelihood(counts, expected), self._score(counts, expected)
 
+    def _step_information(self, expected: np.ndarray) -> np.ndarray:
+        """Per-pixel information that steers an optimiser's steps (the stack MLE's metric),
+        where only its scale and shape matter, not its last digits: the Fisher information
+        unless a camera has a much cheaper close bound."""
+        return self._fisher_information(expected)
+
     def variance(self, expected) -> np.ndarray:
         """Variance of the counts, in ADU^2, given expected photons (its exact second moment)."""
         return self._variance(nonnegative_array("expected", expected))

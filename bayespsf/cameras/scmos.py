@@ -584,6 +584,15 @@ class SCMOS(Camera):
             out[~readout] = 1.0 / lam[~readout]
         return out.reshape(expected.shape)
 
+    def _step_information(self, expected: np.ndarray) -> np.ndarray:
+        """Huang et al.'s ``1 / (lam + s^2)`` (``s`` the readout SD in photoelectrons), a lower
+        bound of the exact information within a few percent beyond a few photoelectrons: the
+        exact one costs a quadrature per pixel (~2 ms each), which made every step of the
+        stack MLE on sCMOS ROIs take seconds."""
+        self._check_shape("expected", expected.shape)
+        with np.errstate(divide="ignore"):
+            return 1.0 / (expected + self._v / self._g**2)
+
 
 def _map(name: str, value: ArrayLike) -> np.ndarray:
     arr = finite_array(name, value)

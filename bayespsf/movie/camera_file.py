@@ -134,7 +134,7 @@ def calibrate_camera(
     if kind == "emccd":
         camera = EMCCD(m0, dark_cal.readout_sd, dark_cal.offset, 1.0, likelihood="table")
     else:
-        camera = SCMOS(m0, dark_cal.offset, dark_cal.readout_sd**2)
+        camera = SCMOS(m0, dark_cal.offset, dark_cal.readout_sd**2, likelihood="huang")
     found = find_molecules(movie, Model(MIN_ROI, pixel_size, camera), s0=s0, roi=roi, fit=fit)
     chosen = found.molecules[found.molecules["selected"]]
     frames = found.frames

@@ -89,7 +89,7 @@ def frame_fits(movie, molecules, model: Model, *, roi=25, fit=15, frames=None, b
         if not keep.any():
             continue
         stack = RoiStack(stack.counts[keep], stack.table[keep].reset_index(drop=True), fit)
-        fits = fit_mle(stack.central(), fitting, laplace=False)
+        fits = fit_mle(stack.central(), fitting, laplace=False, crlb=False)
         ring = stack.periphery_background(model)
         central = fitting.to_photons(stack.central())
         part = stack.table.copy()
