@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,35 @@ def finish(args, name: str, table, text: str, started: float, summary: str | Non
     write(args.out, stem, table, text, command, started, None if args.quick else summary)
     print(text)
     return table
+
+
+def per_movie_report(title: str, table, movies, stem: str, alt: str) -> tuple[str, str]:
+    """(text, README summary) of a study over repeated movies: its summary table, then one
+    row per movie, and its figure ``stem.png``."""
+    fmt = {"index": False, "floatfmt": ".4g"}
+    text = (
+        f"# {title}\n\n{table.to_markdown(**fmt)}\n\nPer movie:\n\n{movies.to_markdown(**fmt)}"
+        f"\n\nFigure: [{stem}.png]({stem}.png)."
+    )
+    return text, f"{table.to_markdown(**fmt)}\n\n![{alt}](results/{stem}.png)"
+
+
+@contextmanager
+def per_movie_figure(path: Path, ylabel: str):
+    """The axes of a figure with one point per movie, saved to ``path`` on exit."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3))
+    yield ax
+    ax.set_xlabel("movie")
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:

@@ -37,7 +37,7 @@ from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.simulate import match_truth, simulate_movie
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import finish, study
+from _common import finish, per_movie_figure, per_movie_report, study
 
 
 def one_movie(scene, seed: int) -> dict:
@@ -108,39 +108,19 @@ def main(argv=None):
         "selected per movie": movies["selected"].mean(),
     }])  # fmt: skip
     figure(movies, args.out / f"{stem}.png")
-    text = (
-        "# From movies to selected molecules, against the truth\n\n"
-        + table.to_markdown(index=False, floatfmt=".3g")
-        + "\n\nPer movie:\n\n"
-        + movies.to_markdown(index=False, floatfmt=".3g")
-        + f"\n\nFigure: [{stem}.png]({stem}.png)."
-    )
-    summary = table.to_markdown(index=False, floatfmt=".3g") + (
-        f"\n\n![detection per movie](results/{stem}.png)"
-    )
+    text, summary = per_movie_report("From movies to selected molecules, against the truth",
+                                     table, movies, stem, "detection per movie")  # fmt: skip
     return finish(args, "movie_detection", table, text, started, summary)
 
 
 def figure(movies: pd.DataFrame, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3))
-    k = np.arange(len(movies))
-    for column, marker in (("found (immobile)", "o"), ("bleach within 1 frame", "s"),
-                           ("false candidates", "x")):  # fmt: skip
-        ax.plot(k, movies[column], marker, label=column)
-    ax.axhline(0.95, color="C0", lw=0.8, ls="--")
-    ax.axhline(0.9, color="C1", lw=0.8, ls="--")
-    ax.axhline(0.01, color="C2", lw=0.8, ls="--")
-    ax.set_xlabel("movie")
-    ax.set_ylabel("share")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    with per_movie_figure(path, "share") as ax:
+        k = np.arange(len(movies))
+        for column, marker in (("found (immobile)", "o"), ("bleach within 1 frame", "s"),
+                               ("false candidates", "x")):  # fmt: skip
+            ax.plot(k, movies[column], marker, label=column)
+        for level, colour in ((0.95, "C0"), (0.9, "C1"), (0.01, "C2")):  # the targets
+            ax.axhline(level, color=colour, lw=0.8, ls="--")
 
 
 if __name__ == "__main__":

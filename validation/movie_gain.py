@@ -11,7 +11,7 @@ selected molecule's ROI frames before bleaching, averaged over the molecules), t
 fluctuation does to it.
 
     python validation/movie_gain.py            # 40 paper-movies (about 8 minutes)
-    python validation/movie_gain.py --quick    # 2 small movies (100 frames of 128 x 128)
+    python validation/movie_gain.py --quick    # 2 small movies (150 frames of 160 x 160)
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from bayespsf.movie.extract import cut_rois
 from bayespsf.movie.simulate import simulate_movie
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import finish, study
+from _common import finish, per_movie_figure, per_movie_report, study
 
 TRUE_M = 200.0 / 12.0
 
@@ -66,8 +66,8 @@ def main(argv=None):
     args, started, stem = study(__doc__, argv, "movie_gain", posteriors=False)
     scene = scenes.load("paper-movie")
     if args.quick:
-        scene = scene.replace(movie={"frames": 100, "height": 128, "width": 128,
-                                     "molecules": 12, "bleach_mean": 400.0})  # fmt: skip
+        scene = scene.replace(movie={"frames": 150, "height": 160, "width": 160,
+                                     "molecules": 16, "bleach_mean": 80.0})  # fmt: skip
     movies = run(2 if args.quick else 40, scene)
     n = len(movies)
     covered = movies["covered"].mean()
@@ -86,38 +86,22 @@ def main(argv=None):
         ),
     }])  # fmt: skip
     figure(movies, args.out / f"{stem}.png")
-    text = (
-        f"# ADU per photon from whole movies: true M = {TRUE_M:.4g}\n\n"
-        + table.to_markdown(index=False, floatfmt=".3g")
-        + "\n\nPer movie:\n\n"
-        + movies.to_markdown(index=False, floatfmt=".4g")
-        + f"\n\nFigure: [{stem}.png]({stem}.png), each movie's estimate and 95% interval."
-    )
-    summary = table.to_markdown(index=False, floatfmt=".3g") + (
-        f"\n\n![movie gain estimates](results/{stem}.png)"
-    )
+    text, summary = per_movie_report(
+        f"ADU per photon from whole movies: true M = {TRUE_M:.4g}", table, movies, stem,
+        "movie gain estimates",
+    )  # fmt: skip
     return finish(args, "movie_gain", table, text, started, summary)
 
 
 def figure(movies: pd.DataFrame, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3))
-    k = np.arange(len(movies))
-    ax.errorbar(k, movies["M"], yerr=[movies["M"] - movies["low"], movies["high"] - movies["M"]],
-                fmt="o", ms=3, color="C0", label="bayespsf calibrate, 95% interval")  # fmt: skip
-    ax.plot(k, movies["Eq. photonConv without fluctuation (mean over molecules)"], "x",
-            color="C3", label="Eq. photonConv without the fluctuation term")  # fmt: skip
-    ax.axhline(TRUE_M, color="k", lw=1)
-    ax.set_xlabel("movie")
-    ax.set_ylabel("M (ADU per photon)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    with per_movie_figure(path, "M (ADU per photon)") as ax:
+        k = np.arange(len(movies))
+        error = [movies["M"] - movies["low"], movies["high"] - movies["M"]]
+        ax.errorbar(k, movies["M"], yerr=error, fmt="o", ms=3, color="C0",
+                    label="bayespsf calibrate, 95% interval")  # fmt: skip
+        ax.plot(k, movies["Eq. photonConv without fluctuation (mean over molecules)"], "x",
+                color="C3", label="Eq. photonConv without the fluctuation term")  # fmt: skip
+        ax.axhline(TRUE_M, color="k", lw=1)
 
 
 if __name__ == "__main__":
