@@ -150,3 +150,22 @@ def test_batched_auto_posteriors_are_calibrated():
         cov = coverage(table, prob)
         se = np.sqrt(prob * (1 - prob) / len(table))
         assert np.all(np.abs(cov["coverage"] - prob) <= 3 * se), cov
+
+
+def test_laplace_branch_posteriors_are_calibrated():
+    # 480 ROIs at N = 20 000, where auto takes the Laplace for most (418 here; 80% measured by
+    # benchmarks/auto.py): over all ROIs and over those the Laplace made, the central 68% and
+    # 95% intervals of every parameter cover the truth within 3 binomial SEs (the other
+    # calibration test, at N = 1 000, never reaches the Laplace)
+    scene = scene_at(20_000)
+    counts, truth = simulate(scene, 480, seed=22)
+    truths = truth[list(PARAMETER_NAMES)].to_numpy(float)
+    table = sample_many(counts, Model.from_scene(scene), seed=5, workers=1, method="auto",
+                        truths=truths)  # fmt: skip
+    laplace = table[table["method"] == "laplace"]
+    assert len(laplace) >= 0.5 * len(table)
+    for rows in (table, laplace):
+        for prob in (0.68, 0.95):
+            cov = coverage(rows, prob)
+            se = np.sqrt(prob * (1 - prob) / len(rows))
+            assert np.all(np.abs(cov["coverage"] - prob) <= 3 * se), cov
