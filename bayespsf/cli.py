@@ -426,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Offset and readout noise from DARK (frames without light), then the ADU "
         "per photon by Eq. photonConv of DeSantis et al., Opt. Express 18 (2010) over the "
         "movie's selected immobile molecules (as `bayespsf detect` finds them), combined with "
-        "a 95%% interval. Writes a camera file (TOML) for --camera, its provenance in comments.",
+        "a 95% interval. Writes a camera file (TOML) for --camera, its provenance in comments.",
     )
     calibrate.add_argument("movie", help="the movie: .tif/.tiff/.ome.tif or .npy")
     calibrate.add_argument("--dark", required=True, help="dark frames of the same camera")
