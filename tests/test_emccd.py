@@ -73,7 +73,7 @@ def test_exact_law_normalised_with_exact_mean_and_variance(params, lam):
 
 # Each known trap of DESIGN.md, in gain units (t = electrons/G, r = readout/G), against the
 # independent mpmath routes of emccd_reference (Poisson-parabolic-cylinder series or
-# tanh-sinh quadrature, 40 digits). Tolerance 1e-9 absolute in log p (1e-9 relative in p),
+# tanh-sinh quadrature, 25 digits). Tolerance 1e-9 absolute in log p (1e-9 relative in p),
 # except where |log p| is so large that double precision of its terms limits us (eps*|log p|).
 TRAPS = [
     ("lam 1e4: exp(-lam) underflows, I1 overflows", 1.0e4 + 50.0, 1.0e4, 0.05, "quad"),

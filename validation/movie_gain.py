@@ -11,7 +11,7 @@ selected molecule's ROI frames before bleaching, averaged over the molecules), t
 fluctuation does to it.
 
     python validation/movie_gain.py            # 40 paper-movies (about 8 minutes)
-    python validation/movie_gain.py --quick    # 2 small movies (150 frames of 160 x 160)
+    python validation/movie_gain.py --quick    # 2 small movies (150 frames of 128 x 128)
 """
 
 from __future__ import annotations
@@ -66,8 +66,8 @@ def main(argv=None):
     args, started, stem = study(__doc__, argv, "movie_gain", posteriors=False)
     scene = scenes.load("paper-movie")
     if args.quick:
-        scene = scene.replace(movie={"frames": 150, "height": 160, "width": 160,
-                                     "molecules": 16, "bleach_mean": 80.0})  # fmt: skip
+        scene = scene.replace(movie={"frames": 150, "height": 128, "width": 128,
+                                     "molecules": 12, "bleach_mean": 100.0})  # fmt: skip
     movies = run(2 if args.quick else 40, scene)
     n = len(movies)
     covered = movies["covered"].mean()
