@@ -137,19 +137,30 @@ def test_bad_and_unfittable_rois_are_rows_the_rest_is_sampled(dim):
     assert table.drop(index=1)["method"].isin(["importance", "mcmc"]).all()
 
 
+def _auto_posteriors(n_photons: float, simulation_seed: int, seed: int):
+    """480 emccd-typical ROIs at ``n_photons`` and their auto posteriors with truths."""
+    scene = scene_at(n_photons)
+    counts, truth = simulate(scene, 480, seed=simulation_seed)
+    truths = truth[list(PARAMETER_NAMES)].to_numpy(float)
+    return sample_many(counts, Model.from_scene(scene), seed=seed, workers=1, method="auto",
+                       truths=truths)  # fmt: skip
+
+
+def _assert_calibrated(rows) -> None:
+    """The central 68% and 95% intervals of every parameter cover the truth within 3
+    binomial SEs."""
+    for prob in (0.68, 0.95):
+        cov = coverage(rows, prob)
+        se = np.sqrt(prob * (1 - prob) / len(rows))
+        assert np.all(np.abs(cov["coverage"] - prob) <= 3 * se), cov
+
+
 def test_batched_auto_posteriors_are_calibrated():
     # 480 ROIs of emccd-typical at N = 1000 with their truths: the central 68% and 95%
     # intervals of every parameter cover the truth within 3 binomial SEs (SE 2.1% and 1.0%)
-    scene = scene_at(1000)
-    counts, truth = simulate(scene, 480, seed=21)
-    truths = truth[list(PARAMETER_NAMES)].to_numpy(float)
-    table = sample_many(counts, Model.from_scene(scene), seed=4, workers=1, method="auto",
-                        truths=truths)  # fmt: skip
+    table = _auto_posteriors(1000, simulation_seed=21, seed=4)
     assert (table["status"] == "converged").mean() > 0.95
-    for prob in (0.68, 0.95):
-        cov = coverage(table, prob)
-        se = np.sqrt(prob * (1 - prob) / len(table))
-        assert np.all(np.abs(cov["coverage"] - prob) <= 3 * se), cov
+    _assert_calibrated(table)
 
 
 def test_laplace_branch_posteriors_are_calibrated():
@@ -157,15 +168,8 @@ def test_laplace_branch_posteriors_are_calibrated():
     # benchmarks/auto.py): over all ROIs and over those the Laplace made, the central 68% and
     # 95% intervals of every parameter cover the truth within 3 binomial SEs (the other
     # calibration test, at N = 1 000, never reaches the Laplace)
-    scene = scene_at(20_000)
-    counts, truth = simulate(scene, 480, seed=22)
-    truths = truth[list(PARAMETER_NAMES)].to_numpy(float)
-    table = sample_many(counts, Model.from_scene(scene), seed=5, workers=1, method="auto",
-                        truths=truths)  # fmt: skip
+    table = _auto_posteriors(20_000, simulation_seed=22, seed=5)
     laplace = table[table["method"] == "laplace"]
     assert len(laplace) >= 0.5 * len(table)
-    for rows in (table, laplace):
-        for prob in (0.68, 0.95):
-            cov = coverage(rows, prob)
-            se = np.sqrt(prob * (1 - prob) / len(rows))
-            assert np.all(np.abs(cov["coverage"] - prob) <= 3 * se), cov
+    _assert_calibrated(table)
+    _assert_calibrated(laplace)
