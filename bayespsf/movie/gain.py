@@ -146,12 +146,10 @@ def _moments(movie, molecules, use, roi, fit, block) -> dict:
     """Per molecule: frames used, and the sums of counts and of squared counts per pixel."""
     sums = {mid: [0, np.zeros((roi, roi)), np.zeros((roi, roi))] for mid in molecules["molecule"]}
     for stack in iter_rois(movie, molecules, roi=roi, fit=fit, block=block):
-        keep = [f in use[m] for m, f in zip(stack.table["molecule"], stack.table["frame"],
-                                             strict=True)]  # fmt: skip
-        counts = stack.counts[np.asarray(keep, bool)].astype(np.float64)
-        for mid, part in pd.Series(np.arange(len(counts)), index=stack.table["molecule"][keep]
-                                   .to_numpy()).groupby(level=0):  # fmt: skip
-            rois = counts[part.to_numpy()]
+        ids, frames = stack.table["molecule"].to_numpy(), stack.table["frame"].to_numpy()
+        for mid in pd.unique(ids):
+            rows = (ids == mid) & np.isin(frames, list(use[mid]))
+            rois = stack.counts[rows].astype(np.float64)
             entry = sums[mid]
             entry[0] += len(rois)
             entry[1] += rois.sum(axis=0)
