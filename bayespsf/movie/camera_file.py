@@ -30,7 +30,7 @@ from bayespsf.cameras import EMCCD, SCMOS
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import MIN_ROI, Model
 from bayespsf.movie.calibrate import DarkCalibration, dark_calibration
-from bayespsf.movie.extract import open_movie
+from bayespsf.movie.extract import check_sizes, open_movie
 from bayespsf.movie.gain import GainEstimate, gain_from_molecules
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.project import project
@@ -117,6 +117,7 @@ def calibrate_camera(
     """
     if kind not in EXCESS:
         raise BayespsfInputError(f"kind must be one of {', '.join(EXCESS)}, got {kind!r}")
+    check_sizes(roi, fit)  # before any frame is read
     if not (np.isfinite(e_per_adu) and e_per_adu > 0):
         raise BayespsfInputError(f"e_per_adu must be a number > 0, got {e_per_adu!r}")
     movie, dark_movie = open_movie(movie), open_movie(dark)
