@@ -422,6 +422,7 @@ def sample_many(
             if owned:
                 runner.shutdown(wait=True, cancel_futures=True)
         table = pd.DataFrame([rows[i] for i in sorted(rows)])
+        table["photon_unit"] = model.photon_unit_label
         if saver is not None:
             saver.write_summary(table)
     finally:

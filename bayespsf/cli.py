@@ -51,7 +51,7 @@ def _scene_from(arg: str):
 def _simulate(args) -> int:
     import numpy as np
 
-    from bayespsf.simulator import describe, simulate
+    from bayespsf.simulator import describe, scene_photon_label, simulate
 
     out = _output_folder(args.out, stem=True)
     scene = _scene_from(args.scene)
@@ -60,7 +60,9 @@ def _simulate(args) -> int:
     counts, truth = simulate(scene, 1000 if args.n is None else args.n, seed=args.seed)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.save(out.with_suffix(".npy"), counts)
-    truth.to_csv(out.with_suffix(".truth.csv"), index_label="image")
+    truth.assign(photon_unit=scene_photon_label(scene)).to_csv(
+        out.with_suffix(".truth.csv"), index_label="image"
+    )
     print(f"{scene!r}\n{describe(scene)}")
     print(
         f"wrote {counts.shape[0]} images to {out.with_suffix('.npy')} and the truth table to "
@@ -162,8 +164,9 @@ def _camera_scene(table: dict, camera_file: str, roi: int, pixel_size: float | N
     return Scene.from_dict(table)
 
 
-def _truth_table(path: str, n: int):
-    """The true parameters ``(n, 6)`` from a truth table that ``bayespsf simulate`` wrote."""
+def _truth_table(path: str, n: int, unit: str):
+    """The true parameters ``(n, 6)`` from a truth table that ``bayespsf simulate`` wrote;
+    its N and b must be in ``unit`` (the model's ``photon_unit_label``) where it states one."""
     import pandas as pd
 
     from bayespsf.psf import PARAMETER_NAMES
@@ -177,6 +180,12 @@ def _truth_table(path: str, n: int):
         raise CommandError(f"--truth {path}: no column(s) {', '.join(missing)}")
     if len(truth) != n:
         raise CommandError(f"--truth {path}: {len(truth)} rows for {n} ROIs")
+    stated = set(truth["photon_unit"]) if "photon_unit" in truth else {unit}
+    if stated != {unit}:
+        raise CommandError(
+            f"--truth {path}: N and b in {', '.join(sorted(map(str, stated)))}, but the model's "
+            f"are in {unit} (the scene's camera.photon_unit and quantum_efficiency)"
+        )
     return truth[list(PARAMETER_NAMES)].to_numpy(float)
 
 
@@ -196,8 +205,10 @@ def _fit(args) -> int:
             )
     else:
         scene = _camera_scene(_camera_file(args.camera), args.camera, rois.shape[1])
-    truths = None if args.truth is None else _truth_table(args.truth, rois.shape[0])
     model = Model.from_scene(scene, likelihood=args.likelihood)
+    truths = None
+    if args.truth is not None:
+        truths = _truth_table(args.truth, rois.shape[0], model.photon_unit_label)
     table = sample_many(
         rois,
         model,
@@ -268,6 +279,7 @@ def _calibrate(args) -> int:
     calibration = calibrate_camera(
         args.movie, args.dark, kind=args.kind, s0=args.psf_sd, pixel_size=args.pixel_size,
         e_per_adu=args.e_per_adu, roi=args.roi, fit=args.fit,
+        quantum_efficiency=args.quantum_efficiency,
     )  # fmt: skip
     command = "bayespsf calibrate " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -445,6 +457,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=1.0,
         help="EMCCD electrons per ADU to state (default 1: the gain is then ADU per photon)",
+    )
+    calibrate.add_argument(
+        "--quantum-efficiency",
+        type=float,
+        default=None,
+        help="the camera's quantum efficiency, to state in the file (the data cannot measure "
+        "it): N and b are then incident photons; default none (detected photoelectrons)",
     )
     calibrate.add_argument("--roi", type=int, default=25, help="ROI cut (default 25)")
     calibrate.add_argument("--fit", type=int, default=15, help="fitted centre (default 15)")

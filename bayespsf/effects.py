@@ -360,6 +360,32 @@ class BinomialBackground(BackgroundPhotons):
 
 
 @dataclass(repr=False)
+class QuantumEfficiency(Effect):
+    """Each photon of every pixel (signal and background alike) becomes a photoelectron with
+    probability ``efficiency``: binomial thinning of the whole photon counts."""
+
+    efficiency: float
+    reads = leaves = "photoelectrons"
+    draws = True
+
+    def apply(self, batch, rng):
+        batch.image = rng.binomial(np.asarray(batch.image, dtype=np.int64), self.efficiency)
+
+
+@dataclass(repr=False)
+class DetectedTruth(Effect):
+    """The truth's N and b in detected photoelectrons: times the quantum efficiency (the
+    scene's photon_unit 'detected'; the counts are unchanged)."""
+
+    efficiency: float
+    reads = leaves = "adu"
+
+    def apply(self, batch, rng):
+        for name in ("N", "b"):
+            batch.truth[name] = batch.truth[name] * self.efficiency
+
+
+@dataclass(repr=False)
 class ClockInducedCharge(Effect):
     """Spurious electrons created before the EM register: Poisson(rate) per pixel, amplified
     like photoelectrons."""

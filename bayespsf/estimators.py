@@ -68,9 +68,10 @@ CORRELATIONS = [
 ]
 
 
-def _frame(rows: list[dict]) -> pd.DataFrame:
+def _frame(rows: list[dict], model: Model) -> pd.DataFrame:
     df = pd.DataFrame(rows)
-    first = list(PARAMETER_NAMES)
+    first = [*PARAMETER_NAMES, "photon_unit"]
+    df["photon_unit"] = model.photon_unit_label
     df["status"] = np.where(df["converged"], "converged", "not converged")
     if "refused" in df:
         df.loc[df["refused"].eq(True), "status"] = "refused"
@@ -177,7 +178,7 @@ def fit_lsq(counts, model: Model) -> pd.DataFrame:
         elif params[2] > limit or params[3] > limit:
             ok, message = False, "a width ran away beyond the ROI"
         rows.append(dict(zip(PARAMETER_NAMES, params, strict=True), converged=ok, message=message))
-    return _frame(rows)
+    return _frame(rows, model)
 
 
 def lsq_first_order(model: Model, params):
@@ -195,8 +196,9 @@ def lsq_first_order(model: Model, params):
     limit : ndarray (6,), covariance : ndarray (6, 6)
     """
     params = np.asarray(params, float)
-    lam = model.expected(params)  # the mean of the counts in photons (CIC included)
-    res = _lsq_one(lam, params, model)
+    lam = model.expected(params)  # expected photoelectrons (CIC included)
+    mean = lam / model.photoelectrons_per_photon  # the mean of model.to_photons(counts)
+    res = _lsq_one(mean, params, model)
     theta = res.x
     _, jac = gauss2d(theta, model)
     j = jac.reshape(6, -1).T
@@ -204,7 +206,7 @@ def lsq_first_order(model: Model, params):
 
     def gradient(th):
         values, jj = gauss2d(th, model)
-        return jj.reshape(6, -1) @ (values - lam).ravel()
+        return jj.reshape(6, -1) @ (values - mean).ravel()
 
     steps = 1e-6 * np.maximum(np.abs(theta), 1.0)
     hess = np.array(
@@ -363,7 +365,7 @@ def fit_mle(
             row.update({c: cov[k, p, q] / (sd[p] * sd[q]) for p, q, c in CORRELATIONS})
         row.update(converged=bool(ok[k]), message=str(message[k]))
         rows.append(row)
-    return _frame(rows)
+    return _frame(rows, model)
 
 
 def _in_blocks(function, *arrays):

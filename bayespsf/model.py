@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayespsf import psf
+from bayespsf import photon_units, psf
 from bayespsf._checks import finite_array, real_array
 from bayespsf.cameras import EMCCD, SCMOS, Camera, Photon
 from bayespsf.errors import BayespsfInputError
@@ -140,6 +140,10 @@ class Model:
         Mean spurious electrons per pixel (EMCCD), added to the expected photoelectrons.
     saturation
         The ADC's full scale in ADU (0: none); ROIs with saturated pixels are rejected.
+    quantum_efficiency, photon_unit
+        The camera's quantum efficiency (in (0, 1], default 1) and the unit of N and b:
+        ``"incident"`` photons (default; the expected photoelectrons are QE times the spot and
+        the background) or ``"detected"`` photoelectrons (``bayespsf.photon_units``).
     pixel_model
         ``"integrated"`` (default): the spot integrated over each pixel, as the camera records
         it. ``"sampled"``: the Gaussian density at pixel centres times the pixel area, the
@@ -156,6 +160,8 @@ class Model:
         clock_induced_charge: float = 0.0,
         saturation: float = 0.0,
         pixel_model: str = "integrated",
+        quantum_efficiency: float = 1.0,
+        photon_unit: str = "incident",
     ):
         psf.pixel_centres(roi, pixel_size)  # validates the geometry
         if roi < MIN_ROI:
@@ -176,13 +182,20 @@ class Model:
         ]
         self.clock_induced_charge = float(clock_induced_charge)
         self.saturation = float(saturation)
+        self.quantum_efficiency, self.photon_unit = photon_units.check(
+            quantum_efficiency, photon_unit
+        )
+        self.photoelectrons_per_photon = photon_units.photoelectrons_per_photon(
+            self.quantum_efficiency, self.photon_unit
+        )
         self._prior_terms = _PriorTerms(self.prior)
 
     @classmethod
     def from_scene(
         cls, scene: Scene, likelihood: str | None = None, pixel_model: str = "integrated"
     ) -> Model:
-        """The model of a scene: its geometry, camera (tier ``likelihood``), prior and CIC."""
+        """The model of a scene: its geometry, camera (tier ``likelihood``), prior, CIC,
+        saturation, quantum efficiency and photon unit."""
         cam = scene.camera
         return cls(
             scene.geometry["roi"],
@@ -192,19 +205,37 @@ class Model:
             cam.get("clock_induced_charge", 0.0),
             cam.get("saturation", 0.0),
             pixel_model,
+            cam["quantum_efficiency"],
+            cam["photon_unit"],
         )
 
+    @property
+    def photon_unit_label(self) -> str:
+        """The unit of N and b in words (``bayespsf.photon_units.label``)."""
+        return photon_units.label(self.quantum_efficiency, self.photon_unit)
+
     def expected(self, params) -> np.ndarray:
-        """Expected photoelectrons per pixel ``(..., roi, roi)`` (PSF, background and CIC)."""
+        """Expected photoelectrons per pixel ``(..., roi, roi)``: the spot and the background
+        times ``photoelectrons_per_photon``, plus the CIC."""
         spot = psf.sampled_gaussian if self.pixel_model == "sampled" else psf.expected_counts
-        return spot(params, self.roi, self.pixel_size) + self.clock_induced_charge
+        photons = spot(params, self.roi, self.pixel_size)
+        return self._detected(photons)
+
+    def _detected(self, photons):
+        """Expected photoelectrons of expected ``photons`` (spot and background, in N's unit).
+        The spot is linear in (N, b), so this is the spot of (QE N, QE b) for incident units."""
+        if self.photoelectrons_per_photon != 1.0:
+            photons = photons * self.photoelectrons_per_photon
+        return photons + self.clock_induced_charge
 
     def expected_and_jacobian(self, params):
         """Expected photoelectrons and their derivatives ``(..., 6, roi, roi)``."""
         mu, jac = psf.expected_counts_and_jacobian(
             params, self.roi, self.pixel_size, self.pixel_model
         )
-        return mu + self.clock_induced_charge, jac
+        if self.photoelectrons_per_photon != 1.0:
+            jac = jac * self.photoelectrons_per_photon
+        return self._detected(mu), jac
 
     def check_counts(self, counts) -> np.ndarray:
         """ROI counts as a float array of shape ``(..., roi, roi)``, validated once.
@@ -304,15 +335,18 @@ class Model:
         return self.camera._log_likelihood(c, lam).sum(axis=(-2, -1))
 
     def to_photons(self, counts) -> np.ndarray:
-        """Counts converted to photons with the camera's mean conversion (offset removed,
-        times photons per ADU): what the paper fits by least squares."""
+        """Counts converted to N's unit with the camera's mean conversion (offset removed,
+        times photoelectrons per ADU, over ``photoelectrons_per_photon``): what the paper fits
+        by least squares."""
         per_adu, offset = self.camera.photons_per_adu()
+        per_adu = np.asarray(per_adu) / self.photoelectrons_per_photon
         return (np.asarray(counts, dtype=np.float64) - offset) * per_adu
 
     def photon_variance(self, lam) -> np.ndarray:
         """Variance of ``to_photons`` of a pixel with ``lam`` expected photoelectrons."""
         per_adu, _ = self.camera.photons_per_adu()
-        return self.camera.variance(lam) * np.asarray(per_adu) ** 2
+        per_adu = np.asarray(per_adu) / self.photoelectrons_per_photon
+        return self.camera.variance(lam) * per_adu**2
 
     # ------------------------------------------------------------------ posterior (issue 5)
 
@@ -362,11 +396,10 @@ class Model:
         inside = np.isfinite(out)
         if inside.any():
             # inside the prior's support the parameters are valid: skip the PSF's input checks
-            lam = (
+            lam = self._detected(
                 psf.expected_counts_unchecked(
                     p[inside], self.roi, self.pixel_size, self.pixel_model
                 )
-                + self.clock_induced_charge
             )
             data = counts if which is None else counts[np.asarray(which)[inside]]
             out[inside] += self.camera._log_likelihood(data, lam).sum(axis=(-2, -1))
@@ -374,10 +407,14 @@ class Model:
         return out
 
     def __repr__(self) -> str:
-        sampled = ", pixel_model='sampled'" if self.pixel_model == "sampled" else ""
+        extra = ", pixel_model='sampled'" if self.pixel_model == "sampled" else ""
+        if self.quantum_efficiency != 1.0:
+            extra += (
+                f", quantum_efficiency={self.quantum_efficiency:g}, "
+                f"photon_unit={self.photon_unit!r}"
+            )
         return (
-            f"Model(roi={self.roi}, pixel_size={self.pixel_size:g}, camera={self.camera!r}"
-            f"{sampled})"
+            f"Model(roi={self.roi}, pixel_size={self.pixel_size:g}, camera={self.camera!r}{extra})"
         )
 
 

@@ -50,7 +50,8 @@ class Posterior:
             # short run of many walkers has more chains than draws)
             warnings.filterwarnings("ignore", "Found chain dimension to be longer", UserWarning)
             tree = az.from_dict(groups, dims=dims)
-        attrs = {"bayespsf": "posterior of x0 y0 s_x s_y N b (nm, photons)"}
+        unit = getattr(model, "photon_unit_label", "photons")
+        attrs = {"bayespsf": f"posterior of x0 y0 s_x s_y N b (nm, {unit})"}
         if tau is not None:
             attrs["tau"] = json.dumps(dict(zip(PARAMETER_NAMES, map(float, tau), strict=True)))
         if info is not None:
@@ -58,6 +59,7 @@ class Posterior:
         if getattr(model, "camera", None) is not None:
             attrs["camera"] = json.dumps(model.camera.to_dict(), default=_jsonable)
             attrs["geometry"] = json.dumps({"roi": model.roi, "pixel_size": model.pixel_size})
+            attrs["photon_unit"] = unit
         if truth is not None:
             attrs["truth"] = json.dumps(dict(zip(PARAMETER_NAMES, map(float, truth), strict=True)))
         if scene is not None:

@@ -20,6 +20,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from bayespsf import photon_units
 from bayespsf.errors import BayespsfInputError
 
 
@@ -282,6 +283,27 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             0.0,
             1e12,
             when=_is("kind", "emccd", "scmos"),
+        ),
+        Key(
+            "quantum_efficiency",
+            float,
+            1.0,
+            "e-/photon",
+            "probability that an incident photon (signal or background) becomes a "
+            "photoelectron; the simulator thins the photons binomially when it is below 1, and "
+            "N and b can then be incident photons (see photon_unit); 1 declares none",
+            0.0,
+            1.0,
+            low_open=True,
+        ),
+        Key(
+            "photon_unit",
+            photon_units.UNITS,
+            "incident",
+            "",
+            "unit of N and b in the prior, the model, the truth table and every result: "
+            "'incident' photons (photoelectrons / quantum_efficiency) or 'detected' "
+            "photoelectrons (the same when quantum_efficiency is 1)",
         ),
         Key("likelihood", str, "", "", "likelihood tier for inference ('' = the camera's default)"),
     ),

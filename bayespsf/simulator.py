@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf import effects as fx
+from bayespsf import photon_units
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.scene import Scene
@@ -80,22 +81,41 @@ def build_pipeline(scene: Scene) -> list[fx.Effect]:
     if fixed:
         steps.append(fx.WholePhotonNumber())
     if path == "expected":
-        steps.append(fx.ExpectedSignal(a))
-        return steps + detection_effects(scene, "expected")
-    if path == "multinomial":
-        steps.append(fx.MultinomialPhotons(a))
-    elif airy:
-        o = scene.optics
-        steps.append(fx.AiryPhotons(a, o["wavelength"], o["na"], e["width_jitter"], fixed))
+        steps += [fx.ExpectedSignal(a), *detection_effects(scene, "expected")]
     else:
-        steps.append(fx.PhotonBinning(a, e["width_jitter"], fixed))
-    return steps + detection_effects(scene, "photoelectrons")
+        if path == "multinomial":
+            steps.append(fx.MultinomialPhotons(a))
+        elif airy:
+            o = scene.optics
+            steps.append(fx.AiryPhotons(a, o["wavelength"], o["na"], e["width_jitter"], fixed))
+        else:
+            steps.append(fx.PhotonBinning(a, e["width_jitter"], fixed))
+        steps += detection_effects(scene, "photoelectrons")
+    if (factor := truth_photon_factor(scene)) != 1.0:
+        steps.append(fx.DetectedTruth(factor))
+    return steps
+
+
+def scene_photon_label(scene: Scene) -> str:
+    """The unit of the scene's N and b in words (``bayespsf.photon_units.label``)."""
+    cam = scene.camera
+    return photon_units.label(cam["quantum_efficiency"], cam["photon_unit"])
+
+
+def truth_photon_factor(scene: Scene) -> float:
+    """The factor from the scene's declared photons (incident on the camera) to its
+    ``photon_unit``: the quantum efficiency for 'detected', 1 for 'incident'."""
+    cam = scene.camera
+    if cam["photon_unit"] == "detected":
+        return cam["quantum_efficiency"]
+    return 1.0
 
 
 def detection_effects(scene: Scene, stage: str) -> list[fx.Effect]:
     """The effects that turn a signal image into camera counts: the photon draws (from an
     ``"expected"`` image; none for whole ``"photoelectrons"``), the scene's background law (a
-    Poisson background folded into the expected image) and its camera law.
+    Poisson background folded into the expected image), the quantum efficiency's thinning
+    (where declared) and its camera law.
 
     They read only the image's shape, so whole frames ``(k, height, width)`` pass through them
     as ROIs do (``bayespsf.movie.simulate``).
@@ -111,6 +131,8 @@ def detection_effects(scene: Scene, stage: str) -> list[fx.Effect]:
         steps.append(fx.PoissonPhotons())
     if background is not None:
         steps.append(background)
+    if scene.camera["quantum_efficiency"] < 1.0:
+        steps.append(fx.QuantumEfficiency(scene.camera["quantum_efficiency"]))
     return steps + camera_effects(scene.camera)
 
 
@@ -173,7 +195,8 @@ def simulate(scene: Scene, n: int, seed: int):
     counts : ndarray, shape (n, roi, roi)
         Camera counts in ADU.
     truth : pandas.DataFrame
-        One row per image: ``x0 y0 s_x s_y N b`` (nm, photons, photons/pixel), plus
+        One row per image: ``x0 y0 s_x s_y N b`` (nm; N and b in the scene's
+        ``camera.photon_unit``, b per pixel), plus
         ``photons_emitted`` on the photon-by-photon paths.
 
     Notes

@@ -207,8 +207,12 @@ def crlb(scene_or_model, params=None, method: str = "exact", free: str = "all") 
 
 
 def scene_params(scene) -> np.ndarray:
-    """The declared spot of a scene as parameters ``x0 y0 s_x s_y N b`` (see ``crlb``)."""
-    from bayespsf.simulator import build_pipeline
+    """The declared spot of a scene as parameters ``x0 y0 s_x s_y N b`` (see ``crlb``); N and b
+    in the scene's ``camera.photon_unit``."""
+    from bayespsf.simulator import build_pipeline, truth_photon_factor
 
     truth = build_pipeline(scene)[0]  # EmitterTruth: the declared values, without randomness
-    return np.array([truth.x0, truth.y0, truth.s_x, truth.s_y, truth.photons, truth.background])
+    unit = truth_photon_factor(scene)
+    return np.array(
+        [truth.x0, truth.y0, truth.s_x, truth.s_y, truth.photons * unit, truth.background * unit]
+    )

@@ -9,6 +9,7 @@ import pytest
 
 from bayespsf import cli, scenes
 from bayespsf.errors import BayespsfInputError
+from bayespsf.model import Model
 from bayespsf.movie.gain import gain_from_molecules
 from bayespsf.movie.simulate import simulate_movie
 
@@ -119,6 +120,7 @@ def test_calibrate_inputs_that_cannot_work_are_one_line(movie, tmp_path):
         (["--dark", str(tmp_path / "small.npy")], r"dark frames \(64, 64\) and movie frames"),
         (["--dark", str(dark), "--kind", "photon"], None),
         (["--dark", str(dark), "--e-per-adu", "0"], "e_per_adu must be"),
+        (["--dark", str(dark), "--quantum-efficiency", "1.5"], "quantum_efficiency must be"),
         (["--dark", str(path), "--out", str(tmp_path)], "is a folder"),
     ):
         with pytest.raises(SystemExit, match=words):
@@ -140,10 +142,15 @@ def test_calibrate_an_scmos_camera(tmp_path):
     table["movie"].update(frames=150, height=128, width=128, molecules=12, bleach_mean=100.0,
                           two_fluorophores=0.0, moving=0.0, dark_frames=20)  # fmt: skip
     files = simulate_movie(Scene.from_dict(table), seed=5, out=tmp_path / "s").files
-    cal = calibrate_camera(files["movie"], files["dark"], kind="scmos", s0=120.0)
+    cal = calibrate_camera(files["movie"], files["dark"], kind="scmos", s0=120.0,
+                           quantum_efficiency=0.8)  # fmt: skip
     low, high = cal.gain.interval
     assert low <= 2.17 <= high, str(cal.gain)
     camera = cal.camera_table()
-    assert camera["kind"] == "scmos" and set(camera) == {"kind", "gain", "offset", "variance"}
+    assert set(camera) == {"kind", "gain", "offset", "variance", "quantum_efficiency"}
+    assert camera["kind"] == "scmos" and camera["quantum_efficiency"] == 0.8
+    assert "# N and b: incident photons (quantum efficiency 0.8 as declared" in cal.toml("x")
+    scene = Scene.loads(cal.toml("x").replace("[geometry]", "[geometry]\nroi = 15"))
+    assert Model.from_scene(scene).photon_unit_label == "incident photons (quantum efficiency 0.8)"
     assert camera["offset"] == pytest.approx(100.0, abs=0.05)
     assert camera["variance"] == pytest.approx(12.0 + 1 / 12, rel=0.02)

@@ -37,6 +37,12 @@ from bayespsf.scene import (
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs" / "scenes.md"
 SCENE_DIR = ROOT / "bayespsf" / "scenes"
+PHOTON_CAMERA = {
+    "kind": "photon",
+    "quantum_efficiency": 1.0,
+    "photon_unit": "incident",
+    "likelihood": "",
+}
 SHIPPED = ("emccd-typical", "ideal", "paper-fig2", "paper-fig3", "paper-movie", "scmos-typical")
 KEYS: dict[str, dict[str, Key]] = {sec: {k.name: k for k in keys} for sec, keys in SCHEMA.items()}
 
@@ -129,7 +135,7 @@ def test_shipped_scene_values():
     scmos = scenes.load("scmos-typical")
     assert "readout_sd" not in scmos.camera and "register" not in scmos.camera
     assert scmos.camera["variance"] == 12.0
-    assert scenes.load("ideal").camera == {"kind": "photon", "likelihood": ""}
+    assert scenes.load("ideal").camera == PHOTON_CAMERA
 
 
 # Strategies: random valid scenes drawn from SCHEMA ------------------------------------------
@@ -278,7 +284,7 @@ def test_empty_scene_is_all_defaults():
             },
             "optics": {"psf": "gaussian"},
             "background": {"kind": "none"},
-            "camera": {"kind": "photon", "likelihood": ""},
+            "camera": PHOTON_CAMERA,
             "prior": {
                 "x0": {"kind": "uniform", "low": -750.0, "high": 750.0},
                 "y0": {"kind": "uniform", "low": -750.0, "high": 750.0},
@@ -315,6 +321,8 @@ def test_empty_scene_is_all_defaults():
                 "stages": None,
                 "quantize": False,
                 "saturation": 0.0,
+                "quantum_efficiency": 1.0,
+                "photon_unit": "incident",
                 "likelihood": "",
             },
         ),
@@ -840,6 +848,8 @@ def test_replace_changes_only_what_is_asked():
         "variance",
         "quantize",
         "saturation",
+        "quantum_efficiency",
+        "photon_unit",
         "likelihood",
     }
 
@@ -858,7 +868,7 @@ def test_replace_errors():
 
 def test_replace_camera_kind_drops_stages():
     scene = Scene.from_dict({"camera": {"kind": "emccd", "register": "stages", "stages": 64}})
-    assert scene.replace(camera={"kind": "photon"}).camera == {"kind": "photon", "likelihood": ""}
+    assert scene.replace(camera={"kind": "photon"}).camera == PHOTON_CAMERA
 
 
 def test_replace_psf_to_airy_drops_widths():

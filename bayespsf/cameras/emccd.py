@@ -2,8 +2,9 @@
 
 Per pixel (Basden, Haniff & Mackay, MNRAS 345 (2003); Hirsch et al., PLoS ONE 8 (2013)):
 
-* photoelectrons ``n ~ Poisson(lam)``, ``lam`` the expected photons (the QE and any
-  clock-induced charge belong to the scene, which hands the camera the final ``lam``);
+* photoelectrons ``n ~ Poisson(lam)``, ``lam`` the expected photoelectrons (the quantum
+  efficiency and any clock-induced charge belong to the model, ``bayespsf.model.Model``, which
+  hands the camera the final ``lam``);
 * the EM register turns ``n >= 1`` into ``Gamma(n, gain)`` electrons; ``n = 0`` stays 0;
 * readout adds ``Normal(0, readout_sd)`` electrons;
 * counts in ADU are ``offset + electrons / e_per_adu``.

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bayespsf import photon_units
 from bayespsf.cameras import EMCCD, SCMOS
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import MIN_ROI, Model
@@ -48,16 +49,21 @@ class CameraCalibration:
     gain: GainEstimate
     e_per_adu: float
     pixel_size: float | None
+    quantum_efficiency: float | None = None
 
     def camera_table(self) -> dict:
         """The ``[camera]`` table (the scenes' keys) this calibration gives."""
         m = self.gain.adu_per_photon
         if self.kind == "emccd":
-            return {"kind": "emccd", "gain": m * self.e_per_adu,
-                    "readout_sd": self.dark.readout_sd * self.e_per_adu,
-                    "offset": self.dark.offset, "e_per_adu": self.e_per_adu}  # fmt: skip
-        return {"kind": "scmos", "gain": m, "offset": self.dark.offset,
-                "variance": self.dark.readout_sd**2}  # fmt: skip
+            table = {"kind": "emccd", "gain": m * self.e_per_adu,
+                     "readout_sd": self.dark.readout_sd * self.e_per_adu,
+                     "offset": self.dark.offset, "e_per_adu": self.e_per_adu}  # fmt: skip
+        else:
+            table = {"kind": "scmos", "gain": m, "offset": self.dark.offset,
+                     "variance": self.dark.readout_sd**2}  # fmt: skip
+        if self.quantum_efficiency is not None:
+            table["quantum_efficiency"] = self.quantum_efficiency
+        return table
 
     def toml(self, command: str) -> str:
         """The camera file: its provenance as comments, then ``[geometry]`` and ``[camera]``."""
@@ -73,6 +79,13 @@ class CameraCalibration:
             "DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010)",
             f"# provisional ADU per photon from the background: "
             f"{self.provisional_adu_per_photon:.4g}",
+            "# N and b: "
+            + (
+                "detected photoelectrons (no quantum efficiency declared)"
+                if self.quantum_efficiency is None
+                else f"incident photons (quantum efficiency {self.quantum_efficiency:g} as "
+                "declared; the data cannot measure it)"
+            ),
             "",
         ]
         if self.pixel_size is not None:
@@ -108,16 +121,21 @@ def provisional_adu_per_photon(movie, dark: DarkCalibration, excess: float) -> f
 def calibrate_camera(
     movie, dark, *, kind: str, s0: float, pixel_size: float | None = None,
     e_per_adu: float = 1.0, roi: int = 25, fit: int = 15,
+    quantum_efficiency: float | None = None,
 ) -> CameraCalibration:  # fmt: skip
     """Offset and readout from ``dark`` (a path or Movie of dark frames of the same camera and
     shape), then ADU per photon from ``movie``'s immobile molecules (module docstring).
 
     ``kind`` is ``"emccd"`` or ``"scmos"``; ``s0`` the spot's SD in nm; ``pixel_size`` in nm
-    (default: the movie's metadata); ``e_per_adu`` the electrons per ADU to state (EMCCD).
+    (default: the movie's metadata); ``e_per_adu`` the electrons per ADU to state (EMCCD);
+    ``quantum_efficiency`` the camera's, to state (the data measure ADU per photoelectron,
+    not the QE): the file's N and b are then incident photons.
     """
     if kind not in EXCESS:
         raise BayespsfInputError(f"kind must be one of {', '.join(EXCESS)}, got {kind!r}")
     check_sizes(roi, fit)  # before any frame is read
+    if quantum_efficiency is not None:
+        photon_units.check(quantum_efficiency, "incident")
     if not (np.isfinite(e_per_adu) and e_per_adu > 0):
         raise BayespsfInputError(f"e_per_adu must be a number > 0, got {e_per_adu!r}")
     movie, dark_movie = open_movie(movie), open_movie(dark)
@@ -146,7 +164,15 @@ def calibrate_camera(
             "immobile single molecules (see `bayespsf detect` and its selection report)"
         )
     gain = gain_from_molecules(movie, chosen, frames, roi=roi, fit=fit, excess=excess)
-    return CameraCalibration(kind, dark_cal, m0, gain, float(e_per_adu), pixel_size)
+    return CameraCalibration(
+        kind,
+        dark_cal,
+        m0,
+        gain,
+        float(e_per_adu),
+        pixel_size,
+        None if quantum_efficiency is None else float(quantum_efficiency),
+    )
 
 
 __all__ = ["CameraCalibration", "calibrate_camera", "provisional_adu_per_photon"]

@@ -111,9 +111,15 @@ class RoiStack:
 
 def photon_model(camera) -> Model:
     """``camera`` (a Model, or a Camera with one scalar conversion) as a Model whose
-    ``to_photons`` and ``photon_variance`` convert counts; its geometry is unused."""
+    ``to_photons`` and ``photon_variance`` convert counts to detected photoelectrons (whatever
+    the given Model's photon unit: the movie path's tables and selection rules, the SNR among
+    them, are in detected photoelectrons); its geometry is unused."""
     if isinstance(camera, Model):
         model = camera
+        if model.photoelectrons_per_photon != 1.0:
+            model = Model(
+                MIN_ROI, 1.0, model.camera, clock_induced_charge=model.clock_induced_charge
+            )
     elif isinstance(camera, Camera):
         model = Model(MIN_ROI, 1.0, camera)  # only the camera's conversion is used
     else:

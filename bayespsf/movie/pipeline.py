@@ -18,7 +18,7 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
 from bayespsf.movie.detect import detect_movie
-from bayespsf.movie.extract import RoiStack, check_sizes, iter_rois, open_movie
+from bayespsf.movie.extract import RoiStack, check_sizes, iter_rois, open_movie, photon_model
 from bayespsf.movie.select import Rules, report_markdown, select
 from bayespsf.movie.traces import molecules_over_time
 
@@ -61,7 +61,8 @@ class FoundMolecules:
 
 def fit_model(model: Model, fit: int) -> Model:
     """``model`` with a ``fit`` × ``fit`` ROI (same camera, pixel size, CIC and saturation;
-    the prior's defaults for that geometry)."""
+    the prior's defaults for that geometry; N and b in detected photoelectrons, as every
+    table of the movie path)."""
     return Model(fit, model.pixel_size, model.camera,
                  clock_induced_charge=model.clock_induced_charge,
                  saturation=model.saturation)  # fmt: skip
@@ -191,6 +192,9 @@ def find_molecules(
     molecules["selected"] = molecules["selected"].astype(bool)
     molecules["bleach_frame"] = molecules["bleach_frame"].astype("Int64")
     molecules = molecules.sort_values("molecule", ignore_index=True)
+    unit = photon_model(model).photon_unit_label
+    for table in (candidates, molecules, frames):
+        table["photon_unit"] = unit
     return FoundMolecules(candidates, molecules, frames, report, rules)
 
 

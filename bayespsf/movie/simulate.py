@@ -12,7 +12,9 @@ are the pixel-integrated elliptical Gaussian of every emitting molecule (``bayes
 the model inference uses), computed in a window of +-6 SD around the molecule (the mass
 outside, < 2e-9, is neglected) and added into the frame; the scene's photon statistics,
 background law and camera law then act on the whole frame through the simulator's own effects
-(``bayespsf.simulator.detection_effects``). Dark frames are the camera law alone.
+(``bayespsf.simulator.detection_effects``, with the quantum efficiency's thinning where
+declared). Dark frames are the camera law alone. Photons in the truth tables are in the
+scene's ``camera.photon_unit``.
 
 Time: frame ``f`` spans ``[f, f + 1)`` frame times. A fluorophore bleaches at an exponential
 time ``T`` (``movie.bleach_mean``) and blinks as a continuous-time two-state Markov chain
@@ -46,13 +48,18 @@ from bayespsf import effects as fx
 from bayespsf import psf
 from bayespsf.errors import BayespsfInputError
 from bayespsf.scene import Scene, SceneError
-from bayespsf.simulator import camera_effects, detection_effects
+from bayespsf.simulator import (
+    camera_effects,
+    detection_effects,
+    scene_photon_label,
+    truth_photon_factor,
+)
 
 MOLECULE_COLUMNS = (
     "molecule", "x", "y", "x_nm", "y_nm", "s_x", "s_y", "photons", "fluorophores",
-    "bleach_frame", "moving",
+    "bleach_frame", "moving", "photon_unit",
 )  # fmt: skip
-TRUTH_COLUMNS = ("molecule", "frame", "x", "y", "photons", "on", "fluorophores_on")
+TRUTH_COLUMNS = ("molecule", "frame", "x", "y", "photons", "on", "fluorophores_on", "photon_unit")
 WINDOW_SDS = 6.0  # the PSF window's half-side in SDs
 _PLACE, _PHOTONS, _FLUOROPHORES, _BLEACH, _MOVING, _BLINK = range(6)  # per-movie streams
 _NOISE, _JITTER, _WALK, _BLINKING, _DARK = range(10, 15)  # per-frame streams
@@ -270,6 +277,7 @@ def iter_movie(scene: Scene, seed: int) -> Iterator[tuple[np.ndarray, pd.DataFra
     mol = _draw_molecules(scene, seed)
     n = mol.x.size
     ids = np.arange(n)
+    unit, label = truth_photon_factor(scene), scene_photon_label(scene)
     for f in range(m["frames"]):
         fraction = _emitting_fraction(mol, f, m, _rng(seed, _BLINKING, f))
         n_photons = mol.photons * fraction.sum(axis=1)
@@ -290,7 +298,8 @@ def iter_movie(scene: Scene, seed: int) -> Iterator[tuple[np.ndarray, pd.DataFra
             step(batch, rng)
         on = (fraction > 0).sum(axis=1)
         truth = {"molecule": ids, "frame": np.full(n, f), "x": x, "y": y,
-                 "photons": n_photons, "on": on > 0, "fluorophores_on": on}  # fmt: skip
+                 "photons": n_photons * unit, "on": on > 0, "fluorophores_on": on,
+                 "photon_unit": label}  # fmt: skip
         yield batch.image[0], pd.DataFrame(truth, columns=list(TRUTH_COLUMNS))
 
 
@@ -322,9 +331,10 @@ def molecule_table(scene: Scene, seed: int) -> pd.DataFrame:
     bleach = pd.Series(np.where(last < m["frames"], last, np.nan)).astype("Int64")
     return pd.DataFrame(
         {"molecule": np.arange(mol.x.size), "x": mol.x, "y": mol.y, "x_nm": mol.x * a,
-         "y_nm": mol.y * a, "s_x": e["s0x"], "s_y": e["s0y"], "photons": mol.photons,
+         "y_nm": mol.y * a, "s_x": e["s0x"], "s_y": e["s0y"],
+         "photons": mol.photons * truth_photon_factor(scene),
          "fluorophores": mol.present.sum(axis=1), "bleach_frame": bleach,
-         "moving": mol.moving},
+         "moving": mol.moving, "photon_unit": scene_photon_label(scene)},
         columns=list(MOLECULE_COLUMNS),
     )  # fmt: skip
 
