@@ -279,7 +279,7 @@ def _calibrate(args) -> int:
     calibration = calibrate_camera(
         args.movie, args.dark, kind=args.kind, s0=args.psf_sd, pixel_size=args.pixel_size,
         e_per_adu=args.e_per_adu, roi=args.roi, fit=args.fit,
-        quantum_efficiency=args.quantum_efficiency,
+        quantum_efficiency=args.quantum_efficiency, readout_sd=args.readout_sd,
     )  # fmt: skip
     command = "bayespsf calibrate " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -434,14 +434,21 @@ def build_parser() -> argparse.ArgumentParser:
     detect.set_defaults(run=_detect)
     calibrate = commands.add_parser(
         "calibrate",
-        help="a camera file from dark frames and a movie of immobile molecules",
-        description="Offset and readout noise from DARK (frames without light), then the ADU "
+        help="a camera file from a movie of immobile molecules (and dark frames, if any)",
+        description="Offset and readout noise from DARK (frames without light) or, without "
+        "it, from the movie's background pixels (photon transfer with their third cumulant), "
+        "then the ADU "
         "per photon by Eq. photonConv of DeSantis et al., Opt. Express 18 (2010) over the "
         "movie's selected immobile molecules (as `bayespsf detect` finds them), combined with "
         "a 95% interval. Writes a camera file (TOML) for --camera, its provenance in comments.",
     )
     calibrate.add_argument("movie", help="the movie: .tif/.tiff/.ome.tif or .npy")
-    calibrate.add_argument("--dark", required=True, help="dark frames of the same camera")
+    calibrate.add_argument(
+        "--dark",
+        default=None,
+        help="dark frames of the same camera (default: none; the offset and readout noise "
+        "then come from the movie's background pixels, which must hold Poisson photons)",
+    )
     calibrate.add_argument(
         "--kind",
         choices=("emccd", "scmos"),
@@ -464,6 +471,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="the camera's quantum efficiency, to state in the file (the data cannot measure "
         "it): N and b are then incident photons; default none (detected photoelectrons)",
+    )
+    calibrate.add_argument(
+        "--readout-sd",
+        type=float,
+        default=None,
+        help="without --dark: the camera's readout noise in electrons (its specification), "
+        "where the movie's background cannot measure it (an EMCCD at high gain)",
     )
     calibrate.add_argument("--roi", type=int, default=25, help="ROI cut (default 25)")
     calibrate.add_argument("--fit", type=int, default=15, help="fitted centre (default 15)")

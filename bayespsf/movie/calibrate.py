@@ -57,6 +57,12 @@ class DarkCalibration:
     variance_map: np.ndarray
     frames: int
 
+    def describe(self) -> str:
+        return (
+            f"offset {self.offset:.6g} +- {self.offset_se:.2g} ADU and readout "
+            f"{self.readout_sd:.6g} +- {self.readout_sd_se:.2g} ADU from {self.frames} dark frames"
+        )
+
     def camera_table(self, e_per_adu: float) -> dict:
         """The ``[camera]`` entries this calibration gives: ``offset`` (ADU) and
         ``readout_sd`` in electrons (the ADU SD times ``e_per_adu``)."""

@@ -9,7 +9,14 @@ Poisson background photons: paper-movie's background, Gaussian photon numbers of
 SD 0.92 (variance 0.85, not 2.75), reads 10.8 against the true 16.7, which is why it is only
 provisional (the selection's SNR rule is the one step it touches); the selected molecules'
 frames before their bleaching step then give ``M`` by Eq. photonConv
-(``gain_from_molecules``). The camera file holds the ``[camera]`` table of scenes and
+(``gain_from_molecules``).
+
+Without dark frames, the movie's own background pixels give the offset and readout noise by
+photon transfer with their third cumulant (``bayespsf.movie.photon_transfer``): first from the
+dimmer half of the pixels with ``M`` from their fourth cumulant (for detection), then, once
+the molecules have given ``M``, from the pixels that no candidate's ROI touches.
+
+The camera file holds the ``[camera]`` table of scenes and
 ``[geometry] pixel_size``, and records in its comments the command that made it and every
 estimate with its error.
 
@@ -33,6 +40,13 @@ from bayespsf.model import MIN_ROI, Model
 from bayespsf.movie.calibrate import DarkCalibration, dark_calibration
 from bayespsf.movie.extract import check_sizes, open_movie
 from bayespsf.movie.gain import GainEstimate, gain_from_molecules
+from bayespsf.movie.photon_transfer import (
+    MovieOffset,
+    away_from,
+    first_adu_per_photon,
+    offset_from_cumulants,
+    pixel_cumulants,
+)
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.project import project
 
@@ -44,7 +58,7 @@ class CameraCalibration:
     """What ``calibrate_camera`` measured; ``toml`` writes the camera file."""
 
     kind: str
-    dark: DarkCalibration
+    offset: DarkCalibration | MovieOffset
     provisional_adu_per_photon: float
     gain: GainEstimate
     e_per_adu: float
@@ -56,23 +70,22 @@ class CameraCalibration:
         m = self.gain.adu_per_photon
         if self.kind == "emccd":
             table = {"kind": "emccd", "gain": m * self.e_per_adu,
-                     "readout_sd": self.dark.readout_sd * self.e_per_adu,
-                     "offset": self.dark.offset, "e_per_adu": self.e_per_adu}  # fmt: skip
+                     "readout_sd": self.offset.readout_sd * self.e_per_adu,
+                     "offset": self.offset.offset, "e_per_adu": self.e_per_adu}  # fmt: skip
         else:
-            table = {"kind": "scmos", "gain": m, "offset": self.dark.offset,
-                     "variance": self.dark.readout_sd**2}  # fmt: skip
+            table = {"kind": "scmos", "gain": m, "offset": self.offset.offset,
+                     "variance": self.offset.readout_sd**2}  # fmt: skip
         if self.quantum_efficiency is not None:
             table["quantum_efficiency"] = self.quantum_efficiency
         return table
 
     def toml(self, command: str) -> str:
         """The camera file: its provenance as comments, then ``[geometry]`` and ``[camera]``."""
-        d, g = self.dark, self.gain
+        g = self.gain
         low, high = g.interval
         lines = [
             f"# made by: {command}",
-            f"# offset {d.offset:.6g} +- {d.offset_se:.2g} ADU and readout {d.readout_sd:.6g} +- "
-            f"{d.readout_sd_se:.2g} ADU from {d.frames} dark frames",
+            f"# {self.offset.describe()}",
             f"# ADU per photon {g.adu_per_photon:.6g} (SE {g.se:.2g}; 95% interval {low:.6g} to "
             f"{high:.6g}) from {int((~g.per_molecule['outlier']).sum())} molecules "
             f"({int(g.per_molecule['outlier'].sum())} outliers left out) by Eq. photonConv of "
@@ -119,27 +132,39 @@ def provisional_adu_per_photon(movie, dark: DarkCalibration, excess: float) -> f
 
 
 def calibrate_camera(
-    movie, dark, *, kind: str, s0: float, pixel_size: float | None = None,
+    movie, dark=None, *, kind: str, s0: float, pixel_size: float | None = None,
     e_per_adu: float = 1.0, roi: int = 25, fit: int = 15,
-    quantum_efficiency: float | None = None,
+    quantum_efficiency: float | None = None, readout_sd: float | None = None,
 ) -> CameraCalibration:  # fmt: skip
     """Offset and readout from ``dark`` (a path or Movie of dark frames of the same camera and
-    shape), then ADU per photon from ``movie``'s immobile molecules (module docstring).
+    shape), or without dark frames from the movie's own background pixels
+    (``bayespsf.movie.photon_transfer``), and ADU per photon from ``movie``'s immobile
+    molecules (module docstring).
 
     ``kind`` is ``"emccd"`` or ``"scmos"``; ``s0`` the spot's SD in nm; ``pixel_size`` in nm
     (default: the movie's metadata); ``e_per_adu`` the electrons per ADU to state (EMCCD);
     ``quantum_efficiency`` the camera's, to state (the data measure ADU per photoelectron,
-    not the QE): the file's N and b are then incident photons.
+    not the QE): the file's N and b are then incident photons. ``readout_sd``, the camera's
+    readout noise in electrons (its specification: after the EM register for an EMCCD, in
+    ADU ``readout_sd / e_per_adu``; per photoelectron for an sCMOS, in ADU ``readout_sd M``),
+    stands in where no dark frames are given and the movie cannot measure it.
     """
     if kind not in EXCESS:
         raise BayespsfInputError(f"kind must be one of {', '.join(EXCESS)}, got {kind!r}")
     check_sizes(roi, fit)  # before any frame is read
     if quantum_efficiency is not None:
         photon_units.check(quantum_efficiency, "incident")
+    if readout_sd is not None and not (np.isfinite(readout_sd) and readout_sd >= 0):
+        raise BayespsfInputError(
+            f"readout_sd must be a number >= 0 (electrons), got {readout_sd!r}"
+        )
+    if readout_sd is not None and dark is not None:
+        raise BayespsfInputError("readout_sd: the dark frames measure the readout; give one")
     if not (np.isfinite(e_per_adu) and e_per_adu > 0):
         raise BayespsfInputError(f"e_per_adu must be a number > 0, got {e_per_adu!r}")
-    movie, dark_movie = open_movie(movie), open_movie(dark)
-    if dark_movie.shape[1:] != movie.shape[1:]:
+    movie = open_movie(movie)
+    dark_movie = None if dark is None else open_movie(dark)
+    if dark_movie is not None and dark_movie.shape[1:] != movie.shape[1:]:
         raise BayespsfInputError(
             f"dark frames {dark_movie.shape[1:]} and movie frames {movie.shape[1:]} differ in "
             "shape: the dark frames must come from the same camera region"
@@ -147,13 +172,21 @@ def calibrate_camera(
     pixel_size = movie.pixel_size if pixel_size is None else pixel_size
     if pixel_size is None:
         raise BayespsfInputError("pixel_size: the movie's metadata give none; state it (nm)")
-    dark_cal = dark_calibration(dark_movie)
     excess = EXCESS[kind]
-    m0 = provisional_adu_per_photon(movie, dark_cal, excess)
-    if kind == "emccd":
-        camera = EMCCD(m0, dark_cal.readout_sd, dark_cal.offset, 1.0, likelihood="table")
+    if dark_movie is not None:
+        first = dark_calibration(dark_movie)
+        m0 = provisional_adu_per_photon(movie, first, excess)
     else:
-        camera = SCMOS(m0, dark_cal.offset, dark_cal.readout_sd**2, likelihood="huang")
+        cumulants = pixel_cumulants(movie)
+        dimmer = cumulants.k1 <= np.median(cumulants.k1)  # mostly background, few molecules
+        m0 = first_adu_per_photon(cumulants, excess, dimmer)
+        declared = _readout_adu(readout_sd, kind, m0, e_per_adu)
+        first = offset_from_cumulants(cumulants, m0, excess, dimmer, readout_adu=declared,
+                                      check=False)  # fmt: skip
+    if kind == "emccd":
+        camera = EMCCD(m0, first.readout_sd, first.offset, 1.0, likelihood="table")
+    else:
+        camera = SCMOS(m0, first.offset, first.readout_sd**2, likelihood="huang")
     found = find_molecules(movie, Model(MIN_ROI, pixel_size, camera), s0=s0, roi=roi, fit=fit)
     chosen = found.molecules[found.molecules["selected"]]
     frames = found.frames
@@ -164,15 +197,27 @@ def calibrate_camera(
             "immobile single molecules (see `bayespsf detect` and its selection report)"
         )
     gain = gain_from_molecules(movie, chosen, frames, roi=roi, fit=fit, excess=excess)
+    if dark_movie is None:  # the final offset: the pixels no candidate's ROI touches
+        background = away_from(found.candidates, movie.shape[1:], roi // 2)
+        declared = _readout_adu(readout_sd, kind, gain.adu_per_photon, e_per_adu)
+        first = offset_from_cumulants(cumulants, gain.adu_per_photon, excess, background,
+                                      adu_per_photon_se=gain.se, readout_adu=declared)  # fmt: skip
     return CameraCalibration(
         kind,
-        dark_cal,
+        first,
         m0,
         gain,
         float(e_per_adu),
         pixel_size,
         None if quantum_efficiency is None else float(quantum_efficiency),
     )
+
+
+def _readout_adu(readout_sd, kind: str, adu_per_photon: float, e_per_adu: float):
+    """A declared readout SD in electrons as ADU (None stays None)."""
+    if readout_sd is None:
+        return None
+    return readout_sd / e_per_adu if kind == "emccd" else readout_sd * adu_per_photon
 
 
 __all__ = ["CameraCalibration", "calibrate_camera", "provisional_adu_per_photon"]
