@@ -121,6 +121,8 @@ def test_calibrate_inputs_that_cannot_work_are_one_line(movie, tmp_path):
         (["--dark", str(dark), "--kind", "photon"], None),
         (["--dark", str(dark), "--e-per-adu", "0"], "e_per_adu must be"),
         (["--dark", str(dark), "--quantum-efficiency", "1.5"], "quantum_efficiency must be"),
+        (["--readout-sd", "-1"], "readout_sd must be a number >= 0"),
+        (["--dark", str(dark), "--readout-sd", "50"], "the dark frames measure the readout"),
         (["--dark", str(path), "--out", str(tmp_path)], "is a folder"),
     ):
         with pytest.raises(SystemExit, match=words):
@@ -130,27 +132,38 @@ def test_calibrate_inputs_that_cannot_work_are_one_line(movie, tmp_path):
                   "--out", str(tmp_path / "c.toml")])  # fmt: skip
 
 
-def test_calibrate_an_scmos_camera(tmp_path):
-    # a CCD/sCMOS of one gain 2.17 ADU per photoelectron, offset 100 ADU, variance 12 ADU^2:
-    # excess noise 1; the file states gain, offset and variance (+1/12 ADU^2 of rounding)
+def test_calibrate_an_scmos_camera_without_dark_frames(tmp_path):
+    # a CCD/sCMOS of one gain 2.17 ADU per photoelectron, offset 100 ADU, variance 12 ADU^2
+    # (+1/12 ADU^2 of rounding), a Poisson background of 3 photons and no dark frames
+    # (`bayespsf calibrate` without --dark): excess noise 1; the file states gain, offset and
+    # variance, the offset and the readout each within 4 of the SEs its comments state, the
+    # gain's 95% interval covering 2.17, and the declared quantum efficiency
     from bayespsf import Scene
-    from bayespsf.movie.camera_file import calibrate_camera
 
     table = scenes.load("paper-movie").to_dict()
     table["camera"] = {"kind": "scmos", "gain": 2.17, "offset": 100.0, "variance": 12.0,
                        "quantize": True, "saturation": 65535.0}  # fmt: skip
+    table["background"] = {"kind": "poisson", "mean": 3.0}
     table["movie"].update(frames=150, height=128, width=128, molecules=12, bleach_mean=100.0,
-                          two_fluorophores=0.0, moving=0.0, dark_frames=20)  # fmt: skip
+                          two_fluorophores=0.0, moving=0.0, dark_frames=0)  # fmt: skip
     files = simulate_movie(Scene.from_dict(table), seed=5, out=tmp_path / "s").files
-    cal = calibrate_camera(files["movie"], files["dark"], kind="scmos", s0=120.0,
-                           quantum_efficiency=0.8)  # fmt: skip
-    low, high = cal.gain.interval
-    assert low <= 2.17 <= high, str(cal.gain)
-    camera = cal.camera_table()
+    out = tmp_path / "camera.toml"
+    assert cli.main(["calibrate", str(files["movie"]), "--kind", "scmos", "--psf-sd", "120",
+                     "--quantum-efficiency", "0.8", "--out", str(out)]) == 0  # fmt: skip
+    text = out.read_text()
+    assert "no dark frames" in text
+    low, high = (float(v) for v in text.split("95% interval ")[1].split(")")[0].split(" to "))
+    assert low <= 2.17 <= high
+    camera = cli._camera_file(str(out))["camera"]
     assert set(camera) == {"kind", "gain", "offset", "variance", "quantum_efficiency"}
     assert camera["kind"] == "scmos" and camera["quantum_efficiency"] == 0.8
-    assert "# N and b: incident photons (quantum efficiency 0.8 as declared" in cal.toml("x")
-    scene = Scene.loads(cal.toml("x").replace("[geometry]", "[geometry]\nroi = 15"))
+    offset_se = float(text.split("offset ")[1].split(" +- ")[1].split(" ADU")[0])
+    readout, readout_se = (
+        float(v) for v in text.split("readout ")[1].split(" ADU")[0].split(" +- ")
+    )
+    assert abs(camera["offset"] - 100.0) < 4 * offset_se
+    assert readout == pytest.approx(np.sqrt(camera["variance"]))
+    assert abs(readout - np.sqrt(12.0 + 1 / 12)) < 4 * readout_se
+    assert "# N and b: incident photons (quantum efficiency 0.8 as declared" in text
+    scene = Scene.loads(text.replace("[geometry]", "[geometry]\nroi = 15"))
     assert Model.from_scene(scene).photon_unit_label == "incident photons (quantum efficiency 0.8)"
-    assert camera["offset"] == pytest.approx(100.0, abs=0.05)
-    assert camera["variance"] == pytest.approx(12.0 + 1 / 12, rel=0.02)

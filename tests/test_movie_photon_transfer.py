@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from bayespsf import Scene, cli, scenes
 from bayespsf.cameras import EMCCD, SCMOS
 from bayespsf.errors import BayespsfInputError
 from bayespsf.movie.photon_transfer import (
@@ -14,7 +13,6 @@ from bayespsf.movie.photon_transfer import (
     offset_from_cumulants,
     pixel_cumulants,
 )
-from bayespsf.movie.simulate import simulate_movie
 
 CAMERAS = {  # (camera, excess, M = ADU per photoelectron, readout SD in ADU)
     "emccd": (EMCCD(200.0, 50.0, 100.0, 12.0), 2.0, 200.0 / 12.0, 50.0 / 12.0),
@@ -114,28 +112,6 @@ def test_away_from_masks_each_molecule_square():
                      (12, 14), 2)  # fmt: skip
     assert not mask[1:6, 0:5].any() and not mask[6:11, 8:13].any()
     assert mask.sum() == 12 * 14 - 25 - 25
-
-
-def test_calibrate_without_dark_frames(tmp_path):
-    # a 128 x 128 movie of 150 frames, Poisson background of 3 photons, EMCCD of offset 100
-    # ADU, 50 e- readout (declared: under the photon noise, the movie cannot measure it), 200
-    # gain and 12 e- per ADU (M = 16.67): the file's offset within 4 of its stated SEs of 100,
-    # M's interval covers 16.67
-    table = scenes.load("paper-movie").to_dict()
-    table["background"] = {"kind": "poisson", "mean": 3.0}
-    table["movie"].update(frames=150, height=128, width=128, molecules=12, bleach_mean=100.0,
-                          two_fluorophores=0.0, moving=0.0, dark_frames=0)  # fmt: skip
-    files = simulate_movie(Scene.from_dict(table), seed=5, out=tmp_path / "s").files
-    out = tmp_path / "camera.toml"
-    assert cli.main(["calibrate", str(files["movie"]), "--psf-sd", "120", "--e-per-adu", "12",
-                     "--readout-sd", "50", "--out", str(out)]) == 0  # fmt: skip
-    text = out.read_text()
-    assert "no dark frames" in text and "as declared" in text
-    offset_se = float(text.split("offset ")[1].split(" +- ")[1].split(" ADU")[0])
-    camera = cli._camera_file(str(out))["camera"]
-    assert abs(camera["offset"] - 100.0) < 4 * offset_se and camera["readout_sd"] == 50.0
-    low, high = (float(v) for v in text.split("95% interval ")[1].split(")")[0].split(" to "))
-    assert low <= 200.0 / 12.0 <= high
 
 
 def test_a_declared_readout_refuses_a_sub_poisson_background(tmp_path):

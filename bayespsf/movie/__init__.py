@@ -6,11 +6,17 @@ bounded memory; ``detect`` / ``detect_movie`` / ``detect_frames`` find candidate
 a stated false-positive rate; ``cut_rois`` cuts each molecule's ROIs over time;
 ``molecules_over_time`` gives per-frame photons, background and centroid, the bleaching steps
 (``bleach_steps``) and the drift; ``select`` applies the paper's selection rules (``Rules``);
-``dark_calibration`` gives a camera's offset and readout noise from its dark frames, and
+``dark_calibration`` gives a camera's offset and readout noise from its dark frames,
+``flat_field_gain`` an sCMOS camera's per-pixel gain from flat fields, and
 ``gain_from_molecules`` its ADU per photon from the movie's immobile molecules (Eq. photonConv).
 """
 
-from bayespsf.movie.calibrate import DarkCalibration, dark_calibration
+from bayespsf.movie.calibrate import (
+    DarkCalibration,
+    FlatFieldGain,
+    dark_calibration,
+    flat_field_gain,
+)
 from bayespsf.movie.detect import detect, detect_frames, detect_movie
 from bayespsf.movie.extract import RoiStack, cut_rois, iter_rois
 from bayespsf.movie.gain import GainEstimate, gain_from_molecules
@@ -22,6 +28,7 @@ from bayespsf.movie.traces import molecules_over_time, traces
 
 __all__ = [
     "DarkCalibration",
+    "FlatFieldGain",
     "GainEstimate",
     "Movie",
     "RoiStack",
@@ -32,6 +39,7 @@ __all__ = [
     "detect",
     "detect_frames",
     "detect_movie",
+    "flat_field_gain",
     "gain_from_molecules",
     "iter_rois",
     "molecules_over_time",

@@ -1,5 +1,5 @@
-"""Camera calibration from a movie's dark frames: the offset and the readout noise (issue 13,
-item 2, first part).
+"""Camera calibration from calibration frames: the offset and the readout noise from dark
+frames, and an sCMOS camera's per-pixel gain from flat fields (issue 13, item 2).
 
 Frames recorded without light hold the camera's offset plus its readout noise (and, on an
 EMCCD, clock-induced charge, which this estimate counts as noise). Per pixel, the mean over
@@ -99,4 +99,80 @@ def dark_calibration(movie, frames=None) -> DarkCalibration:
     )
 
 
-__all__ = ["DarkCalibration", "dark_calibration"]
+@dataclass(frozen=True)
+class FlatFieldGain:
+    """Per-pixel gain of an sCMOS camera from flat fields (``flat_field_gain``).
+
+    Attributes
+    ----------
+    gain_map, gain_se_map : numpy.ndarray
+        ADU per photoelectron of every pixel, and its standard error.
+    levels : int
+        Illumination levels used.
+    frames : tuple of int
+        Frames per level.
+    """
+
+    gain_map: np.ndarray
+    gain_se_map: np.ndarray
+    levels: int
+    frames: tuple[int, ...]
+
+    def camera(self, dark: DarkCalibration, likelihood: str = "exact"):
+        """The per-pixel ``SCMOS`` of these gains and ``dark``'s offset and variance maps."""
+        from bayespsf.cameras import SCMOS
+
+        return SCMOS(self.gain_map, dark.offset_map, dark.variance_map, likelihood=likelihood)
+
+
+def flat_field_gain(flats, dark: DarkCalibration) -> FlatFieldGain:
+    """Each pixel's gain from flat fields at one or more illumination levels (``flats``: a
+    sequence of movies, one per level, of the camera's frames under uniform light).
+
+    Huang et al., Nat. Methods 10, 653 (2013), supplement: a pixel's variance over frames,
+    less its dark variance, grows with its mean above the dark offset as ``g (mean - offset)``
+    (Poisson photoelectrons times ``g`` ADU each). Per pixel, ``g`` is the weighted least
+    squares slope through the dark point, ``sum w x y / sum w x^2`` with ``x`` = mean - offset
+    and ``y`` = variance - dark variance of each level. The weights are ``1 / Var(y) = (K - 1)
+    / (2 v^2)`` (K frames; normal counts) with ``v`` the *fitted* variance ``g x + dark
+    variance``, iterated from equal weights: weights from each level's own sample variance
+    would favour the levels whose variance came out low, and bias ``g`` low. The standard
+    error adds to ``1 / sqrt(sum w x^2)`` the dark variance's own error, common to every level
+    (``sum w x / sum w x^2`` times its SD ``v_dark sqrt(2 / (K_dark - 1))``). A pixel that does
+    not vary in some level (stuck, dead) gets NaN.
+    """
+    if isinstance(flats, str | bytes) or not hasattr(flats, "__iter__"):
+        raise BayespsfInputError("flats must be a sequence of movies, one per illumination level")
+    flats = [open_movie(f) for f in flats]
+    if not flats:
+        raise BayespsfInputError("flats: no flat-field movie given")
+    xs, ys, counts = [], [], []
+    for k, movie in enumerate(flats):
+        if movie.shape[1:] != dark.offset_map.shape:
+            raise BayespsfInputError(
+                f"flats[{k}]: frames {movie.shape[1:]}, the dark frames' {dark.offset_map.shape}"
+            )
+        count = len(movie)
+        if count < 2:
+            raise BayespsfInputError(f"flats[{k}]: {count} frame(s); a variance needs 2 or more")
+        counts.append(count)
+        xs.append(project(movie, "mean") - dark.offset_map)
+        ys.append(project(movie, "std") ** 2 * count / (count - 1) - dark.variance_map)
+    x, y = np.stack(xs), np.stack(ys)
+    k = np.asarray(counts, dtype=float).reshape(-1, *([1] * dark.offset_map.ndim))
+    w = np.ones_like(x)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a stuck pixel: NaN, below
+        for _ in range(3):  # equal weights, then those of the fitted variances, twice
+            sxx = (w * x * x).sum(axis=0)
+            gain = (w * x * y).sum(axis=0) / sxx
+            w = (k - 1) / (2 * (gain * x + dark.variance_map) ** 2)
+        sxx, sx = (w * x * x).sum(axis=0), (w * x).sum(axis=0)
+        gain = (w * x * y).sum(axis=0) / sxx
+        dark_sd = dark.variance_map * np.sqrt(2 / (dark.frames - 1))
+        se = np.sqrt(1 / sxx + (sx / sxx * dark_sd) ** 2)
+    stuck = np.any(y + dark.variance_map == 0, axis=0) | ~np.isfinite(gain) | ~np.isfinite(se)
+    gain, se = np.where(stuck, np.nan, gain), np.where(stuck, np.nan, se)
+    return FlatFieldGain(gain, se, len(flats), tuple(counts))
+
+
+__all__ = ["DarkCalibration", "FlatFieldGain", "dark_calibration", "flat_field_gain"]

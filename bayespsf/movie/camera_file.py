@@ -186,7 +186,10 @@ def calibrate_camera(
     if kind == "emccd":
         camera = EMCCD(m0, first.readout_sd, first.offset, 1.0, likelihood="table")
     else:
-        camera = SCMOS(m0, first.offset, first.readout_sd**2, likelihood="huang")
+        # the exact law: Huang's approximation has no support where counts fall more than
+        # s^2 below the offset, which 2 in 3 of a 15 x 15 ROI hold at 3 background photons and
+        # a readout of 1.6 e- (its stack fits then ran to ~160 nm widths for 120)
+        camera = SCMOS(m0, first.offset, first.readout_sd**2, likelihood="exact")
     found = find_molecules(movie, Model(MIN_ROI, pixel_size, camera), s0=s0, roi=roi, fit=fit)
     chosen = found.molecules[found.molecules["selected"]]
     frames = found.frames
