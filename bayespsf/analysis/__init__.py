@@ -1,0 +1,11 @@
+"""Per-molecule analysis of a movie (issue 14): posteriors of selected molecules and the files
+and tables that come out of them.
+
+``localizations`` turns posterior summary rows into picasso's columns and bayespsf's;
+``write_all`` writes them as picasso's ``locs.hdf5`` + ``locs.yaml``, a ThunderSTORM
+``locs.csv`` and ``locs.parquet``.
+"""
+
+from bayespsf.analysis.locs import localizations, thunderstorm_table, write_all, write_picasso
+
+__all__ = ["localizations", "thunderstorm_table", "write_all", "write_picasso"]
