@@ -17,7 +17,8 @@ candidate's ROI touches):
   Poisson) on the EMCCD with the readout declared: the check must refuse it (its cumulants
   would put the offset 23 ADU high).
 
-    python validation/movie_offset.py            # 20 + 20 + 5 movies (about 8 minutes)
+    python validation/movie_offset.py            # 20 + 20 + 5 movies (28 minutes; the sCMOS
+                                                 # movies' exact-law fits take most)
     python validation/movie_offset.py --quick    # one small EMCCD movie (128 x 128)
 """
 
