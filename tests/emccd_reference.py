@@ -79,3 +79,38 @@ def readout_quadrature(t, lam, r):
     j = mp.quad(integrand, pts) / (r * mp.sqrt(2 * mp.pi))
     atom = mp.exp(-lam - t**2 / (2 * r**2)) / (r * mp.sqrt(2 * mp.pi))
     return atom + j
+
+
+REFERENCE_FILE = "data/emccd_quadrature_references.json"
+
+
+def write_quadrature_references(traps) -> None:
+    """Store the quadrature route's log p of each ``(name, t, lam, r, "quad")`` trap (25
+    digits), which takes ~30 s: ``python tests/emccd_reference.py`` rewrites the file."""
+    import json
+    from pathlib import Path
+
+    values = {
+        name: {
+            "t": t,
+            "lam": lam,
+            "r": r,
+            "log_p": mp.nstr(mp.log(readout_quadrature(t, lam, r)), 22),
+        }
+        for name, t, lam, r, route in traps
+        if route == "quad"
+    }
+    header = {"command": "python tests/emccd_reference.py", "mpmath": mp.__version__,
+              "dps": mp.mp.dps}  # fmt: skip
+    path = Path(__file__).with_name(REFERENCE_FILE.split("/")[0]) / REFERENCE_FILE.split("/")[1]
+    path.write_text(json.dumps({"made by": header, "traps": values}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_emccd import TRAPS
+
+    write_quadrature_references(TRAPS)

@@ -1,0 +1,193 @@
+"""From a movie to per-molecule results: ``analyze`` (``bayespsf analyze``; issue 14, item 1).
+
+The stages, in order:
+
+1. ``bayespsf.movie.find_molecules``: detection, traces, bleaching steps and the paper's
+   selection rules (in detected photoelectrons);
+2. the central ``fit`` x ``fit`` ROI of every valid frame of every selected molecule;
+3. a posterior per ROI (``sample_many``: local processes or a Dask cluster; its store is
+   ``OUT/posteriors``, so a rerun with the same ``OUT`` continues and a killed run loses no
+   finished ROI), the MLE with its Cramér-Rao bound (``fit_mle``) and the paper's least squares
+   (``fit_lsq``), in the camera file's photon unit;
+4. the tables and files: ``locs.hdf5`` + ``locs.yaml`` (picasso), ``locs.csv``
+   (ThunderSTORM), ``locs.parquet`` (every column), ``molecules.csv`` (the selection outcome
+   and, per selected molecule and parameter, the joint estimate and the calibration check
+   without ground truth), ``consistency.csv`` (that check over all molecules),
+   ``width_spread.csv`` (the paper's experimental Delta s against N) and ``report.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bayespsf.analysis.consistency import PARAMETERS, frame_consistency
+from bayespsf.analysis.locs import localizations, write_all
+from bayespsf.analysis.width_spread import width_spread
+from bayespsf.batch import sample_many
+from bayespsf.errors import BayespsfInputError
+from bayespsf.estimators import fit_lsq, fit_mle
+from bayespsf.model import Model
+from bayespsf.movie.extract import iter_rois, open_movie
+from bayespsf.movie.pipeline import FoundMolecules, find_molecules
+from bayespsf.movie.pipeline import write as write_selection
+from bayespsf.psf import PARAMETER_NAMES
+
+
+@dataclass
+class Analysis:
+    """What ``analyze`` made: its tables, and the files it wrote (``paths``, by name)."""
+
+    found: FoundMolecules
+    frames: pd.DataFrame  # one row per analysed (molecule, frame): posterior, MLE, LSQ
+    molecules: pd.DataFrame
+    consistency: pd.DataFrame
+    width_spread: pd.DataFrame
+    paths: dict[str, Path] = field(default_factory=dict)
+
+
+def analysis_model(model: Model, fit: int) -> Model:
+    """``model`` for ``fit`` x ``fit`` ROIs: its camera, pixel size, CIC, saturation, quantum
+    efficiency and photon unit, the prior's defaults for that geometry."""
+    return Model(fit, model.pixel_size, model.camera, None, model.clock_induced_charge,
+                 model.saturation, model.pixel_model, model.quantum_efficiency,
+                 model.photon_unit)  # fmt: skip
+
+
+def valid_rois(movie, found: FoundMolecules, fit: int, block: int = 64):
+    """The ``fit`` x ``fit`` ROIs of the valid frames of the selected molecules, with their
+    table (``molecule``, ``frame``, ``row``, ``col``: the movie pixel at each ROI's centre)."""
+    valid = found.frames.loc[found.frames["valid"].astype(bool), ["molecule", "frame"]]
+    chosen = found.molecules[found.molecules["molecule"].isin(valid["molecule"])]
+    wanted = set(map(tuple, valid.to_numpy()))
+    counts, tables = [], []
+    for stack in iter_rois(movie, chosen, roi=fit, fit=fit, block=block):
+        pairs = zip(stack.table["molecule"], stack.table["frame"], strict=True)
+        keep = np.array([p in wanted for p in pairs], dtype=bool)
+        counts.append(stack.counts[keep])
+        tables.append(stack.table[keep])
+    if not counts:
+        return np.empty((0, fit, fit)), pd.DataFrame(columns=["molecule", "frame", "row", "col"])
+    table = pd.concat(tables, ignore_index=True)
+    table["row"] = table.pop("row0") + fit // 2
+    table["col"] = table.pop("col0") + fit // 2
+    return np.concatenate(counts).astype(np.float64), table
+
+
+def _estimates(counts, model: Model) -> pd.DataFrame:
+    """The MLE (``<p>_mle``, ``crlb_<p>``) and the paper's least squares (``<p>_lsq``)."""
+    mle = fit_mle(counts, model, laplace=False)
+    lsq = fit_lsq(counts, model)
+    out = pd.DataFrame(index=mle.index)
+    for p in PARAMETER_NAMES:
+        out[f"{p}_mle"] = mle[p].to_numpy()
+        out[f"crlb_{p}"] = mle[f"crlb_{p}"].to_numpy()
+        out[f"{p}_lsq"] = lsq[p].where(lsq["converged"]).to_numpy()
+    out["mle_converged"] = mle["converged"].to_numpy(bool)
+    return out
+
+
+def _per_molecule(found: FoundMolecules, molecules: pd.DataFrame) -> pd.DataFrame:
+    """The selection outcome of every candidate, and per analysed molecule and parameter the
+    joint estimate, its SE and the check's chi-square p-value, z-score SD and coverage."""
+    wide = molecules.pivot(index="molecule", columns="parameter",
+                           values=["joint", "joint_se", "p_value", "z_sd", "coverage"])  # fmt: skip
+    wide.columns = [f"{p}_{stat}" for stat, p in wide.columns]
+    return found.molecules.merge(wide.reset_index(), on="molecule", how="left")
+
+
+def analyze(
+    movie, model: Model, *, s0: float, out, roi: int = 25, fit: int = 15, rules=None,
+    method: str = "auto", ess: float | None = None, seed: int = 0, workers: int | None = None,
+    executor=None, progress: bool | None = None, provenance: dict | None = None,
+) -> Analysis:  # fmt: skip
+    """The module docstring's stages on ``movie`` with ``model`` (a camera file's model, its
+    ROI size unused); every file goes into the folder ``out``. ``provenance`` (the camera
+    file's text, the command) is recorded in ``locs.yaml`` and the report."""
+    movie = open_movie(movie)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    found = find_molecules(movie, model, s0=s0, roi=roi, fit=fit, rules=rules, progress=progress)
+    paths = write_selection(found, out)
+    counts, place = valid_rois(movie, found, fit)
+    if len(place) == 0:
+        raise BayespsfInputError(
+            "no molecule passed the selection rules: nothing to analyse (see "
+            f"{paths['selection.md']})"
+        )
+    fitting = analysis_model(model, fit)
+    options = {"method": method} | ({} if ess is None else {"ess": ess})
+    posteriors = sample_many(counts, fitting, seed=seed, executor=executor, workers=workers,
+                             store=out / "posteriors", progress=progress, **options)  # fmt: skip
+    frames = pd.concat(
+        [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1
+    )
+    frames["selected"] = True
+    _, per_molecule, overall = frame_consistency(frames, PARAMETERS)
+    molecules = _per_molecule(found, per_molecule)
+    scale = fitting.photoelectrons_per_photon  # Eq. sigma2dp3 is stated in detected photons
+    detected = frames.assign(N_mean=frames["N_mean"] * scale, b_mean=frames["b_mean"] * scale,
+                             photon_unit="photoelectrons")  # fmt: skip
+    spread = width_spread(detected, fitting.pixel_size)
+    _, height, width = movie.shape
+    info = {
+        "Width": int(width), "Height": int(height), "Frames": len(movie),
+        "Pixelsize": float(fitting.pixel_size), "Generated by": "bayespsf analyze",
+        "bayespsf": {"model": repr(fitting), "photon_unit": fitting.photon_unit_label,
+                     "method": method, "roi": roi, "fit": fit, **(provenance or {})},
+    }  # fmt: skip
+    paths.update(write_all(localizations(frames, fitting.pixel_size), out, info))
+    for name, table in (("molecules.csv", molecules), ("consistency.csv", overall),
+                        ("width_spread.csv", spread)):  # fmt: skip
+        paths[name] = out / name
+        table.to_csv(paths[name], index=False)
+    result = Analysis(found, frames, molecules, overall, spread, paths)
+    paths["report.md"] = out / "report.md"
+    paths["report.md"].write_text(report_markdown(result, provenance))
+    return result
+
+
+def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
+    """The run's report: selection, the calibration check, Delta s against N, the files."""
+    fmt = {"index": False, "floatfmt": ".4g"}
+    check = result.consistency[["parameter", "frames", "molecules", "z_sd", "z_sd_se",
+                                "p_value", "coverage", "coverage_se",
+                                "expected_coverage"]]  # fmt: skip
+    spread_columns = [c for c in ("molecule", "frames", "N", "delta_s_lsq", "delta_s_mle",
+                                  "delta_s_mean", "posterior_sd", "crlb", "eq_sigma2dp3")
+                      if c in result.width_spread]  # fmt: skip
+    lines = [
+        "# bayespsf analyze",
+        "",
+        *(f"- {k}: `{v}`" for k, v in (provenance or {}).items() if "\n" not in str(v)),
+        "",
+        result.found.report_markdown(),
+        "## The calibration check without ground truth",
+        "",
+        "Per-frame posterior means about each molecule's joint estimate, in units of their "
+        "stated SDs (`bayespsf.analysis.consistency`): a calibrated model gives z-score SDs of "
+        "1 within their errors, chi-square p-values that are not small, and a coverage at its "
+        "expected value.",
+        "",
+        check.to_markdown(**fmt),
+        "",
+        "## Width precision per molecule (the paper's Fig. 2, experimental points)",
+        "",
+        "`delta_s_*`: the SD over frames of each estimator's s_x (nm); beside it the mean "
+        "posterior SD, the mean Cramér-Rao bound and Eq. sigma2dp3 of DeSantis, DeCenzo, Li & "
+        "Wang, Opt. Express 18 (2010) at the molecule's mean N (detected photons).",
+        "",
+        result.width_spread[spread_columns].to_markdown(**fmt),
+        "",
+        "## Files",
+        "",
+        *(f"- `{name}`" for name in result.paths),
+        "",
+    ]
+    return "\n".join(lines)
+
+
+__all__ = ["Analysis", "analysis_model", "analyze", "report_markdown", "valid_rois"]

@@ -1,0 +1,93 @@
+"""`bayespsf analyze` end to end on a small simulated movie: every file, one row per analysed
+(molecule, frame), picasso opens the result, and the calibration check without ground truth
+passes when the camera file is the simulator's."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bayespsf import Scene, cli, scenes
+from bayespsf.movie.simulate import simulate_movie
+
+CAMERA = """[geometry]
+pixel_size = 79.0
+
+[camera]
+kind = "emccd"
+gain = 200.0
+readout_sd = 50.0
+offset = 100.0
+e_per_adu = 12.0
+quantize = true
+saturation = 65535.0
+"""
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A 128 x 128 paper-movie of 60 frames (12 immobile single molecules), analysed with the
+    simulator's own camera, the Laplace posteriors and 30 valid frames per molecule."""
+    folder = tmp_path_factory.mktemp("analyze")
+    table = scenes.load("paper-movie").to_dict()
+    table["movie"].update(frames=60, height=128, width=128, molecules=12, bleach_mean=0.0,
+                          two_fluorophores=0.0, moving=0.0, dark_frames=0)  # fmt: skip
+    made = simulate_movie(Scene.from_dict(table), seed=3, out=folder / "m")
+    (folder / "camera.toml").write_text(CAMERA)
+    out = folder / "out"
+    code = cli.main(["analyze", str(made.files["movie"]), "--camera", str(folder / "camera.toml"),
+                     "--psf-sd", "120", "--min-valid-frames", "30", "--method", "laplace",
+                     "--workers", "1", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    return out, made
+
+
+def test_every_file_is_written_with_one_row_per_analysed_frame(run):
+    out, _ = run
+    for name in ("locs.hdf5", "locs.yaml", "locs.csv", "locs.parquet", "molecules.csv",
+                 "consistency.csv", "width_spread.csv", "report.md", "selection.md",
+                 "frames.csv", "camera.toml"):  # fmt: skip
+        assert (out / name).exists(), name
+    locs = pd.read_parquet(out / "locs.parquet")
+    frames = pd.read_csv(out / "frames.csv")
+    valid = frames[frames["valid"]]
+    assert len(locs) == len(valid) > 0
+    assert set(zip(locs["molecule"], locs["frame"], strict=True)) == set(
+        zip(valid["molecule"], valid["frame"], strict=True)
+    )
+    molecules = pd.read_csv(out / "molecules.csv")
+    assert molecules.loc[molecules["selected"], "s_x_joint"].notna().all()
+    assert (out / "posteriors" / "summary.csv").exists()
+    assert "calibration check" in (out / "report.md").read_text()
+
+
+def test_positions_match_the_truth_and_picasso_opens_them(run):
+    picasso_io = pytest.importorskip("picasso.io")
+    out, made = run
+    locs, info = picasso_io.load_locs(str(out / "locs.hdf5"))
+    assert info[0]["Pixelsize"] == 79.0 and info[0]["Frames"] == 60
+    truth = made.molecules.set_index("molecule")
+    parquet = pd.read_parquet(out / "locs.parquet")
+    # locations within 5 of their posterior SDs of the truth (immobile: frame 0's position)
+    z = (parquet["x"] - parquet["molecule"].map(truth["x"])) / parquet["lpx"]
+    assert np.all(np.abs(z) < 5), z.abs().max()
+    assert len(locs) == len(parquet)
+
+
+def test_the_check_without_ground_truth_passes_on_a_right_model(run):
+    # the simulator's camera and a Gaussian spot: z-score SDs within 4 of their SEs of 1
+    out, _ = run
+    check = pd.read_csv(out / "consistency.csv").set_index("parameter")
+    for p in ("x0", "y0", "s_x", "s_y"):
+        assert abs(check.loc[p, "z_sd"] - 1) < 4 * check.loc[p, "z_sd_se"], check.loc[p]
+
+
+def test_a_rerun_continues_from_the_store(run, capsys):
+    out, made = run
+    before = (out / "posteriors" / "summary.csv").stat().st_mtime_ns
+    files = sorted((out / "posteriors").glob("*.nc"))
+    stamps = [f.stat().st_mtime_ns for f in files]
+    cli.main(["analyze", str(made.files["movie"]), "--camera", str(out / "camera.toml"),
+              "--psf-sd", "120", "--min-valid-frames", "30", "--method", "laplace",
+              "--workers", "1", "--out", str(out)])  # fmt: skip
+    assert [f.stat().st_mtime_ns for f in files] == stamps  # no posterior made again
+    assert (out / "posteriors" / "summary.csv").stat().st_mtime_ns >= before
