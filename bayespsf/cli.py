@@ -290,6 +290,7 @@ def _analyze(args) -> int:
         Rules() if args.min_valid_frames is None else Rules(min_valid_frames=args.min_valid_frames)
     )
     command = "bayespsf analyze " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
+    out.mkdir(parents=True, exist_ok=True)
     camera_path = _copy_camera_file(args, out)
     result = analyze(
         movie, model, s0=s0, out=out, roi=args.roi, fit=args.fit, rules=rules,
