@@ -46,7 +46,8 @@ def test_every_file_is_written_with_one_row_per_analysed_frame(run):
     out, _ = run
     for name in ("locs.hdf5", "locs.yaml", "locs.csv", "locs.parquet", "molecules.csv",
                  "consistency.csv", "width_spread.csv", "report.md", "selection.md",
-                 "frames.csv", "camera.toml"):  # fmt: skip
+                 "frames.csv", "camera.toml", "detections.png", "traces.png", "zscores.png",
+                 "width_precision.png"):  # fmt: skip
         assert (out / name).exists(), name
     locs = pd.read_parquet(out / "locs.parquet")
     frames = pd.read_csv(out / "frames.csv")
@@ -58,7 +59,8 @@ def test_every_file_is_written_with_one_row_per_analysed_frame(run):
     molecules = pd.read_csv(out / "molecules.csv")
     assert molecules.loc[molecules["selected"], "s_x_joint"].notna().all()
     assert (out / "posteriors" / "summary.csv").exists()
-    assert "calibration check" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "calibration check" in report and "(zscores.png)" in report
 
 
 def test_positions_match_the_truth_and_picasso_opens_them(run):

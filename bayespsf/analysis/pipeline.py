@@ -126,7 +126,7 @@ def analyze(
         [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1
     )
     frames["selected"] = True
-    _, per_molecule, overall = frame_consistency(frames, PARAMETERS)
+    frame_z, per_molecule, overall = frame_consistency(frames, PARAMETERS)
     molecules = _per_molecule(found, per_molecule)
     scale = fitting.photoelectrons_per_photon  # Eq. sigma2dp3 is stated in detected photons
     detected = frames.assign(N_mean=frames["N_mean"] * scale, b_mean=frames["b_mean"] * scale,
@@ -144,10 +144,25 @@ def analyze(
                         ("width_spread.csv", spread)):  # fmt: skip
         paths[name] = out / name
         table.to_csv(paths[name], index=False)
+    paths.update(_figures(movie, found, frame_z, spread, out))
     result = Analysis(found, frames, molecules, overall, spread, paths)
     paths["report.md"] = out / "report.md"
     paths["report.md"].write_text(report_markdown(result, provenance))
     return result
+
+
+def _figures(movie, found: FoundMolecules, frame_z, spread, out: Path) -> dict[str, Path]:
+    """The report's figures (``bayespsf.analysis.figures``), by file name."""
+    from bayespsf.analysis import figures
+    from bayespsf.movie.project import project
+
+    made = [
+        figures.detections(project(movie, "mean"), found.molecules, out / "detections.png"),
+        figures.traces(found.frames, found.molecules, out / "traces.png"),
+        figures.zscores(frame_z, PARAMETERS, out / "zscores.png"),
+        figures.width_precision(spread, out / "width_precision.png"),
+    ]
+    return {path.name: path for path in made}
 
 
 def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
@@ -164,6 +179,10 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "",
         *(f"- {k}: `{v}`" for k, v in (provenance or {}).items() if "\n" not in str(v)),
         "",
+        "![detections on the mean projection](detections.png)",
+        "",
+        "![traces of the selected molecules](traces.png)",
+        "",
         result.found.report_markdown(),
         "## The calibration check without ground truth",
         "",
@@ -174,6 +193,8 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "",
         check.to_markdown(**fmt),
         "",
+        "![z-scores of the calibration check](zscores.png)",
+        "",
         "## Width precision per molecule (the paper's Fig. 2, experimental points)",
         "",
         "`delta_s_*`: the SD over frames of each estimator's s_x (nm); beside it the mean "
@@ -181,6 +202,8 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "Wang, Opt. Express 18 (2010) at the molecule's mean N (detected photons).",
         "",
         result.width_spread[spread_columns].to_markdown(**fmt),
+        "",
+        "![width error against N](width_precision.png)",
         "",
         "## Files",
         "",

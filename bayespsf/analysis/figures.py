@@ -1,0 +1,122 @@
+"""The figures of ``bayespsf analyze``'s report (issue 14, item 7), each written to a PNG.
+
+``detections``: the mean projection with every candidate (selected, rejected by a rule,
+rejected by detection); ``traces``: the selected molecules' photons per frame with their
+bleaching step; ``zscores``: the calibration check's per-frame z-scores against N(0, 1);
+``width_precision``: the paper's experimental Delta s against N (each estimator), beside the
+mean posterior SD, the CRLB and Eq. sigma2dp3 (DeSantis, DeCenzo, Li & Wang, Opt. Express 18
+(2010), Fig. 2).
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+MAX_TRACES = 12  # the traces figure shows at most this many molecules
+
+
+@contextmanager
+def _figure(path: Path, **options):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(**options)
+    try:
+        yield fig, ax
+        fig.tight_layout()
+        fig.savefig(path, dpi=80)
+    finally:
+        plt.close(fig)
+
+
+def detections(image: np.ndarray, molecules: pd.DataFrame, path) -> Path:
+    """The projection with each candidate marked by its outcome."""
+    path = Path(path)
+    with _figure(path, figsize=(5, 5)) as (_, ax):
+        ax.imshow(image, cmap="gray", origin="upper")
+        outcome = np.where(
+            molecules["selected"].astype(bool),
+            "selected",
+            np.where(
+                molecules["rejected_by"].fillna("").str.startswith("detection"),
+                "rejected by detection",
+                "rejected by a selection rule",
+            ),
+        )
+        for label, marker, color in (("selected", "o", "C2"),
+                                     ("rejected by a selection rule", "s", "C1"),
+                                     ("rejected by detection", "x", "C3")):  # fmt: skip
+            part = molecules[outcome == label]
+            style = {"color": color} if marker == "x" else {"facecolors": "none",
+                                                            "edgecolors": color}  # fmt: skip
+            ax.scatter(part["x"], part["y"], s=60, marker=marker,
+                       label=f"{label} ({len(part)})", **style)  # fmt: skip
+        ax.set_xlabel("x (pixels)")
+        ax.set_ylabel("y (pixels)")
+        ax.legend(fontsize=7, loc="upper right")
+    return path
+
+
+def traces(frames: pd.DataFrame, molecules: pd.DataFrame, path) -> Path:
+    """The selected molecules' aperture photons per frame, each with its bleaching step."""
+    path = Path(path)
+    chosen = molecules[molecules["selected"].astype(bool)].head(MAX_TRACES)
+    with _figure(path, figsize=(6, 3.5)) as (_, ax):
+        for k, row in enumerate(chosen.itertuples()):
+            trace = frames[frames["molecule"] == row.molecule].sort_values("frame")
+            ax.plot(trace["frame"], trace["photons"], lw=0.8, color=f"C{k % 10}",
+                    label=f"molecule {row.molecule}")  # fmt: skip
+            if pd.notna(row.bleach_frame):
+                ax.axvline(row.bleach_frame, color=f"C{k % 10}", lw=0.8, ls="--")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("aperture photons (detected)")
+        ax.set_title(f"selected molecules (first {len(chosen)}); dashed: bleaching step")
+        if len(chosen):
+            ax.legend(fontsize=6, ncol=2)
+    return path
+
+
+def zscores(frame_z: pd.DataFrame, parameters, path) -> Path:
+    """Histograms of the per-frame z-scores of each parameter against N(0, 1)."""
+    from scipy import stats
+
+    path = Path(path)
+    grid = np.linspace(-4, 4, 200)
+    with _figure(path, figsize=(6, 3.5)) as (_, ax):
+        for k, p in enumerate(parameters):
+            z = frame_z[f"{p}_z"].dropna().to_numpy()
+            if z.size:
+                ax.hist(z, bins=np.linspace(-4, 4, 33), density=True, histtype="step",
+                        color=f"C{k}", label=f"{p} (SD {z.std(ddof=1):.2f})")  # fmt: skip
+        ax.plot(grid, stats.norm.pdf(grid), color="k", lw=1, label="N(0, 1)")
+        ax.set_xlabel("per-frame z-score about the molecule's joint estimate")
+        ax.legend(fontsize=7)
+    return path
+
+
+def width_precision(spread: pd.DataFrame, path) -> Path:
+    """Delta s against N per molecule, each estimator and each prediction."""
+    path = Path(path)
+    with _figure(path, figsize=(6, 4)) as (_, ax):
+        styles = {"delta_s_lsq": ("least squares (the paper's)", "s", "C3"),
+                  "delta_s_mle": ("MLE", "^", "C1"), "delta_s_mean": ("posterior mean", "o", "C0"),
+                  "posterior_sd": ("mean posterior SD", "_", "C0"), "crlb": ("mean CRLB", "_", "k"),
+                  "eq_sigma2dp3": ("Eq. sigma2dp3", "x", "C2")}  # fmt: skip
+        for column, (label, marker, color) in styles.items():
+            if column in spread:
+                ax.scatter(spread["N"], spread[column], marker=marker, color=color, label=label)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("mean N per frame (detected photons)")
+        ax.set_ylabel("width error of s_x (nm)")
+        ax.legend(fontsize=7)
+    return path
+
+
+__all__ = ["detections", "traces", "width_precision", "zscores"]
