@@ -61,6 +61,7 @@ def test_every_file_is_written_with_one_row_per_analysed_frame(run):
     assert (out / "posteriors" / "summary.csv").exists()
     report = (out / "report.md").read_text()
     assert "calibration check" in report and "(zscores.png)" in report
+    assert locs["gof_p"].between(0, 1).all() and "goodness-of-fit" in report
 
 
 def test_positions_match_the_truth_and_picasso_opens_them(run):
