@@ -103,6 +103,16 @@ def test_inputs_that_cannot_work_are_named(tmp_path):
         offset_from_cumulants(flat, 10.0, 3.0)
     with pytest.raises(BayespsfInputError, match="adu_per_photon must be"):
         offset_from_cumulants(flat, -1.0, 2.0)
+    noisy = np.random.default_rng(0).gamma(3.0, 10.0, size=(30, 20, 20))
+    noisy[7, 3, 3] = np.nan
+    np.save(tmp_path / "nan.npy", noisy)
+    with pytest.raises(BayespsfInputError, match="frame 7 has NaN or infinite counts"):
+        pixel_cumulants(tmp_path / "nan.npy", block=4)
+    noisy[7, 3, 3] = 30.0
+    np.save(tmp_path / "skewed.npy", -noisy)  # negatively skewed: no amplified photons
+    with pytest.raises(BayespsfInputError, match="no photon noise"):
+        offset_from_cumulants(pixel_cumulants(tmp_path / "skewed.npy"), 10.0, 2.0,
+                              readout_adu=1.0, check=False)  # fmt: skip
 
 
 def test_away_from_masks_each_molecule_square():

@@ -34,9 +34,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bayespsf._checks import scalar_in_range
 from bayespsf.errors import BayespsfInputError
 from bayespsf.movie.extract import frame_span, open_movie
-from bayespsf.movie.project import _blocks
+from bayespsf.movie.project import _blocks, block_frames
 
 CUMULANT_FACTORS = {  # c2, c3, c4 of the amplified photoelectrons, by excess-noise factor
     2.0: (2.0, 6.0, 24.0),  # EMCCD: Exp(1) per photoelectron, kappa_j = lam E[Exp(1)^j] = lam j!
@@ -57,12 +58,15 @@ class PixelCumulants:
     frames: int
 
 
-def pixel_cumulants(movie, frames=None, block: int = 64) -> PixelCumulants:
-    """The unbiased k-statistics of every pixel's counts over frames, one block of frames in
-    memory at a time (power sums of the counts less the first frame's, so that they do not
-    cancel)."""
+def pixel_cumulants(movie, frames=None, block: int | None = None,
+                    budget: int = 256 * 2**20) -> PixelCumulants:  # fmt: skip
+    """The unbiased k-statistics of every pixel's counts over frames, ``block`` frames in
+    memory at a time (default: as many as fit ``budget`` bytes, as ``project``'s), from power
+    sums of the counts less the first frame's, so that they do not cancel. A NaN or infinite
+    count is an error naming its frame: it would make its pixel's cumulants NaN."""
     movie = open_movie(movie)
     span = frame_span(movie, frames)
+    block = block_frames(movie, block, budget, 24)  # float64 data, deviations and powers
     n = len(span)
     if n < MIN_FRAMES:
         raise BayespsfInputError(
@@ -71,8 +75,15 @@ def pixel_cumulants(movie, frames=None, block: int = 64) -> PixelCumulants:
         )
     shift = None
     sums = None
-    for part in _blocks(movie, span, block):
+    for start, part in zip(range(0, len(span), block), _blocks(movie, span, block),
+                           strict=True):  # fmt: skip
         data = np.asarray(part, dtype=np.float64)
+        bad = ~np.isfinite(data)
+        if bad.any():
+            frame = span[start + int(np.flatnonzero(bad.any(axis=(1, 2)))[0])]
+            raise BayespsfInputError(
+                f"frame {frame} has NaN or infinite counts; the cumulants need finite ones"
+            )
         if shift is None:
             shift = data[0].copy()
             sums = np.zeros((4, *shift.shape))
@@ -146,17 +157,22 @@ def _background(cumulants: PixelCumulants, mask) -> tuple[np.ndarray, ...]:
     return tuple(k[keep] for k in (cumulants.k1, cumulants.k2, cumulants.k3, cumulants.k4))
 
 
+def _require_photon_noise(*cumulants: float) -> None:
+    """The background's mean higher cumulants must be positive (amplified photons are)."""
+    if not all(c > 0 for c in cumulants):
+        raise BayespsfInputError(
+            "the movie's background pixels have no photon noise to calibrate against (their "
+            "third or fourth cumulant is not positive): give dark frames"
+        )
+
+
 def first_adu_per_photon(cumulants: PixelCumulants, excess: float, mask=None) -> float:
     """``M`` from ``K4 / K3 = (c4 / c3) M`` over the background pixels: good enough to detect
     molecules with, before they give the final ``M``."""
     _, c3, c4 = _check_excess(excess)
     _, _, k3, k4 = _background(cumulants, mask)
     third, fourth = float(k3.mean()), float(k4.mean())
-    if not (third > 0 and fourth > 0):
-        raise BayespsfInputError(
-            "the movie's background pixels have no photon noise to calibrate against (their "
-            "third and fourth cumulants are not positive): give dark frames"
-        )
+    _require_photon_noise(third, fourth)
     return c3 * fourth / (c4 * third)
 
 
@@ -179,9 +195,10 @@ def offset_from_cumulants(
     ``c2 lam M SE(M)``).
     """
     c2, c3, _ = _check_excess(excess)
-    m = float(adu_per_photon)
-    if not (np.isfinite(m) and m > 0):
-        raise BayespsfInputError(f"adu_per_photon must be a number > 0, got {adu_per_photon!r}")
+    m = scalar_in_range("adu_per_photon", adu_per_photon, 0.0, low_inclusive=False)
+    adu_per_photon_se = scalar_in_range("adu_per_photon_se", adu_per_photon_se, 0.0)
+    if readout_adu is not None:
+        readout_adu = scalar_in_range("readout_adu", readout_adu, 0.0)
     k1, k2, k3, _ = _background(cumulants, mask)
     pixels = k1.size
     lam = float(k3.mean() / (c3 * m**3))
@@ -196,17 +213,16 @@ def offset_from_cumulants(
         np.hypot(variance_p.std(ddof=1) / np.sqrt(pixels), c2 * lam * m * adu_per_photon_se)
     )
     if readout_adu is not None:
-        if not (np.isfinite(readout_adu) and readout_adu >= 0):
-            raise BayespsfInputError(f"readout_adu must be a number >= 0, got {readout_adu!r}")
-        if check and abs(variance - readout_adu**2) > POISSON_CHECK_SE * variance_se:
+        if check and not abs(variance - readout_adu**2) <= POISSON_CHECK_SE * variance_se:
             raise BayespsfInputError(
-                f"the movie's background is not Poisson photons over the declared readout: "
-                f"what its variance holds beyond the photon noise of {lam:.3g} photoelectrons "
-                f"reads {variance:.4g} +- {variance_se:.2g} ADU^2, not the readout's "
-                f"{readout_adu**2:.4g} ADU^2 (a sub-Poisson, drifting or structured "
-                "background), so the offset from its cumulants would be biased: give dark "
-                "frames"
+                f"the movie's background is not Poisson photons over the declared readout at "
+                f"{m:.4g} ADU per photoelectron: what its variance holds beyond the photon noise "
+                f"of {lam:.3g} photoelectrons reads {variance:.4g} +- {variance_se:.2g} ADU^2, "
+                f"not the readout's {readout_adu**2:.4g} ADU^2 (a sub-Poisson, drifting or "
+                "structured background, or an ADU per photoelectron further off than its SE), "
+                "so the offset from its cumulants would be biased: give dark frames"
             )
+        _require_photon_noise(lam)
         return MovieOffset(readout_sd=float(readout_adu), readout_sd_se=0.0,
                            readout_declared=True, **common)  # fmt: skip
     if not variance > 2 * variance_se:
@@ -216,6 +232,7 @@ def offset_from_cumulants(
             f"{lam:.3g} photoelectrons per pixel. State the camera's readout noise (--readout-sd "
             "in electrons, from its specification) or give dark frames"
         )
+    _require_photon_noise(lam)
     readout = float(np.sqrt(variance))
     return MovieOffset(readout_sd=readout, readout_sd_se=variance_se / (2 * readout), **common)
 

@@ -61,10 +61,7 @@ def project(
     span = _span(movie, frames)
     h, w = movie.shape[1:]
     itemsize = np.dtype(movie.dtype).itemsize
-    if block is None:  # the block in the file's type, in float64 and its deviations
-        block = max(1, budget // (h * w * (itemsize + 16)))
-    elif isinstance(block, bool) or not isinstance(block, int | np.integer) or block < 1:
-        raise BayespsfInputError(f"block must be a whole number of frames >= 1, got {block!r}")
+    block = block_frames(movie, block, budget, 16)  # float64 copies of a block and deviations
     if kind == "median":
         rows = max(1, budget // (2 * len(span) * w * itemsize))
         return _median(movie, span, int(block), int(rows))
@@ -78,6 +75,17 @@ def project(
     for data in _blocks(movie, span, int(block)):
         count, mean, m2 = _merge(count, mean, m2, data.astype(np.float64))
     return mean if kind == "mean" else np.sqrt(m2 / count)
+
+
+def block_frames(movie, block, budget: int, work_bytes: int) -> int:
+    """Frames to read at a time: ``block`` (checked), or as many as fit ``budget`` bytes with
+    each pixel of a frame taking its file type's size plus ``work_bytes`` of working copies."""
+    if block is None:
+        h, w = movie.shape[1:]
+        return max(1, budget // (h * w * (np.dtype(movie.dtype).itemsize + work_bytes)))
+    if isinstance(block, bool) or not isinstance(block, int | np.integer) or block < 1:
+        raise BayespsfInputError(f"block must be a whole number of frames >= 1, got {block!r}")
+    return int(block)
 
 
 def _merge(count: int, mean: np.ndarray, m2: np.ndarray, data: np.ndarray):
