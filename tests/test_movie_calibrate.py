@@ -63,6 +63,10 @@ def test_flat_fields_give_each_pixels_gain_with_calibrated_errors(tmp_path):
     np.testing.assert_allclose(per_adu, 1 / found.gain_map)
     with pytest.raises(BayespsfInputError, match="sequence of movies"):
         flat_field_gain(tmp_path / "flat0.npy", dark)
+    with pytest.raises(BayespsfInputError, match=r"flats\[0\]: .* no light to calibrate"):
+        flat_field_gain([tmp_path / "dark.npy"], dark)
+    with pytest.raises(BayespsfInputError, match="dark must be a DarkCalibration"):
+        flat_field_gain(flats, tmp_path / "dark.npy")
     np.save(tmp_path / "small.npy", np.zeros((5, 8, 8)))
     with pytest.raises(BayespsfInputError, match=r"flats\[0\]: frames \(8, 8\)"):
         flat_field_gain([tmp_path / "small.npy"], dark)

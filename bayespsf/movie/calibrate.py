@@ -21,7 +21,7 @@ from scipy import stats
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.movie.extract import frame_span, open_movie
-from bayespsf.movie.project import project
+from bayespsf.movie.project import mean_and_variance
 
 
 @dataclass(frozen=True)
@@ -81,8 +81,7 @@ def dark_calibration(movie, frames=None) -> DarkCalibration:
         raise BayespsfInputError(
             f"dark frames: {count} frame(s); a variance needs at least 2 (use 20 or more)"
         )
-    mean = project(movie, "mean", frames=span)
-    variance = project(movie, "std", frames=span) ** 2 * count / (count - 1)
+    mean, variance = mean_and_variance(movie, frames=span)
     # a pixel's sample variance is sigma^2 chi2_k / k (k = frames - 1): its median is
     # sigma^2 times the chi2 median over k, which the median over pixels must be divided by
     dof = count - 1
@@ -139,8 +138,11 @@ def flat_field_gain(flats, dark: DarkCalibration) -> FlatFieldGain:
     would favour the levels whose variance came out low, and bias ``g`` low. The standard
     error adds to ``1 / sqrt(sum w x^2)`` the dark variance's own error, common to every level
     (``sum w x / sum w x^2`` times its SD ``v_dark sqrt(2 / (K_dark - 1))``). A pixel that does
-    not vary in some level (stuck, dead) gets NaN.
+    not vary in some level (stuck, dead), or whose slope is not positive, gets NaN; a level
+    whose pixels lie within 5 SEs of the dark offset (no light) is an error.
     """
+    if not isinstance(dark, DarkCalibration):
+        raise BayespsfInputError(f"dark must be a DarkCalibration (dark_calibration), got {dark!r}")
     if isinstance(flats, str | bytes) or not hasattr(flats, "__iter__"):
         raise BayespsfInputError("flats must be a sequence of movies, one per illumination level")
     flats = [open_movie(f) for f in flats]
@@ -156,8 +158,16 @@ def flat_field_gain(flats, dark: DarkCalibration) -> FlatFieldGain:
         if count < 2:
             raise BayespsfInputError(f"flats[{k}]: {count} frame(s); a variance needs 2 or more")
         counts.append(count)
-        xs.append(project(movie, "mean") - dark.offset_map)
-        ys.append(project(movie, "std") ** 2 * count / (count - 1) - dark.variance_map)
+        mean, variance = mean_and_variance(movie)
+        above = float(np.median(mean - dark.offset_map))
+        noise = float(np.sqrt(np.median(dark.variance_map) / count))
+        if not above > 5 * noise:
+            raise BayespsfInputError(
+                f"flats[{k}]: its pixels lie {above:.3g} ADU above the dark offset, within 5 "
+                f"SEs ({noise:.2g} ADU) of it: no light to calibrate against"
+            )
+        xs.append(mean - dark.offset_map)
+        ys.append(variance - dark.variance_map)
     x, y = np.stack(xs), np.stack(ys)
     k = np.asarray(counts, dtype=float).reshape(-1, *([1] * dark.offset_map.ndim))
     w = np.ones_like(x)
@@ -170,7 +180,7 @@ def flat_field_gain(flats, dark: DarkCalibration) -> FlatFieldGain:
         gain = (w * x * y).sum(axis=0) / sxx
         dark_sd = dark.variance_map * np.sqrt(2 / (dark.frames - 1))
         se = np.sqrt(1 / sxx + (sx / sxx * dark_sd) ** 2)
-    stuck = np.any(y + dark.variance_map == 0, axis=0) | ~np.isfinite(gain) | ~np.isfinite(se)
+    stuck = np.any(y + dark.variance_map == 0, axis=0) | ~(gain > 0) | ~np.isfinite(se)
     gain, se = np.where(stuck, np.nan, gain), np.where(stuck, np.nan, se)
     return FlatFieldGain(gain, se, len(flats), tuple(counts))
 

@@ -59,7 +59,7 @@ def project(
     if isinstance(budget, bool) or not isinstance(budget, int | np.integer) or budget < 1:
         raise BayespsfInputError(f"budget must be a positive number of bytes, got {budget!r}")
     span = _span(movie, frames)
-    h, w = movie.shape[1:]
+    w = movie.shape[2]
     itemsize = np.dtype(movie.dtype).itemsize
     block = block_frames(movie, block, budget, 16)  # float64 copies of a block and deviations
     if kind == "median":
@@ -71,10 +71,28 @@ def project(
             top = data.max(axis=0)
             peak = top if peak is None else np.maximum(peak, top)
         return peak.astype(np.float64)
-    count, mean, m2 = 0, np.zeros((h, w)), np.zeros((h, w))
-    for data in _blocks(movie, span, int(block)):
-        count, mean, m2 = _merge(count, mean, m2, data.astype(np.float64))
+    count, mean, m2 = _moments(movie, span, block)
     return mean if kind == "mean" else np.sqrt(m2 / count)
+
+
+def mean_and_variance(movie, frames=None, block: int | None = None,
+                      budget: int = 256 * 2**20) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Each pixel's mean and unbiased variance (``ddof=1``) over frames, in one streamed pass
+    (as ``project``'s mean and std, which would read the movie twice)."""
+    span = _span(movie, frames)
+    count, mean, m2 = _moments(movie, span, block_frames(movie, block, budget, 16))
+    if count < 2:
+        raise BayespsfInputError(f"{count} frame(s); a variance needs at least 2")
+    return mean, m2 / (count - 1)
+
+
+def _moments(movie, span: range, block: int):
+    """The count, mean and summed squared deviations of every pixel over ``span``."""
+    h, w = movie.shape[1:]
+    count, mean, m2 = 0, np.zeros((h, w)), np.zeros((h, w))
+    for data in _blocks(movie, span, block):
+        count, mean, m2 = _merge(count, mean, m2, data.astype(np.float64))
+    return count, mean, m2
 
 
 def block_frames(movie, block, budget: int, work_bytes: int) -> int:
