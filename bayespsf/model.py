@@ -209,6 +209,15 @@ class Model:
             cam["photon_unit"],
         )
 
+    def for_roi(self, roi: int, *, detected: bool = False) -> Model:
+        """This model for ``roi`` x ``roi`` ROIs: the same camera, pixel size, CIC, saturation,
+        pixel model, quantum efficiency and photon unit (N and b in detected photoelectrons
+        when ``detected``), with the prior's defaults for the new geometry."""
+        unit = "detected" if detected else self.photon_unit
+        return Model(roi, self.pixel_size, self.camera, None, self.clock_induced_charge,
+                     self.saturation, self.pixel_model, self.quantum_efficiency,
+                     unit)  # fmt: skip
+
     @property
     def photon_unit_label(self) -> str:
         """The unit of N and b in words (``bayespsf.photon_units.label``)."""

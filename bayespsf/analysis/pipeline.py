@@ -51,14 +51,6 @@ class Analysis:
     paths: dict[str, Path] = field(default_factory=dict)
 
 
-def analysis_model(model: Model, fit: int) -> Model:
-    """``model`` for ``fit`` x ``fit`` ROIs: its camera, pixel size, CIC, saturation, quantum
-    efficiency and photon unit, the prior's defaults for that geometry."""
-    return Model(fit, model.pixel_size, model.camera, None, model.clock_induced_charge,
-                 model.saturation, model.pixel_model, model.quantum_efficiency,
-                 model.photon_unit)  # fmt: skip
-
-
 def valid_rois(movie, found: FoundMolecules, fit: int, block: int = 64):
     """The ``fit`` x ``fit`` ROIs of the valid frames of the selected molecules, with their
     table (``molecule``, ``frame``, ``row``, ``col``: the movie pixel at each ROI's centre)."""
@@ -124,7 +116,7 @@ def analyze(
             "no molecule passed the selection rules: nothing to analyse (see "
             f"{paths['selection.md']})"
         )
-    fitting = analysis_model(model, fit)
+    fitting = model.for_roi(fit)
     options = {"method": method} | ({} if ess is None else {"ess": ess})
     posteriors = sample_many(counts, fitting, seed=seed, executor=executor, workers=workers,
                              store=out / "posteriors", progress=progress, **options)  # fmt: skip
@@ -241,4 +233,4 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["Analysis", "analysis_model", "analyze", "report_markdown", "valid_rois"]
+__all__ = ["Analysis", "analyze", "report_markdown", "valid_rois"]

@@ -115,11 +115,11 @@ def photon_model(camera) -> Model:
     the given Model's photon unit: the movie path's tables and selection rules, the SNR among
     them, are in detected photoelectrons); its geometry is unused."""
     if isinstance(camera, Model):
-        model = camera
-        if model.photoelectrons_per_photon != 1.0:
-            model = Model(
-                MIN_ROI, 1.0, model.camera, clock_induced_charge=model.clock_induced_charge
-            )
+        model = (
+            camera
+            if camera.photoelectrons_per_photon == 1.0
+            else camera.for_roi(MIN_ROI, detected=True)
+        )
     elif isinstance(camera, Camera):
         model = Model(MIN_ROI, 1.0, camera)  # only the camera's conversion is used
     else:

@@ -63,9 +63,7 @@ def fit_model(model: Model, fit: int) -> Model:
     """``model`` with a ``fit`` × ``fit`` ROI (same camera, pixel size, CIC and saturation;
     the prior's defaults for that geometry; N and b in detected photoelectrons, as every
     table of the movie path)."""
-    return Model(fit, model.pixel_size, model.camera,
-                 clock_induced_charge=model.clock_induced_charge,
-                 saturation=model.saturation)  # fmt: skip
+    return model.for_roi(fit, detected=True)
 
 
 def frame_fits(movie, molecules, model: Model, *, roi=25, fit=15, frames=None, block=64,
