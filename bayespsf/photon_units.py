@@ -11,6 +11,9 @@ SNR depend on). With QE 1, the default, the two are the same.
 from __future__ import annotations
 
 import math
+import numbers
+
+import numpy as np
 
 from bayespsf.errors import BayespsfInputError
 
@@ -21,7 +24,7 @@ def check(quantum_efficiency, photon_unit) -> tuple[float, str]:
     """``quantum_efficiency`` in (0, 1] and ``photon_unit`` one of ``UNITS``, else an error
     naming the field."""
     q = quantum_efficiency
-    number = not isinstance(q, bool) and isinstance(q, int | float)
+    number = not isinstance(q, bool | np.bool_) and isinstance(q, numbers.Real)
     if not (number and math.isfinite(q) and 0 < q <= 1):
         raise BayespsfInputError(f"quantum_efficiency must be a number in (0, 1], got {q!r}")
     if photon_unit not in UNITS:
