@@ -298,8 +298,6 @@ def _manifest(counts, model, seed, options, truths) -> dict:
         "model": repr(model),
         "prior": model.prior,
         "clock-induced charge": model.clock_induced_charge,
-        "quantum efficiency": model.quantum_efficiency,
-        "photon unit": model.photon_unit,
         "data sha256": digest.hexdigest(),
     }
 

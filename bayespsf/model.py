@@ -419,7 +419,7 @@ class Model:
         extra = ", pixel_model='sampled'" if self.pixel_model == "sampled" else ""
         if self.quantum_efficiency != 1.0:
             extra += (
-                f", quantum_efficiency={self.quantum_efficiency:g}, "
+                f", quantum_efficiency={self.quantum_efficiency!r}, "
                 f"photon_unit={self.photon_unit!r}"
             )
         return (
