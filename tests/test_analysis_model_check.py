@@ -7,6 +7,7 @@ import pytest
 from bayespsf import scenes, simulate
 from bayespsf.analysis.model_check import bootstrap_check
 from bayespsf.errors import BayespsfInputError
+from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
 
 SCENE = scenes.load("emccd-typical").replace(emitter={"position": "pixel", "photons": 1000.0})
@@ -52,3 +53,7 @@ def test_bad_replicates_are_named():
     counts, _ = simulate(SCENE, 2, seed=1)
     with pytest.raises(BayespsfInputError, match="replicates must be"):
         bootstrap_check(counts, MODEL, replicates=0)
+    with pytest.raises(BayespsfInputError, match="counts must have shape"):
+        bootstrap_check(counts[0], MODEL)
+    with pytest.raises(BayespsfInputError, match="fits must be fit_mle's table"):
+        bootstrap_check(counts, MODEL, fits=fit_mle(counts[:1], MODEL))

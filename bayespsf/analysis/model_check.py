@@ -17,13 +17,18 @@ a few ADU.
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 import pandas as pd
 
+from bayespsf._checks import real_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
+
+CHUNK = 256  # ROIs whose replicates are drawn and refitted together (memory ~ CHUNK x replicates)
 
 
 def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed: int = 0,
@@ -31,32 +36,51 @@ def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed: int = 0
     """The p-value of every ROI of ``counts`` (n, roi, roi) under ``model`` (module docstring).
 
     ``fits``: ``fit_mle``'s table of these ROIs, if already made. Returns one row per ROI:
-    ``gof_p`` (NaN where the ROI's own fit did not converge), ``gof_discrepancy`` (``T(y)``)
-    and ``gof_replicates`` (the replicates whose refit converged, which the p-value counts).
+    ``gof_p`` (NaN where the ROI's own fit, or every replicate's refit, did not converge),
+    ``gof_discrepancy`` (``T(y)``) and ``gof_replicates`` (the replicates whose refit
+    converged, which the p-value counts; a replicate that fails to converge is likely one of
+    high ``T``, so many failures bias ``p`` up).
     """
-    if isinstance(replicates, bool) or not isinstance(replicates, int) or replicates < 1:
+    if (
+        isinstance(replicates, bool)
+        or not isinstance(replicates, numbers.Integral)
+        or replicates < 1
+    ):
         raise BayespsfInputError(f"replicates must be an integer >= 1, got {replicates!r}")
-    stack = np.asarray(counts, dtype=np.float64).reshape(-1, model.roi, model.roi)
+    replicates = int(replicates)
+    stack = real_array("counts", counts)
+    if stack.ndim != 3 or stack.shape[1:] != (model.roi, model.roi):
+        raise BayespsfInputError(
+            f"counts must have shape (n, {model.roi}, {model.roi}), got {stack.shape}"
+        )
     if fits is None:
         fits = fit_mle(stack, model, laplace=False, crlb=False)
+    missing = [c for c in (*PARAMETER_NAMES, "log_likelihood", "converged") if c not in fits]
+    if missing or len(fits) != len(stack):
+        raise BayespsfInputError(
+            f"fits must be fit_mle's table of these {len(stack)} ROIs; got {len(fits)} rows"
+            + (f" without {', '.join(missing)}" if missing else "")
+        )
     out = pd.DataFrame({"gof_p": np.nan, "gof_discrepancy": -fits["log_likelihood"].to_numpy(),
                         "gof_replicates": 0})  # fmt: skip
-    ok = fits["converged"].to_numpy(bool) & np.isfinite(out["gof_discrepancy"].to_numpy())
-    if not ok.any():
-        return out
-    theta = fits.loc[ok, list(PARAMETER_NAMES)].to_numpy(float)
+    ok = np.flatnonzero(
+        fits["converged"].to_numpy(bool) & np.isfinite(out["gof_discrepancy"].to_numpy())
+    )
+    theta = fits[list(PARAMETER_NAMES)].to_numpy(float)
     rng = np.random.default_rng(seed)
-    lam = np.repeat(model.expected(theta), replicates, axis=0)
-    replica = model.camera.sample(lam, rng)
-    refits = fit_mle(replica, model, start=np.repeat(theta, replicates, axis=0), laplace=False,
-                     crlb=False)  # fmt: skip
-    t_rep = (-refits["log_likelihood"].to_numpy()).reshape(-1, replicates)
-    usable = refits["converged"].to_numpy(bool).reshape(-1, replicates) & np.isfinite(t_rep)
-    t = out.loc[ok, "gof_discrepancy"].to_numpy()[:, None]
-    exceed = (usable & (t_rep >= t)).sum(axis=1)
-    count = usable.sum(axis=1)
-    out.loc[ok, "gof_p"] = (1 + exceed) / (1 + count)
-    out.loc[ok, "gof_replicates"] = count
+    for start in range(0, len(ok), CHUNK):
+        rows = ok[start : start + CHUNK]
+        lam = np.repeat(model.expected(theta[rows]), replicates, axis=0)
+        refits = fit_mle(model.camera.sample(lam, rng), model,
+                         start=np.repeat(theta[rows], replicates, axis=0), laplace=False,
+                         crlb=False)  # fmt: skip
+        t_rep = (-refits["log_likelihood"].to_numpy()).reshape(-1, replicates)
+        usable = refits["converged"].to_numpy(bool).reshape(-1, replicates) & np.isfinite(t_rep)
+        t = out["gof_discrepancy"].to_numpy()[rows, None]
+        count = usable.sum(axis=1)
+        exceed = (usable & (t_rep >= t)).sum(axis=1)
+        out.loc[rows, "gof_p"] = np.where(count > 0, (1 + exceed) / (1 + count), np.nan)
+        out.loc[rows, "gof_replicates"] = count
     return out
 
 
