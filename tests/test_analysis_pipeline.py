@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 
 from bayespsf import Scene, cli, scenes
+from bayespsf.model import Model
 from bayespsf.movie.simulate import match_truth, simulate_movie
 
 CAMERA = """[geometry]
@@ -91,11 +92,25 @@ def test_the_check_without_ground_truth_passes_on_a_right_model(run):
 
 def test_a_rerun_continues_from_the_store(run, capsys):
     out, made = run
-    before = (out / "posteriors" / "summary.csv").stat().st_mtime_ns
     files = sorted((out / "posteriors").glob("*.nc"))
+    assert len(files) == len(pd.read_parquet(out / "locs.parquet"))  # one per analysed frame
     stamps = [f.stat().st_mtime_ns for f in files]
-    cli.main(["analyze", str(made.files["movie"]), "--camera", str(out / "camera.toml"),
+    code = cli.main(["analyze", str(made.files["movie"]), "--camera", str(out / "camera.toml"),
               "--psf-sd", "120", "--min-valid-frames", "25", "--method", "laplace",
               "--out", str(out)])  # fmt: skip
+    assert code == 0
     assert [f.stat().st_mtime_ns for f in files] == stamps  # no posterior made again
-    assert (out / "posteriors" / "summary.csv").stat().st_mtime_ns >= before
+
+
+def test_nothing_selected_is_named_after_the_selection_files(run, tmp_path):
+    from bayespsf.analysis.pipeline import analyze
+    from bayespsf.cameras import EMCCD
+    from bayespsf.errors import BayespsfInputError
+    from bayespsf.movie.select import Rules
+
+    _, made = run
+    model = Model(15, 79.0, EMCCD(200.0, 50.0, 100.0, 12.0))
+    with pytest.raises(BayespsfInputError, match="no molecule passed the selection rules"):
+        analyze(made.files["movie"], model, s0=120.0, out=tmp_path / "none",
+                rules=Rules(min_snr=1e6, min_valid_frames=25))  # fmt: skip
+    assert (tmp_path / "none" / "selection.md").exists()

@@ -20,19 +20,16 @@ MAX_TRACES = 12  # the traces figure shows at most this many molecules
 
 
 @contextmanager
-def _figure(path: Path, **options):
-    import matplotlib
+def _figure(path: Path, figsize):
+    """A figure of one axes, saved to ``path`` on exit. A bare ``Figure`` (no pyplot): the
+    caller's matplotlib backend and open figures are left as they were."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(**options)
-    try:
-        yield fig, ax
-        fig.tight_layout()
-        fig.savefig(path, dpi=80)
-    finally:
-        plt.close(fig)
+    fig = Figure(figsize=figsize)
+    ax = fig.subplots()
+    yield fig, ax
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
 
 
 def detections(image: np.ndarray, molecules: pd.DataFrame, path) -> Path:

@@ -63,8 +63,6 @@ def valid_rois(movie, found: FoundMolecules, fit: int, block: int = 64):
         keep = np.array([p in wanted for p in pairs], dtype=bool)
         counts.append(stack.counts[keep])
         tables.append(stack.table[keep])
-    if not counts:
-        return np.empty((0, fit, fit)), pd.DataFrame(columns=["molecule", "frame", "row", "col"])
     table = pd.concat(tables, ignore_index=True)
     table["row"] = table.pop("row0") + fit // 2
     table["col"] = table.pop("col0") + fit // 2
@@ -110,12 +108,12 @@ def analyze(
     out.mkdir(parents=True, exist_ok=True)
     found = find_molecules(movie, model, s0=s0, roi=roi, fit=fit, rules=rules, progress=progress)
     paths = write_selection(found, out)
-    counts, place = valid_rois(movie, found, fit)
-    if len(place) == 0:
+    if not found.molecules["selected"].any():
         raise BayespsfInputError(
             "no molecule passed the selection rules: nothing to analyse (see "
             f"{paths['selection.md']})"
         )
+    counts, place = valid_rois(movie, found, fit)
     fitting = model.for_roi(fit)
     options = {"method": method} | ({} if ess is None else {"ess": ess})
     posteriors = sample_many(counts, fitting, seed=seed, executor=executor, workers=workers,
