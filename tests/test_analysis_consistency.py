@@ -70,3 +70,8 @@ def test_single_frame_molecules_and_missing_values_are_left_out():
     assert frames["x0_z"].isna().sum() == 2
     with pytest.raises(BayespsfInputError, match="no column"):
         frame_consistency(table.drop(columns="s_y_sd"))
+    for bad in (0.0, -1.0, np.inf):
+        with pytest.raises(BayespsfInputError, match="x0_sd not a finite number > 0"):
+            frame_consistency(table.assign(x0_sd=bad))
+    _, one, _ = frame_consistency(table, parameters="x0")  # one name, not its letters
+    assert set(one["parameter"]) == {"x0"}

@@ -97,5 +97,7 @@ def test_missing_columns_and_bad_pixel_size_are_named(posteriors):
         localizations(rows.drop(columns="x0_sd"), A)
     with pytest.raises(BayespsfInputError, match="pixel_size"):
         localizations(rows, 0.0)
+    with pytest.raises(BayespsfInputError, match="frame must hold whole numbers >= 0"):
+        localizations(rows.assign(frame=-1), A)
     with pytest.raises(BayespsfInputError, match="picasso needs Frames"):
         write_all(localizations(rows, A), "unused", {"Width": 1, "Height": 1, "Pixelsize": A})

@@ -57,3 +57,5 @@ def test_units_and_columns_are_checked():
         width_spread(frames.drop(columns=["s_x_mle", "s_x_mean"]), A)
     with pytest.raises(BayespsfInputError, match="pixel_size"):
         width_spread(frames, -1.0)
+    with pytest.raises(BayespsfInputError, match="width must be 's_x' or 's_y'"):
+        width_spread(frames, A, width="x0")

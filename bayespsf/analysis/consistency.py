@@ -39,7 +39,8 @@ def frame_consistency(
     """The check of the module docstring on per-frame posterior summaries.
 
     ``table`` has one row per (molecule, frame) with ``by`` and ``{p}_mean``, ``{p}_sd`` for
-    every ``p`` in ``parameters``; rows with a missing mean or SD are left out.
+    every ``p`` in ``parameters``; rows with a missing mean or SD are left out, and an SD that
+    is 0, negative or infinite is an error.
 
     Returns
     -------
@@ -55,11 +56,21 @@ def frame_consistency(
         normal ones), total ``chi2``, ``dof`` and ``p_value``, ``coverage`` with its binomial
         SE and ``expected_coverage``.
     """
+    if isinstance(parameters, str):
+        parameters = (parameters,)
     missing = [by] * (by not in table) + [
         f"{p}_{s}" for p in parameters for s in ("mean", "sd") if f"{p}_{s}" not in table
     ]
     if missing:
         raise BayespsfInputError(f"table: no column(s) {', '.join(missing)}")
+    for p in parameters:
+        sd = table[f"{p}_sd"].astype(float)
+        bad = sd.notna() & ~((sd > 0) & np.isfinite(sd))
+        if bad.any():
+            raise BayespsfInputError(
+                f"table: {int(bad.sum())} row(s) with {p}_sd not a finite number > 0 (first: "
+                f"{sd[bad].iloc[0]!r}); a posterior SD is one (NaN marks a row without one)"
+            )
     keep = [c for c in (by, "frame") if c in table]
     frames = table[keep].copy()
     molecule_rows, overall_rows = [], []

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from bayespsf._checks import scalar_in_range
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 
@@ -49,16 +50,17 @@ def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
     and for each of x0 y0 s_x s_y N b its ``_mean``, ``_sd`` and 95% interval columns; other
     columns (``selected``, ``method``, ``converged``, ESS, ``photon_unit``, ...) follow.
     """
-    if not (np.isfinite(pixel_size) and pixel_size > 0):
-        raise BayespsfInputError(f"pixel_size must be a number > 0 (nm), got {pixel_size!r}")
+    a = scalar_in_range("pixel_size", pixel_size, 0.0, low_inclusive=False)
     needed = [*PLACE_COLUMNS] + [
         f"{p}_{stat}" for p in PARAMETER_NAMES for stat in ("mean", "sd", *INTERVAL)
     ]
     missing = [c for c in needed if c not in posteriors.columns]
     if missing:
         raise BayespsfInputError(f"posteriors: no column(s) {', '.join(missing)}")
-    a = float(pixel_size)
     t = posteriors
+    frame = t["frame"].to_numpy(float)
+    if not np.all((frame >= 0) & (frame == np.round(frame))):
+        raise BayespsfInputError("posteriors: frame must hold whole numbers >= 0")
     locs = pd.DataFrame(
         {
             "frame": t["frame"].to_numpy(np.uint32),

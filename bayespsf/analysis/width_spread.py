@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from bayespsf._checks import scalar_in_range
 from bayespsf.errors import BayespsfInputError
 from bayespsf.theory import delta_s_analytic
 
@@ -30,22 +31,23 @@ def width_spread(
 ) -> pd.DataFrame:  # fmt: skip
     """Per molecule: ``frames``, mean ``N`` and ``b``, ``delta_s_<estimator>`` (the SD over
     frames, ``ddof=1``, of each ``{width}_<estimator>`` column present: ``lsq``, ``mle``,
-    ``mean``) with its standard error (``delta / sqrt(2 (K - 1))`` for normal estimates),
+    ``mean``) with its standard error (``delta / sqrt(2 (K - 1))`` for normal estimates; NaN
+    for a molecule of one frame),
     ``posterior_sd`` (the mean of ``{width}_sd``, if present), ``crlb`` (the mean of
     ``crlb_{width}``, if present) and ``eq_sigma2dp3``.
 
     ``background_variance``: the background photons' variance per pixel (a number, or a column
     name); default the mean background (Poisson photons).
     """
-    if not (np.isfinite(pixel_size) and pixel_size > 0):
-        raise BayespsfInputError(f"pixel_size must be a number > 0 (nm), got {pixel_size!r}")
+    pixel_size = scalar_in_range("pixel_size", pixel_size, 0.0, low_inclusive=False)
+    if width not in ("s_x", "s_y"):
+        raise BayespsfInputError(f"width must be 's_x' or 's_y', got {width!r}")
     other = "s_y" if width == "s_x" else "s_x"
-    present = [e for e in ESTIMATORS if f"{width}_{e}" in frames]
     needed = [by, photons, background, f"{width}_mean", f"{other}_mean"]
     missing = [c for c in needed if c not in frames]
-    if missing or not present:
-        names = missing or [f"{width}_lsq, {width}_mle or {width}_mean"]
-        raise BayespsfInputError(f"frames: no column(s) {', '.join(names)}")
+    if missing:
+        raise BayespsfInputError(f"frames: no column(s) {', '.join(missing)}")
+    present = [e for e in ESTIMATORS if f"{width}_{e}" in frames]  # "mean" at least
     if "photon_unit" in frames and set(frames["photon_unit"].dropna()) - {"photoelectrons"}:
         raise BayespsfInputError(
             "frames: Eq. sigma2dp3 is stated in detected photons, but N and b are in "
