@@ -9,7 +9,7 @@ import emccd_reference as ref
 import mpmath as mp
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
@@ -137,6 +137,8 @@ def test_zero_expected_photons():
 
 
 @settings(max_examples=150, deadline=None)
+@example(counts=-5e-324, lam=1.0, gain=2.0, readout=0.0, tier="exact")  # underflows to -0.0
+@example(counts=5e-324, lam=1.0, gain=2.0, readout=0.0, tier="high-gain")
 @given(
     counts=st.floats(-1e4, 1e8),
     lam=st.floats(1e-6, 1e6),

@@ -139,8 +139,18 @@ class EMCCD(Camera):
         return float(np.log(self.e_per_adu / self.gain))
 
     def gain_units(self, counts):
-        """Counts in ADU as electrons over gain, ``t = (counts - offset) e_per_adu / gain``."""
-        return (np.asarray(counts, dtype=np.float64) - self.offset) * (self.e_per_adu / self.gain)
+        """Counts in ADU as electrons over gain, ``t = (counts - offset) e_per_adu / gain``.
+
+        A nonzero ``counts - offset`` whose scaled value underflows keeps its sign as the
+        smallest subnormal: without readout ``t == 0`` is the atom, and ``t < 0`` is outside
+        the support."""
+        x = np.asarray(counts, dtype=np.float64) - self.offset
+        t = x * (self.e_per_adu / self.gain)
+        underflow = (t == 0) & (x != 0)
+        if np.any(underflow):
+            tiny = np.copysign(np.finfo(np.float64).smallest_subnormal, x)
+            t = np.where(underflow, tiny, t)
+        return t
 
     def log_likelihood(self, counts, expected) -> np.ndarray:
         self._check_expected(expected)
