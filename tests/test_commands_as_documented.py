@@ -11,8 +11,10 @@ types it; its second (set up and run this suite) is what CI runs, so it is check
 
 import os
 import re
+import shutil
 import subprocess
 import sys
+import sysconfig
 from pathlib import Path
 
 import pytest
@@ -67,13 +69,36 @@ def test_readme_starts_with_the_two_commands():
     assert README[1] in (ROOT / ".ci" / "run").read_text().splitlines()
 
 
+def _copy_of_the_repository(tmp_path: Path) -> Path:
+    """The repository's tracked files in ``tmp_path/bayespsf``, with a ``.venv`` that sees the
+    suite's installed dependencies through a ``.pth`` file (so that setting it up does not
+    download them again)."""
+    listed = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True)
+    copy = tmp_path / "bayespsf"
+    for name in filter(None, listed.stdout.decode().split("\0")):
+        if (ROOT / name).is_file():
+            (copy / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, copy / name)
+    subprocess.run([sys.executable, "-m", "venv", copy / ".venv"], check=True)
+    site = next((copy / ".venv" / "lib").glob("python3*/site-packages"))
+    (site / "suite-dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    return copy
+
+
 @pytest.mark.slow
-def test_readme_first_command_sets_up_and_runs_the_demo():
-    result = _bash(README[0], ROOT)
+def test_readme_first_command_sets_up_and_runs_the_demo(tmp_path):
+    # In a copy of the repository: the command reinstalls bayespsf into the .venv beside it,
+    # and the suite's own .venv is in use by the other test processes (pytest-xdist).
+    copy = _copy_of_the_repository(tmp_path)
+    result = _bash(README[0], copy)
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
     assert "posterior SD" in result.stdout
-    assert (ROOT / "bayespsf-demo" / "corner.png").stat().st_size > 0
-    assert (ROOT / "bayespsf-demo" / "posterior.nc").stat().st_size > 0
+    assert (copy / "bayespsf-demo" / "corner.png").stat().st_size > 0
+    assert (copy / "bayespsf-demo" / "posterior.nc").stat().st_size > 0
+    used = subprocess.run([copy / ".venv" / "bin" / "python", "-I", "-c",
+                           "import bayespsf; print(bayespsf.__file__)"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    assert Path(used.stdout.strip()).is_relative_to(copy)  # the copy ran, not the suite's
 
 
 def test_notebook_commands_run_as_written():
