@@ -47,13 +47,13 @@ def test_understated_errors_fail_clearly():
         assert row["p_value"] < 1e-10
 
 
-def test_joint_estimate_is_the_weighted_mean():
+def test_combined_estimate_is_the_weighted_mean():
     table = pd.DataFrame({"molecule": [0, 0, 0], "x0_mean": [1.0, 2.0, 4.0],
                           "x0_sd": [1.0, 2.0, 2.0]})  # fmt: skip
     _, molecules, _ = frame_consistency(table, parameters=("x0",))
     w = np.array([1, 0.25, 0.25])
-    assert molecules["joint"].iloc[0] == pytest.approx((w * [1, 2, 4]).sum() / w.sum())
-    assert molecules["joint_se"].iloc[0] == pytest.approx(1 / np.sqrt(w.sum()))
+    assert molecules["combined"].iloc[0] == pytest.approx((w * [1, 2, 4]).sum() / w.sum())
+    assert molecules["combined_se"].iloc[0] == pytest.approx(1 / np.sqrt(w.sum()))
     assert molecules["dof"].iloc[0] == 2
 
 

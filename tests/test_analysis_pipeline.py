@@ -58,7 +58,14 @@ def test_every_file_is_written_with_one_row_per_analysed_frame(run):
         zip(valid["molecule"], valid["frame"], strict=True)
     )
     molecules = pd.read_csv(out / "molecules.csv")
-    assert molecules.loc[molecules["selected"], "s_x_joint"].notna().all()
+    chosen = molecules[molecules["selected"]]
+    assert chosen["s_x_combined"].notna().all()
+    # the joint posterior over each molecule's frames: sharper than one frame, by ~sqrt(K)
+    assert (chosen["joint_method"] == "importance").all()
+    root_k = np.sqrt(chosen["joint_frames"])
+    ratio = chosen["s_x_joint_sd"] * root_k / chosen["s_x_frame_sd"]
+    assert ratio.between(0.7, 1.4).all(), ratio
+    assert "joint posterior of each molecule" in (out / "report.md").read_text()
     assert (out / "posteriors" / "summary.csv").exists()
     report = (out / "report.md").read_text()
     assert "calibration check" in report and "(zscores.png)" in report

@@ -4,7 +4,7 @@ An immobile molecule's true position and width are the same in every frame, so i
 posteriors must agree with one another within their stated widths. Per molecule and
 parameter, with posterior means ``m_k`` and SDs ``s_k`` over its K frames:
 
-* the joint estimate is the inverse-variance weighted mean ``theta = sum w_k m_k / sum w_k``,
+* the combined estimate is the inverse-variance weighted mean ``theta = sum w_k m_k / sum w_k``,
   ``w_k = 1 / s_k^2``, with standard error ``sigma = 1 / sqrt(sum w_k)``;
 * each frame's z-score is ``(m_k - theta) / sqrt(s_k^2 - sigma^2)``: ``m_k - theta`` has that
   variance when ``m_k ~ N(true, s_k^2)``, since ``theta`` includes ``m_k``;
@@ -46,9 +46,9 @@ def frame_consistency(
     -------
     frames : DataFrame
         ``table``'s ``by`` and ``frame`` (if present), and per parameter ``{p}_z`` and
-        ``{p}_covers`` (the frame's 95% interval holds the joint estimate).
+        ``{p}_covers`` (the frame's 95% interval holds the combined estimate).
     molecules : DataFrame
-        Per molecule and parameter: ``frames``, ``joint`` and ``joint_se``, ``chi2``, ``dof``,
+        Per molecule and parameter: ``frames``, ``combined`` and ``combined_se``, ``chi2``, ``dof``,
         ``p_value``, ``z_sd``, ``coverage`` and ``expected_coverage``.
     overall : DataFrame
         Per parameter over all molecules: ``frames``, ``molecules``, ``z_sd`` with its
@@ -80,23 +80,23 @@ def frame_consistency(
         w = 1.0 / s.where(usable) ** 2
         groups = table[by].where(usable)
         sum_w = w.groupby(groups).transform("sum")
-        joint = (w * m).groupby(groups).transform("sum") / sum_w
+        combined = (w * m).groupby(groups).transform("sum") / sum_w
         count = usable.groupby(groups).transform("sum")
         spread = s**2 - 1.0 / sum_w
-        z = ((m - joint) / np.sqrt(spread)).where(usable & (count > 1))
-        covers = ((m - joint).abs() <= Z95 * s).where(usable & (count > 1))
+        z = ((m - combined) / np.sqrt(spread)).where(usable & (count > 1))
+        covers = ((m - combined).abs() <= Z95 * s).where(usable & (count > 1))
         expected = pd.Series(2 * stats.norm.cdf(Z95 * s / np.sqrt(spread)) - 1, index=s.index)
         frames[f"{p}_z"], frames[f"{p}_covers"] = z, covers
         per = pd.DataFrame(
             {
                 by: table[by],
                 "w": w,
-                "chi": w * (m - joint) ** 2,
+                "chi": w * (m - combined) ** 2,
                 "z": z,
                 "covers": covers.astype(float),
                 "expected": expected.where(covers.notna()),
-                "joint": joint,
-                "joint_se": 1 / np.sqrt(sum_w),
+                "combined": combined,
+                "combined_se": 1 / np.sqrt(sum_w),
             }
         )[usable & (count > 1)]
         g = per.groupby(by)
@@ -104,8 +104,8 @@ def frame_consistency(
             {
                 "parameter": p,
                 "frames": g.size(),
-                "joint": g["joint"].first(),
-                "joint_se": g["joint_se"].first(),
+                "combined": g["combined"].first(),
+                "combined_se": g["combined_se"].first(),
                 "chi2": g["chi"].sum(),
                 "z_sd": g["z"].std(ddof=1),
                 "coverage": g["covers"].mean(),

@@ -92,7 +92,7 @@ def zscores(frame_z: pd.DataFrame, parameters, path) -> Path:
                 ax.hist(z, bins=np.linspace(-4, 4, 33), density=True, histtype="step",
                         color=f"C{k}", label=f"{p} (SD {z.std(ddof=1):.2f})")  # fmt: skip
         ax.plot(grid, stats.norm.pdf(grid), color="k", lw=1, label="N(0, 1)")
-        ax.set_xlabel("per-frame z-score about the molecule's joint estimate")
+        ax.set_xlabel("per-frame z-score about the molecule's combined estimate")
         ax.legend(fontsize=7)
     return path
 

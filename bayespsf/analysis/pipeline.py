@@ -10,9 +10,11 @@ The stages, in order:
    finished ROI), the MLE with its Cramér-Rao bound (``fit_mle``) and the paper's least squares
    (``fit_lsq``), in the camera file's photon unit, and a bootstrap goodness-of-fit p-value
    per ROI (``bayespsf.analysis.model_check``);
+3b. per selected molecule, the joint posterior of its frames (``bayespsf.analysis.joint``:
+   one position and width shared by the frames, N and b per frame);
 4. the tables and files: ``locs.hdf5`` + ``locs.yaml`` (picasso), ``locs.csv``
    (ThunderSTORM), ``locs.parquet`` (every column), ``molecules.csv`` (the selection outcome
-   and, per selected molecule and parameter, the joint estimate and the calibration check
+   and, per selected molecule, its joint posterior and, per parameter, the calibration check
    without ground truth), ``consistency.csv`` (that check over all molecules),
    ``width_spread.csv`` (the paper's experimental Delta s against N) and ``report.md``.
 """
@@ -26,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf.analysis.consistency import PARAMETERS, frame_consistency
+from bayespsf.analysis.joint import joint_posteriors
 from bayespsf.analysis.locs import localizations, write_all
 from bayespsf.analysis.model_check import bootstrap_check
 from bayespsf.analysis.width_spread import width_spread
@@ -87,10 +90,11 @@ def _estimates(counts, model: Model, seed: int) -> pd.DataFrame:
 
 
 def _per_molecule(found: FoundMolecules, molecules: pd.DataFrame) -> pd.DataFrame:
-    """The selection outcome of every candidate, and per analysed molecule and parameter the
-    joint estimate, its SE and the check's chi-square p-value, z-score SD and coverage."""
-    wide = molecules.pivot(index="molecule", columns="parameter",
-                           values=["joint", "joint_se", "p_value", "z_sd", "coverage"])  # fmt: skip
+    """The selection outcome of every candidate; per analysed molecule and parameter the
+    combined (inverse-variance) estimate, its SE and the check's chi-square p-value, z-score SD
+    and coverage; and the molecule's joint posterior (``joint``)."""
+    values = ["combined", "combined_se", "p_value", "z_sd", "coverage"]
+    wide = molecules.pivot(index="molecule", columns="parameter", values=values)
     wide.columns = [f"{p}_{stat}" for stat, p in wide.columns]
     return found.molecules.merge(wide.reset_index(), on="molecule", how="left")
 
@@ -123,7 +127,9 @@ def analyze(
     )
     frames["selected"] = True
     frame_z, per_molecule, overall = frame_consistency(frames, PARAMETERS)
-    molecules = _per_molecule(found, per_molecule)
+    joint = joint_posteriors(counts, frames, fitting, seed=seed, ess=400.0 if ess is None else ess,
+                             workers=workers, executor=executor, progress=progress)  # fmt: skip
+    molecules = _per_molecule(found, per_molecule).merge(joint, on="molecule", how="left")
     scale = fitting.photoelectrons_per_photon  # Eq. sigma2dp3 is stated in detected photons
     detected = frames.assign(N_mean=frames["N_mean"] * scale, b_mean=frames["b_mean"] * scale,
                              photon_unit="photoelectrons")  # fmt: skip
@@ -173,6 +179,15 @@ def _flag_table(frames: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _joint_table(molecules: pd.DataFrame) -> pd.DataFrame:
+    """The report's joint-posterior columns of the analysed molecules."""
+    columns = ["molecule", "joint_frames", "x0_joint_mean", "x0_joint_sd", "s_x_joint_mean",
+               "s_x_joint_sd", "s_x_frame_sd", "s_y_joint_mean", "s_y_joint_sd", "joint_method",
+               "joint_khat"]  # fmt: skip
+    analysed = molecules[molecules["joint_method"].notna()]
+    return analysed[[c for c in columns if c in analysed]]
+
+
 def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
     """The run's report: selection, the calibration check, Delta s against N, the files."""
     fmt = {"index": False, "floatfmt": ".4g"}
@@ -194,14 +209,23 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         result.found.report_markdown(),
         "## The calibration check without ground truth",
         "",
-        "Per-frame posterior means about each molecule's joint estimate, in units of their "
-        "stated SDs (`bayespsf.analysis.consistency`): a calibrated model gives z-score SDs of "
-        "1 within their errors, chi-square p-values that are not small, and a coverage at its "
-        "expected value.",
+        "Per-frame posterior means about each molecule's combined (inverse-variance weighted) "
+        "estimate, in units of their stated SDs (`bayespsf.analysis.consistency`): a calibrated "
+        "model gives z-score SDs of 1 within their errors, chi-square p-values that are not "
+        "small, and a coverage at its expected value.",
         "",
         check.to_markdown(**fmt),
         "",
         "![z-scores of the calibration check](zscores.png)",
+        "",
+        "## The joint posterior of each molecule over its frames",
+        "",
+        "One position and width shared by a molecule's valid frames, N and b per frame "
+        "(`bayespsf.analysis.joint`: importance sampling from the joint Laplace approximation). "
+        "`s_x_frame_sd` is the mean per-frame posterior SD: the joint SD is expected near "
+        "`s_x_frame_sd / sqrt(joint_frames)`.",
+        "",
+        _joint_table(result.molecules).to_markdown(**fmt),
         "",
         "## Can the model have made each image?",
         "",

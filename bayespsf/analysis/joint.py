@@ -1,0 +1,360 @@
+"""The joint posterior of an immobile molecule over its frames (issue 14, item 4).
+
+An immobile molecule has one position and one width in every frame; its photon count and the
+background may change from frame to frame (blinking, bleaching, a drifting background). The
+joint model of its K valid frames shares ``x0, y0, s_x, s_y`` (and optionally ``b``) and gives
+each frame its own ``N`` (and ``b``): ``4 + 2K`` parameters, the frames' likelihoods multiplied,
+the prior of a shared parameter counted once.
+
+It is sampled without a Markov chain, as the batched engine samples one ROI
+(``bayespsf.stack_posterior``), because a chain in 4 + 2K dimensions mixes slowly:
+
+1. the joint maximum-likelihood fit, by the Levenberg-Marquardt iteration with Fisher scoring
+   of ``bayespsf.stack_mle`` on the joint gradient and information (the frames' blocks summed
+   over the shared parameters), from the per-frame fits;
+2. its Laplace approximation: the Gaussian whose precision is the joint observed information
+   (the frames' ``observed_information``, by differences of the analytic gradient), in the
+   sampling coordinates ``(x0, y0, log s_x, log s_y, log N, b)``;
+3. Pareto-smoothed importance sampling (``bayespsf.importance``) from that Gaussian mixed with
+   a wider one (``DefensiveProposal``): exact where its k-hat is at most ``KHAT_MAX`` (0.7)
+   and the ESS target is reached; otherwise the result says so (``converged`` False, ``why``)
+   and keeps the Laplace draws.
+
+The joint width SD is expected near ``1 / sqrt(K)`` of a single frame's; ``validation/
+joint_posterior.py`` measures that ratio and the joint posterior's coverage on simulated movies.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from bayespsf._progress import progress_bar
+from bayespsf._threads import one_blas_thread
+from bayespsf.errors import BayespsfInputError
+from bayespsf.importance import KHAT_MAX, ImportanceRun, systematic_resample
+from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.stack_mle import (
+    DECREMENT,
+    MAX_ITERATIONS,
+    _evaluate,
+    box,
+    from_internal,
+    observed_information,
+    to_internal,
+)
+from bayespsf.stack_posterior import MAX_DRAWS_PER_ESS
+
+SHARED = {"b per frame": (0, 1, 2, 3), "one b": (0, 1, 2, 3, 5)}
+MAX_SCORED_ROIS = 4096  # frame evaluations per log-posterior call
+WIDE_FRACTION, WIDE_SCALE = 0.1, 1.5  # the defensive mixture's wide component
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each frame's six parameters sit in the joint vector: the shared ones first, then
+    each frame's own, frame after frame."""
+
+    frames: int
+    shared: tuple[int, ...]
+
+    @property
+    def own(self) -> tuple[int, ...]:
+        return tuple(k for k in range(6) if k not in self.shared)
+
+    @property
+    def size(self) -> int:
+        return len(self.shared) + self.frames * len(self.own)
+
+    def split(self, v: np.ndarray) -> np.ndarray:
+        """Joint vectors (..., size) to per-frame vectors (..., frames, 6)."""
+        v = np.asarray(v, dtype=np.float64)
+        out = np.empty((*v.shape[:-1], self.frames, 6))
+        s = len(self.shared)
+        out[..., list(self.shared)] = v[..., None, :s]
+        out[..., list(self.own)] = v[..., s:].reshape(*v.shape[:-1], self.frames, -1)
+        return out
+
+    def join(self, per_frame: np.ndarray) -> np.ndarray:
+        """Per-frame vectors (..., frames, 6) to joint vectors, the shared part from frame 0."""
+        per_frame = np.asarray(per_frame, dtype=np.float64)
+        own = per_frame[..., list(self.own)].reshape(*per_frame.shape[:-2], -1)
+        return np.concatenate([per_frame[..., 0, list(self.shared)], own], axis=-1)
+
+    def gather(self, per_frame: np.ndarray) -> np.ndarray:
+        """A per-frame gradient (frames, 6) as the joint gradient (summed over the shared)."""
+        own = per_frame[:, list(self.own)].reshape(-1)
+        return np.concatenate([per_frame[:, list(self.shared)].sum(axis=0), own])
+
+    def arrow(self, blocks: np.ndarray) -> np.ndarray:
+        """Per-frame 6 x 6 information matrices (frames, 6, 6) as the joint matrix: shared
+        blocks summed, each frame's own block and its coupling to the shared in place."""
+        s, o = list(self.shared), list(self.own)
+        ns, no = len(s), len(o)
+        out = np.zeros((self.size, self.size))
+        out[:ns, :ns] = blocks[:, s][:, :, s].sum(axis=0)
+        for k, block in enumerate(blocks):
+            at = slice(ns + k * no, ns + (k + 1) * no)
+            out[at, at] = block[np.ix_(o, o)]
+            out[:ns, at] = block[np.ix_(s, o)]
+            out[at, :ns] = block[np.ix_(o, s)]
+        return out
+
+
+@dataclass
+class JointPosterior:
+    """Equally weighted draws of the joint parameters (in ``x0 y0 s_x s_y N b`` per frame:
+    ``draws[i, k]`` is draw ``i`` of frame ``k``), and what made them (``info``)."""
+
+    layout: Layout
+    draws: np.ndarray  # (m, frames, 6)
+    fit: np.ndarray  # (frames, 6): the joint maximum-likelihood fit
+    info: dict = field(default_factory=dict)
+
+    def row(self) -> dict:
+        """Per shared parameter its posterior mean, SD and central 68% and 95% intervals
+        (``<p>_joint_mean``, ``_sd``, ``_q2.5``, ``_q16``, ``_q84``, ``_q97.5``), the joint MLE
+        (``<p>_joint_mle``), and ``info``, prefixed ``joint_``."""
+        out = {}
+        for k in self.layout.shared:
+            name, x = PARAMETER_NAMES[k], self.draws[:, 0, k]
+            out[f"{name}_joint_mean"] = float(x.mean())
+            out[f"{name}_joint_sd"] = float(x.std(ddof=1))
+            for q in (2.5, 16.0, 84.0, 97.5):
+                out[f"{name}_joint_q{q:g}"] = float(np.percentile(x, q))
+            out[f"{name}_joint_mle"] = float(self.fit[0, k])
+        out.update({f"joint_{key}": value for key, value in self.info.items()})
+        return out
+
+
+def _check(counts, model, starts, shared):
+    counts = model._check_shape(counts)
+    if counts.ndim != 3 or len(counts) < 2:
+        raise BayespsfInputError(
+            f"counts must be the frames (K >= 2, roi, roi) of one molecule, got shape "
+            f"{np.shape(counts)}"
+        )
+    starts = np.asarray(starts, dtype=np.float64)
+    if starts.shape != (len(counts), 6) or not np.all(np.isfinite(starts)):
+        raise BayespsfInputError(
+            f"starts must be finite per-frame parameters of shape ({len(counts)}, 6), got "
+            f"shape {starts.shape}"
+        )
+    if shared not in SHARED:
+        raise BayespsfInputError(f"shared must be one of {sorted(SHARED)}, got {shared!r}")
+    problems = [p for p in model.roi_problems(counts) if p is not None]
+    if problems:
+        raise BayespsfInputError(f"counts: a frame the model cannot analyse: {problems[0]}")
+    return counts, starts, Layout(len(counts), SHARED[shared])
+
+
+def joint_mle(model, counts, starts, layout: Layout):
+    """The joint maximum-likelihood fit (module docstring, step 1) from per-frame ``starts``
+    (frames, 6; the shared parameters start at their per-frame median). Returns
+    ``(params (frames, 6), converged, message)``."""
+    a = model.pixel_size
+    low, high = box(model.roi)
+    u = np.clip(to_internal(starts, a), low, high)
+    u[:, list(layout.shared)] = np.median(u[:, list(layout.shared)], axis=0)
+    v = layout.join(u)
+    f, grad, metric = _evaluate(model, counts, from_internal(u, a))
+    damping, message = 1e-3, f"iteration limit ({MAX_ITERATIONS})"
+    for _ in range(MAX_ITERATIONS):
+        if not np.isfinite(f.sum()):
+            return from_internal(u, a), False, "non-finite likelihood at the start"
+        g, m = layout.gather(grad), layout.arrow(metric)
+        try:
+            decrement = float(g @ np.linalg.solve(m, g))
+            step = np.linalg.solve(m + damping * np.diag(np.diag(m)), -g)
+        except np.linalg.LinAlgError:
+            return from_internal(u, a), False, "singular joint information"
+        if decrement < DECREMENT * layout.frames:
+            return from_internal(u, a), True, "Newton decrement below 1e-10 per frame"
+        trial = np.clip(layout.split(v + step), low, high)
+        f_trial, grad_trial, metric_trial = _evaluate(model, counts, from_internal(trial, a))
+        if np.isfinite(f_trial.sum()) and f_trial.sum() <= f.sum():
+            u, v, f, grad, metric = trial, layout.join(trial), f_trial, grad_trial, metric_trial
+            damping /= 10
+        else:
+            damping *= 10
+            if damping > 1e12:
+                message = "no step lowers -log L"
+                break
+    return from_internal(u, a), False, message
+
+
+def _laplace(model, counts, fit, layout: Layout):
+    """Centre and covariance of the joint Laplace approximation in sampling coordinates."""
+    dp_dz = np.ones_like(fit)
+    dp_dz[:, 2:5] = fit[:, 2:5]  # the sampling coordinates are the logs of s_x, s_y, N
+    information = observed_information(model, counts, fit) * dp_dz[:, :, None]
+    information *= dp_dz[:, None, :]
+    precision = layout.arrow(information)
+    return layout.join(model.to_unconstrained(fit)), np.linalg.inv(precision)
+
+
+class DefensiveProposal:
+    """The Laplace Gaussian ``N(centre, C)`` mixed with a fraction ``WIDE_FRACTION`` of
+    ``N(centre, WIDE_SCALE^2 C)``: a defensive mixture (Hesterberg, Technometrics 37 (1995)),
+    which bounds the importance weights wherever the posterior's tails are lighter than the
+    wide component's, at little cost in efficiency (on 8 frames of 1 000 photons the share
+    of effective draws fell from 0.94 to 0.89; on 100 frames from 0.42 to 0.38). A Student-t
+    proposal, as for one ROI, loses more in 4 + 2K dimensions (0.2 with 30 degrees of freedom
+    on 100 frames). Draws use a NumPy RandomState's stream, as ``ImportanceRun`` expects."""
+
+    def __init__(self, centre, covariance):
+        self.centre = np.asarray(centre, dtype=np.float64)
+        self.cholesky = np.linalg.cholesky(covariance)
+
+    def draw(self, n: int, random) -> tuple[np.ndarray, np.ndarray]:
+        d = len(self.centre)
+        e = random.standard_normal((n, d))
+        e[random.random_sample(n) < WIDE_FRACTION] *= WIDE_SCALE
+        r2 = np.sum(e * e, axis=-1)
+        log_g = np.logaddexp(
+            np.log1p(-WIDE_FRACTION) - 0.5 * r2,
+            np.log(WIDE_FRACTION) - d * np.log(WIDE_SCALE) - 0.5 * r2 / WIDE_SCALE**2,
+        )
+        return self.centre + e @ self.cholesky.T, log_g
+
+
+def joint_log_posterior(model, counts, layout: Layout, z) -> np.ndarray:
+    """Log posterior (up to a constant) of joint draws ``z`` (n, size) in sampling
+    coordinates: the frames' ``Model.log_posterior`` summed, less the ``K - 1`` extra copies of
+    each shared parameter's log prior and log-coordinate Jacobian."""
+    per_frame = layout.split(z)  # (n, K, 6)
+    n, frames = per_frame.shape[:2]
+    flat = per_frame.reshape(-1, 6)
+    which = np.tile(np.arange(frames), n)
+    total = np.empty(len(flat))
+    for first in range(0, len(flat), MAX_SCORED_ROIS):
+        part = slice(first, first + MAX_SCORED_ROIS)
+        total[part] = model.log_posterior(flat[part], counts, which=which[part])
+    total = total.reshape(n, frames).sum(axis=1)
+    shared = list(layout.shared)
+    reference = per_frame[:, 0].copy()
+    own = list(layout.own)
+    reference[:, own] = per_frame[0, 0, own]  # one fixed value: a constant
+    with np.errstate(over="ignore"):
+        extra = model.log_prior(model.from_unconstrained(reference))
+    extra = extra + per_frame[:, 0, [k for k in shared if k in (2, 3)]].sum(axis=1)
+    out = np.full(n, -np.inf)
+    inside = np.isfinite(total) & np.isfinite(extra)
+    out[inside] = total[inside] - (frames - 1) * extra[inside]
+    return out
+
+
+def joint_posterior(counts, model, starts, *, seed: int = 0, ess: float = 400.0,
+                    shared: str = "b per frame") -> JointPosterior:  # fmt: skip
+    """The joint posterior of one immobile molecule (module docstring).
+
+    Parameters
+    ----------
+    counts : array_like, shape (K, roi, roi)
+        The molecule's valid frames, in ADU.
+    model : Model
+        The model of one frame (its ROI size that of ``counts``).
+    starts : array_like, shape (K, 6)
+        Per-frame estimates (``fit_mle``'s) to start the joint fit from.
+    seed : int
+    ess : float
+        Effective sample size of the importance sampling (the draws kept).
+    shared : ``"b per frame"`` (default) or ``"one b"``
+        Whether the background is each frame's own or shared by all frames.
+    """
+    started = time.perf_counter()
+    counts, starts, layout = _check(counts, model, starts, shared)
+    fit, fit_ok, fit_message = joint_mle(model, counts, starts, layout)
+    info = {"frames": layout.frames, "shared": shared, "mle_converged": fit_ok}
+    random = np.random.RandomState(np.random.SeedSequence(int(seed)).generate_state(1)[0])
+    try:
+        centre, covariance = _laplace(model, counts, fit, layout)
+        proposal = DefensiveProposal(centre, covariance)
+    except np.linalg.LinAlgError:
+        info.update(method="none", converged=False, why="the joint information is singular")
+        return JointPosterior(layout, np.full((1, layout.frames, 6), np.nan), fit, info)
+    run = ImportanceRun(proposal, ess, int(MAX_DRAWS_PER_ESS * ess), random)
+    while not run.done:
+        z = run.propose()
+        run.take(joint_log_posterior(model, counts, layout, z))
+    keep = max(int(ess), 1)
+    ok = fit_ok and run.khat <= KHAT_MAX and run.achieved >= ess
+    if ok:
+        z = run.draws[systematic_resample(run.weights, keep, random)]
+        why = f"importance sampling: k-hat {run.khat:.2f} <= {KHAT_MAX}"
+    else:
+        z, _ = proposal.draw(keep, random)
+        why = (f"the Laplace approximation: importance sampling failed (k-hat {run.khat:.2f}, "
+               f"ESS {run.achieved:.0f} of {ess:g})") if fit_ok else fit_message  # fmt: skip
+    info.update(method="importance" if ok else "laplace", converged=bool(ok), why=why,
+                khat=float(run.khat), ess=float(run.achieved),
+                draws_scored=len(run.draws), seconds=time.perf_counter() - started)  # fmt: skip
+    draws = model.from_unconstrained(layout.split(z))
+    return JointPosterior(layout, draws, fit, info)
+
+
+@one_blas_thread
+def _molecule_task(task) -> dict:
+    """Worker side: one molecule's joint posterior as its table row (picklable in and out)."""
+    molecule, counts, model, starts, seed, ess, shared = task
+    post = joint_posterior(counts, model, starts, seed=seed, ess=ess, shared=shared)
+    return {"molecule": molecule, **post.row()}
+
+
+def joint_posteriors(counts, frames: pd.DataFrame, model, *, seed: int = 0, ess: float = 400.0,
+                     shared: str = "b per frame", workers: int | None = None, executor=None,
+                     progress: bool | None = None) -> pd.DataFrame:  # fmt: skip
+    """The joint posterior of every molecule in ``frames``, one row per molecule.
+
+    ``frames`` has one row per ROI of ``counts`` (n, roi, roi): ``molecule``, the per-frame
+    maximum-likelihood fit ``<p>_mle`` and ``mle_converged`` (the joint fit starts from it;
+    frames whose fit did not converge are left out of the joint model), and optionally the
+    per-frame posterior SDs ``<p>_sd``, whose mean over the frames used is reported beside
+    the joint SD as ``<p>_frame_sd``. Molecule ``m`` is sampled with a seed drawn from
+    ``(seed, m)``; molecules run on local processes (``workers``) or ``executor`` as in
+    ``sample_many``. A molecule with fewer than two usable frames gets ``joint_method``
+    ``"none"`` and the reason in ``joint_why``.
+    """
+    from bayespsf.batch import _executor, _results
+
+    counts = np.asarray(counts, dtype=np.float64)
+    if len(frames) != len(counts):
+        raise BayespsfInputError(
+            f"frames has {len(frames)} rows for {len(counts)} ROIs; give one row per ROI"
+        )
+    names = [f"{p}_mle" for p in PARAMETER_NAMES]
+    usable = frames["mle_converged"].to_numpy(bool) & np.isfinite(frames[names]).all(axis=1)
+    tasks, rows = [], []
+    for molecule, index in frames.groupby("molecule").indices.items():
+        use = index[usable.to_numpy()[index]]
+        extra = {f"{p}_frame_sd": float(frames[f"{p}_sd"].iloc[use].mean())
+                 for p in PARAMETER_NAMES if f"{p}_sd" in frames}  # fmt: skip
+        if len(use) < 2:
+            rows.append({"molecule": molecule, **extra, "joint_frames": len(use),
+                         "joint_method": "none", "joint_converged": False,
+                         "joint_why": "fewer than two frames with a converged fit"})  # fmt: skip
+            continue
+        rows.append({"molecule": molecule, **extra})
+        state = np.random.SeedSequence([int(seed), int(molecule)]).generate_state(1)[0]
+        starts = frames[names].to_numpy(float)[use]
+        tasks.append((molecule, counts[use], model, starts, int(state), ess, shared))
+    runner, owned = _executor(executor, workers)
+    bar = progress_bar(len(tasks), progress, unit="molecule", desc="joint posteriors")
+    made = {}
+    try:
+        for row in _results(_molecule_task, tasks, runner):
+            made[row["molecule"]] = row
+            bar.update(1)
+    finally:
+        bar.close()
+        if owned:
+            runner.shutdown(wait=True, cancel_futures=True)
+    table = pd.DataFrame([{**row, **made.get(row["molecule"], {})} for row in rows])
+    return table.sort_values("molecule", ignore_index=True)
+
+
+__all__ = ["SHARED", "JointPosterior", "Layout", "joint_log_posterior", "joint_mle",
+           "joint_posterior", "joint_posteriors"]  # fmt: skip
