@@ -13,6 +13,7 @@ _NAMES = {
     "Posterior": "bayespsf.posterior",
     "Scene": "bayespsf.scene",
     "SceneError": "bayespsf.scene",
+    "analyze": "bayespsf.analysis.pipeline",
     "fit_lsq": "bayespsf.estimators",
     "fit_mle": "bayespsf.estimators",
     "sample_many": "bayespsf.batch",

@@ -97,6 +97,21 @@ def zscores(frame_z: pd.DataFrame, parameters, path) -> Path:
     return path
 
 
+def gof_pvalues(p_values, path) -> Path:
+    """Histogram of the goodness-of-fit p-values: flat where the model holds."""
+    path = Path(path)
+    p = np.asarray(p_values, dtype=float)
+    p = p[np.isfinite(p)]
+    with _figure(path, figsize=(5, 3)) as (_, ax):
+        ax.hist(p, bins=20, range=(0, 1), color="C0")
+        if p.size:
+            ax.axhline(p.size / 20, color="k", lw=1, ls="--", label="uniform (model holds)")
+            ax.legend(fontsize=7)
+        ax.set_xlabel("goodness-of-fit p-value per frame (gof_p)")
+        ax.set_ylabel("frames")
+    return path
+
+
 def width_precision(spread: pd.DataFrame, path) -> Path:
     """Delta s against N per molecule, each estimator and each prediction."""
     path = Path(path)

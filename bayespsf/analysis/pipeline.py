@@ -146,14 +146,14 @@ def analyze(
                         ("width_spread.csv", spread)):  # fmt: skip
         paths[name] = out / name
         table.to_csv(paths[name], index=False)
-    paths.update(_figures(movie, found, frame_z, spread, out))
+    paths.update(_figures(movie, found, frame_z, spread, frames["gof_p"], out))
     result = Analysis(found, frames, molecules, overall, spread, paths)
     paths["report.md"] = out / "report.md"
     paths["report.md"].write_text(report_markdown(result, provenance))
     return result
 
 
-def _figures(movie, found: FoundMolecules, frame_z, spread, out: Path) -> dict[str, Path]:
+def _figures(movie, found: FoundMolecules, frame_z, spread, gof_p, out: Path) -> dict[str, Path]:
     """The report's figures (``bayespsf.analysis.figures``), by file name."""
     from bayespsf.analysis import figures
     from bayespsf.movie.project import project
@@ -163,6 +163,7 @@ def _figures(movie, found: FoundMolecules, frame_z, spread, out: Path) -> dict[s
         figures.traces(found.frames, found.molecules, out / "traces.png"),
         figures.zscores(frame_z, PARAMETERS, out / "zscores.png"),
         figures.width_precision(spread, out / "width_precision.png"),
+        figures.gof_pvalues(gof_p, out / "gof_p.png"),
     ]
     return {path.name: path for path in made}
 
@@ -236,6 +237,8 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "molecules, a hot pixel, a spot that is not Gaussian).",
         "",
         _flag_table(result.frames).to_markdown(**fmt),
+        "",
+        "![goodness-of-fit p-values](gof_p.png)",
         "",
         "## Width precision per molecule (the paper's Fig. 2, experimental points)",
         "",
