@@ -48,7 +48,8 @@ def test_every_file_is_written_with_one_row_per_analysed_frame(run):
     for name in ("locs.hdf5", "locs.yaml", "locs.csv", "locs.parquet", "molecules.csv",
                  "consistency.csv", "width_spread.csv", "report.md", "selection.md",
                  "frames.csv", "camera.toml", "detections.png", "traces.png", "zscores.png",
-                 "width_precision.png", "gof_p.png"):  # fmt: skip
+                 "width_precision.png", "gof_p.png", "residuals.png",
+                 "width_by_window.csv"):  # fmt: skip
         assert (out / name).exists(), name
     locs = pd.read_parquet(out / "locs.parquet")
     frames = pd.read_csv(out / "frames.csv")

@@ -112,6 +112,29 @@ def gof_pvalues(p_values, path) -> Path:
     return path
 
 
+def residual_images(ids, images, path, most: int = 16) -> Path:
+    """Each molecule's mean Pearson residual image (``misfit.mean_residuals``; ~N(0, 1) per
+    pixel where the model holds), the first ``most`` molecules, on one colour scale."""
+    from matplotlib.figure import Figure
+
+    path = Path(path)
+    shown = min(len(ids), most)
+    columns = max(1, min(4, shown))
+    rows = max(1, -(-shown // columns))
+    fig = Figure(figsize=(2.2 * columns + 1.0, 2.2 * rows + 0.4), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, columns)).ravel()
+    for ax in axes:
+        ax.set_axis_off()
+    picture = None
+    for ax, molecule, image in zip(axes, ids[:shown], images[:shown], strict=False):
+        picture = ax.imshow(image, cmap="RdBu_r", vmin=-4, vmax=4)
+        ax.set_title(f"molecule {molecule}: chi2/pixel {np.mean(image**2):.2f}", fontsize=7)
+    if picture is not None:
+        fig.colorbar(picture, ax=list(axes), shrink=0.8, label="sqrt(K) x mean residual")
+    fig.savefig(path, dpi=80)
+    return path
+
+
 def width_precision(spread: pd.DataFrame, path) -> Path:
     """Delta s against N per molecule, each estimator and each prediction."""
     path = Path(path)

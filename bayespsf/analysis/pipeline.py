@@ -16,7 +16,8 @@ The stages, in order:
    (ThunderSTORM), ``locs.parquet`` (every column), ``molecules.csv`` (the selection outcome
    and, per selected molecule, its joint posterior and, per parameter, the calibration check
    without ground truth), ``consistency.csv`` (that check over all molecules),
-   ``width_spread.csv`` (the paper's experimental Delta s against N) and ``report.md``.
+   ``width_spread.csv`` (the paper's experimental Delta s against N), ``width_by_window.csv``
+   (``bayespsf.analysis.misfit``) and ``report.md``.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import pandas as pd
 from bayespsf.analysis.consistency import PARAMETERS, frame_consistency
 from bayespsf.analysis.joint import joint_posteriors
 from bayespsf.analysis.locs import localizations, write_all
+from bayespsf.analysis.misfit import mean_residuals, width_by_window
 from bayespsf.analysis.model_check import bootstrap_check
 from bayespsf.analysis.width_spread import width_spread
 from bayespsf.batch import sample_many
@@ -51,6 +53,7 @@ class Analysis:
     molecules: pd.DataFrame
     consistency: pd.DataFrame
     width_spread: pd.DataFrame
+    width_by_window: pd.DataFrame  # the mean widths when the central w x w pixels are fitted
     paths: dict[str, Path] = field(default_factory=dict)
 
 
@@ -134,6 +137,9 @@ def analyze(
     detected = frames.assign(N_mean=frames["N_mean"] * scale, b_mean=frames["b_mean"] * scale,
                              photon_unit="photoelectrons")  # fmt: skip
     spread = width_spread(detected, fitting.pixel_size)
+    windows = width_by_window(counts, fitting, frames["molecule"].to_numpy())
+    mle = frames[[f"{p}_mle" for p in PARAMETER_NAMES]].where(frames["mle_converged"], axis=0)
+    residuals = mean_residuals(counts, fitting, mle.to_numpy(float), frames["molecule"])
     _, height, width = movie.shape
     info = {
         "Width": int(width), "Height": int(height), "Frames": len(movie),
@@ -142,18 +148,19 @@ def analyze(
                      "method": method, "roi": roi, "fit": fit, **(provenance or {})},
     }  # fmt: skip
     paths.update(write_all(localizations(frames, fitting.pixel_size), out, info))
-    for name, table in (("molecules.csv", molecules), ("consistency.csv", overall),
-                        ("width_spread.csv", spread)):  # fmt: skip
+    tables = {"molecules.csv": molecules, "consistency.csv": overall,
+              "width_spread.csv": spread, "width_by_window.csv": windows}  # fmt: skip
+    for name, table in tables.items():
         paths[name] = out / name
         table.to_csv(paths[name], index=False)
-    paths.update(_figures(movie, found, frame_z, spread, frames["gof_p"], out))
-    result = Analysis(found, frames, molecules, overall, spread, paths)
+    paths.update(_figures(movie, found, frame_z, spread, frames["gof_p"], residuals, out))
+    result = Analysis(found, frames, molecules, overall, spread, windows, paths)
     paths["report.md"] = out / "report.md"
     paths["report.md"].write_text(report_markdown(result, provenance))
     return result
 
 
-def _figures(movie, found: FoundMolecules, frame_z, spread, gof_p, out: Path) -> dict[str, Path]:
+def _figures(movie, found, frame_z, spread, gof_p, residuals, out: Path) -> dict[str, Path]:
     """The report's figures (``bayespsf.analysis.figures``), by file name."""
     from bayespsf.analysis import figures
     from bayespsf.movie.project import project
@@ -164,6 +171,7 @@ def _figures(movie, found: FoundMolecules, frame_z, spread, gof_p, out: Path) ->
         figures.zscores(frame_z, PARAMETERS, out / "zscores.png"),
         figures.width_precision(spread, out / "width_precision.png"),
         figures.gof_pvalues(gof_p, out / "gof_p.png"),
+        figures.residual_images(*residuals, out / "residuals.png"),
     ]
     return {path.name: path for path in made}
 
@@ -178,6 +186,13 @@ def _flag_table(frames: pd.DataFrame) -> pd.DataFrame:
                      "binomial SE": np.sqrt(alpha * (1 - alpha) / max(len(p), 1)),
                      "expected when the model holds": alpha})  # fmt: skip
     return pd.DataFrame(rows)
+
+
+def _window_table(windows: pd.DataFrame) -> pd.DataFrame:
+    """Mean s_x (and its SE) per molecule, one column per fitting window."""
+    wide = windows.pivot(index="molecule", columns="window", values=["s_x", "s_x_se"])
+    wide.columns = [f"{stat} ({w} x {w})" for stat, w in wide.columns]
+    return wide.reset_index()
 
 
 def _joint_table(molecules: pd.DataFrame) -> pd.DataFrame:
@@ -239,6 +254,16 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         _flag_table(result.frames).to_markdown(**fmt),
         "",
         "![goodness-of-fit p-values](gof_p.png)",
+        "",
+        "How a misfit shows (`bayespsf.analysis.misfit`): each molecule's mean Pearson residual "
+        "image at its frames' fits, scaled to ~N(0, 1) per pixel where the model holds (a "
+        "pattern, such as a core and a ring, is a spot the Gaussian does not describe), and "
+        "its mean width when only the central w x w pixels are fitted (a Gaussian spot gives "
+        "one width in every window, within its SE; `width_by_window.csv`).",
+        "",
+        "![residual images](residuals.png)",
+        "",
+        _window_table(result.width_by_window).to_markdown(**fmt),
         "",
         "## Width precision per molecule (the paper's Fig. 2, experimental points)",
         "",
