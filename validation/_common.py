@@ -85,6 +85,21 @@ def per_movie_report(title: str, table, movies, stem: str, alt: str) -> tuple[st
 
 
 @contextmanager
+def saved_figure(path: Path, figsize, columns: int = 1):
+    """The axes of a new figure of ``columns`` panels, saved to ``path`` and closed on exit."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, columns, figsize=figsize)
+    yield axes
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+@contextmanager
 def per_movie_figure(path: Path, ylabel: str):
     """The axes of a figure with one point per movie, saved to ``path`` on exit."""
     import matplotlib

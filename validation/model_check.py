@@ -33,7 +33,7 @@ from bayespsf.analysis.model_check import bootstrap_check
 from bayespsf.model import Model
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import finish, study
+from _common import finish, saved_figure, study
 
 PHOTONS = (300.0, 1000.0, 3000.0, 10000.0)
 CASES = ("right", "two molecules", "Airy", "saturated", "hot pixel")
@@ -101,23 +101,15 @@ def main(argv=None):
 
 
 def figure(table: pd.DataFrame, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.2))
-    for case, rows in table.groupby("case", sort=False):
-        ax.errorbar(rows["N"], rows["flagged"], yerr=2 * rows["binomial SE at 0.1"], fmt="o-",
-                    label=case, capsize=2)  # fmt: skip
-    ax.axhline(ALPHA, color="grey", lw=0.8, ls="--", label="nominal 0.1")
-    ax.set_xscale("log")
-    ax.set_xlabel("N (photons)")
-    ax.set_ylabel("share flagged at p <= 0.1")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    with saved_figure(path, (6, 3.2)) as ax:
+        for case, rows in table.groupby("case", sort=False):
+            ax.errorbar(rows["N"], rows["flagged"], yerr=2 * rows["binomial SE at 0.1"],
+                        fmt="o-", label=case, capsize=2)  # fmt: skip
+        ax.axhline(ALPHA, color="grey", lw=0.8, ls="--", label="nominal 0.1")
+        ax.set_xscale("log")
+        ax.set_xlabel("N (photons)")
+        ax.set_ylabel("share flagged at p <= 0.1")
+        ax.legend(fontsize=7)
 
 
 if __name__ == "__main__":

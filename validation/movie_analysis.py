@@ -60,7 +60,7 @@ from bayespsf.posterior_rows import quantile_column
 from bayespsf.psf import PARAMETER_NAMES
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import finish, study
+from _common import finish, saved_figure, study
 
 FIT = 15
 FRAMES_PER_MOLECULE = 40
@@ -254,12 +254,12 @@ def main(argv=None):
 def figure(coverage: pd.DataFrame, cases: pd.DataFrame, path: Path) -> None:
     """Left: coverage of the truth by the 68% and 95% intervals, per posterior and parameter.
     Right: the check's z-score SDs and the goodness-of-fit flag rate, per case."""
-    import matplotlib
+    with saved_figure(path, (9, 3.2), columns=2) as (left, right):
+        _coverage_panel(left, coverage)
+        _check_panel(right, cases)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.2))
+def _coverage_panel(left, coverage: pd.DataFrame) -> None:
     labels = [f"{r.posterior}\n{r.parameter}" for r in coverage.itertuples()]
     k = np.arange(len(coverage))
     for level, column, marker in ((0.68, "coverage 68%", "o"), (0.95, "coverage 95%", "s")):
@@ -269,6 +269,9 @@ def figure(coverage: pd.DataFrame, cases: pd.DataFrame, path: Path) -> None:
     left.set_xticks(k, labels, fontsize=6)
     left.set_ylabel("coverage of the truth (+-2 SE)")
     left.legend(fontsize=7)
+
+
+def _check_panel(right, cases: pd.DataFrame) -> None:
     k = np.arange(len(cases))
     for shift, p in zip((-0.2, 0.0, 0.2), ("x0", "s_x", "s_y"), strict=True):
         right.errorbar(k + shift, cases[f"{p} z-score SD"], yerr=2 * cases[f"{p} SE"], fmt="o",
@@ -277,9 +280,6 @@ def figure(coverage: pd.DataFrame, cases: pd.DataFrame, path: Path) -> None:
     right.axhline(1.0, lw=0.8, ls="--", color="grey")
     right.set_xticks(k, cases["case"], fontsize=7)
     right.legend(fontsize=6)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 if __name__ == "__main__":
