@@ -91,19 +91,36 @@ def _sample_one(task):
     """Worker side: one molecule's posterior and its summary row (picklable in and out)."""
     from bayespsf.sampling import sample_posterior
 
-    index, counts, model, seed, truth, scene, options, verdict = task
+    index, counts, model, seed, truth, scene, options, verdict, check = task
+    # verdict: the method asked for and why the batched pass left this ROI to the chain, and
+    # the batched pass's model check of it
+    verdict = dict(verdict or {})
+    checked = verdict.pop("check", None)
     started = time.perf_counter()
     try:
         post = sample_posterior(counts, model, seed=seed, truth=truth, scene=scene,
                                 progress=False, **options)  # fmt: skip
     except BayespsfInputError as error:  # e.g. a ROI outside the likelihood tier's support
         return index, None, _outcome_row(index, seed, "failed", str(error))
-    # verdict: the method asked for and why the batched pass left this ROI to the chain
-    info = dict(post.info, **(verdict or {}), seconds=time.perf_counter() - started)
+    if check and checked is None:
+        checked = _model_checks(counts[None], model, [seed])[0]
+    info = dict(post.info, **verdict, seconds=time.perf_counter() - started)
     post.tree.attrs["sampler"] = json.dumps(info)
-    row = molecule_row(post, index, seed)
+    row = molecule_row(post, index, seed) | (checked or {})
     post.tree.attrs["summary_row"] = json.dumps(row)
     return index, post, row
+
+
+def _model_checks(stack, model, seeds, fits=None) -> list[dict]:
+    """The parametric-bootstrap goodness-of-fit test of each ROI (``bayespsf.model_check``),
+    its replicates drawn from the ROI's own seed: ``gof_p``, ``gof_discrepancy``,
+    ``gof_replicates`` per ROI."""
+    from bayespsf.model_check import bootstrap_check
+
+    table = bootstrap_check(stack, model, seed=[int(s) for s in seeds], fits=fits)
+    return [{"gof_p": float(p), "gof_discrepancy": float(t), "gof_replicates": int(k)}
+            for p, t, k in table[["gof_p", "gof_discrepancy", "gof_replicates"]].itertuples(
+                index=False)]  # fmt: skip
 
 
 def _die_with_parent(parent: int) -> None:
@@ -232,7 +249,8 @@ class Store:
         file = self.path / "manifest.json"
         if file.exists():
             old = json.loads(file.read_text())
-            differ = [k for k in manifest if old.get(k) != manifest[k]]
+            keys = [*manifest, *(k for k in old if k not in manifest)]  # either side's
+            differ = [k for k in keys if old.get(k) != manifest.get(k)]
             if differ:
                 raise BayespsfInputError(
                     f"store {self.path} was made for another run: {', '.join(differ)} differ "
@@ -286,7 +304,7 @@ def _resolved_sampler_settings(options: dict) -> dict:
     return {**resolved, "chunk": Settings.chunk, "min_taus": Settings.min_taus}
 
 
-def _manifest(counts, model, seed, options, truths) -> dict:
+def _manifest(counts, model, seed, options, truths, check: bool) -> dict:
     digest = hashlib.sha256(np.ascontiguousarray(counts, dtype=np.float64).tobytes())
     if truths is not None:
         digest.update(np.ascontiguousarray(truths, dtype=np.float64).tobytes())
@@ -299,7 +317,7 @@ def _manifest(counts, model, seed, options, truths) -> dict:
         "prior": model.prior,
         "clock-induced charge": model.clock_induced_charge,
         "data sha256": digest.hexdigest(),
-    }
+    } | ({"model check": "parametric bootstrap (bayespsf.model_check)"} if check else {})
 
 
 # ------------------------------------------------------------------------------- the run
@@ -315,6 +333,7 @@ def sample_many(
     truths=None,
     scene=None,
     progress: bool | None = None,
+    check: bool = False,
     **options,
 ) -> pd.DataFrame:
     """Sample the posterior of every ROI in ``counts``; return the summary table.
@@ -341,6 +360,12 @@ def sample_many(
         Kept in each result file.
     progress : bool, optional
         A progress bar on stderr (default: when stderr is a terminal).
+    check : bool
+        Also test whether the model can have made each ROI: the parametric-bootstrap
+        goodness-of-fit test of ``bayespsf.model_check`` at the ROI's maximum-likelihood fit
+        (49 refitted replicates drawn from the ROI's own seed; it costs about as much again as
+        the batched posteriors). Adds ``gof_p``, ``gof_discrepancy`` and ``gof_replicates`` to
+        each row, stored with the posterior in its file.
     **options
         ``ess``, ``walkers``, ``max_steps``, ``moves``, ``method``, ``max_seconds`` of
         ``sample_posterior``. ``method`` defaults to ``"auto"`` here (``sample_posterior``'s
@@ -388,7 +413,7 @@ def sample_many(
         saver.lock()
     try:
         if saver is not None:
-            saver.open(_manifest(stack, model, seed, options, truths))
+            saver.open(_manifest(stack, model, seed, options, truths, check))
             rows = saver.finished(n)
         for i, problem in enumerate(problems):
             if problem is not None:
@@ -402,7 +427,7 @@ def sample_many(
                 chunks = (
                     (chunk, stack[chunk], model, [molecule_seed(seed, i) for i in chunk],
                      None if truths is None else truths[chunk], settings, scene,
-                     None if saver is None else saver.path)
+                     None if saver is None else saver.path, check)
                     for chunk in np.array_split(todo, parts)
                     if len(chunk)
                 )  # fmt: skip
@@ -413,7 +438,7 @@ def sample_many(
                 verdicts = {}
             tasks = (
                 (i, stack[i], model, molecule_seed(seed, i),
-                 None if truths is None else truths[i], scene, options, verdicts.get(i))
+                 None if truths is None else truths[i], scene, options, verdicts.get(i), check)
                 for i in todo
             )  # fmt: skip
             _run(tasks, runner, saver, rows, bar)
@@ -472,19 +497,22 @@ def _posteriors_of_chunk(task):
     from bayespsf.estimators import fit_mle
     from bayespsf.stack_posterior import as_posterior, cheap_posteriors
 
-    indices, stack, model, seeds, truths, settings, scene, store = task
+    indices, stack, model, seeds, truths, settings, scene, store, check = task
     started = time.perf_counter()
-    outcomes = cheap_posteriors(stack, model, fit_mle(stack, model), seeds, settings)
+    fits = fit_mle(stack, model)
+    outcomes = cheap_posteriors(stack, model, fits, seeds, settings)
     seconds = (time.perf_counter() - started) / len(indices)
+    checks = _model_checks(stack, model, seeds, fits) if check else [{}] * len(indices)
     results = []
     for k, (index, outcome) in enumerate(zip(indices, outcomes, strict=True)):
         if outcome["draws"] is None:
             verdict = {"requested": settings.method, "why": outcome["info"]["why"]}
-            results.append((int(index), None, verdict))
+            results.append((int(index), None, verdict | ({"check": checks[k]} if check else {})))
             continue
         outcome = {**outcome, "info": dict(outcome["info"], seconds=seconds)}
         truth = None if truths is None else truths[k]
         row = draws_row(outcome["draws"], int(index), seeds[k], outcome["info"], truth)
+        row |= checks[k]
         if store is not None:
             post = as_posterior(outcome, stack[k], model, truth, scene)
             post.tree.attrs["summary_row"] = json.dumps(row)

@@ -144,6 +144,32 @@ def test_store_made_for_another_run_is_refused(stack, tmp_path):
                     **OPTIONS)  # fmt: skip
 
 
+def test_the_model_check_is_stored_with_each_posterior(stack, tmp_path):
+    # check=True: each row and each posterior file carry the bootstrap goodness-of-fit test
+    # (bayespsf.model_check), its replicates drawn from the molecule's own seed, so the values
+    # are those of bootstrap_check with those seeds, for the batched and the chain paths, on
+    # one process or two
+    from bayespsf.model_check import bootstrap_check
+    from bayespsf.posterior import Posterior
+
+    counts, _, model = stack
+    seeds = [molecule_seed(5, i) for i in range(N_MOLECULES)]
+    expected = bootstrap_check(counts, model, seed=seeds)["gof_p"].to_numpy()
+    batched = sample_many(counts, model, seed=5, workers=1, method="laplace", check=True,
+                          store=tmp_path / "s")  # fmt: skip
+    chain = sample_many(counts[:2], model, seed=5, workers=2, check=True, **OPTIONS)
+    assert np.array_equal(batched["gof_p"].to_numpy(), expected)
+    assert np.array_equal(chain["gof_p"].to_numpy(), expected[:2])
+    assert (batched["gof_replicates"] == 49).all()
+    stored = json.loads(Posterior.load(tmp_path / "s" / "molecule-000001.nc").tree.attrs[
+        "summary_row"])  # fmt: skip
+    assert stored["gof_p"] == expected[1]
+    assert "gof_p" in pd.read_csv(tmp_path / "s" / "summary.csv")
+    with pytest.raises(BayespsfInputError, match="model check"):  # a store made with it
+        sample_many(counts, model, seed=5, workers=1, store=tmp_path / "s", method="laplace")
+    assert "gof_p" not in sample_many(counts[:1], model, seed=5, workers=1, method="laplace")
+
+
 def test_bad_input_is_named(stack):
     counts, truths, model = stack
     with pytest.raises(BayespsfInputError, match="stack"):

@@ -1,6 +1,6 @@
 """The goodness-of-fit flag against N: how often it fires where the model holds, and where not.
 
-``bayespsf.analysis.model_check.bootstrap_check`` (the MLE's negative log-likelihood against
+``bayespsf.model_check.bootstrap_check`` (the MLE's negative log-likelihood against
 19 refitted parametric-bootstrap replicates; a ROI is flagged at ``p <= 0.1``) on ROIs of the
 ``emccd-typical`` scene (15 x 15 pixels of 100 nm, s0 = 130 nm, a Poisson background of 10
 photons, EMCCD gain 200), analysed with that scene's Gaussian model, at N = 300, 1 000, 3 000
@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf import scenes, simulate
-from bayespsf.analysis.model_check import bootstrap_check
+from bayespsf.model_check import bootstrap_check
 from bayespsf.model import Model
 
 sys.path.insert(0, str(Path(__file__).parent))

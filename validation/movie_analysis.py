@@ -19,7 +19,7 @@ two-fluorophore molecule that passed the rules is counted and left out (its trut
 position and width).
 
 Part 2, the check without ground truth (``bayespsf.analysis.consistency``) and the
-bootstrap goodness-of-fit test (``bayespsf.analysis.model_check``, ``gof_p <= 0.1``) on stacks
+bootstrap goodness-of-fit test (``bayespsf.model_check``, ``gof_p <= 0.1``) on stacks
 of immobile molecules shaped like the movie's (79 nm pixels, 1 600 photons +-20% per frame, the
 same Poisson background), each molecule at one fixed position in all its frames:
 
@@ -48,7 +48,7 @@ import pandas as pd
 from bayespsf import scenes, simulate
 from bayespsf.analysis.consistency import frame_consistency
 from bayespsf.analysis.joint import joint_posteriors
-from bayespsf.analysis.model_check import bootstrap_check
+from bayespsf.model_check import bootstrap_check
 from bayespsf.analysis.pipeline import valid_rois
 from bayespsf.batch import sample_many
 from bayespsf.estimators import fit_mle

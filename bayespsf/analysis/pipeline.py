@@ -9,7 +9,8 @@ The stages, in order:
    ``OUT/posteriors``, so a rerun with the same ``OUT`` continues and a killed run loses no
    finished ROI), the MLE with its Cramér-Rao bound (``fit_mle``) and the paper's least squares
    (``fit_lsq``), in the camera file's photon unit, and a bootstrap goodness-of-fit p-value
-   per ROI (``bayespsf.analysis.model_check``);
+   per ROI (``bayespsf.model_check``, run by ``sample_many(check=True)`` beside each
+   posterior and stored with it);
 3b. per selected molecule, the joint posterior of its frames (``bayespsf.analysis.joint``:
    one position and width shared by the frames, N and b per frame);
 4. the tables and files: ``locs.hdf5`` + ``locs.yaml`` (picasso), ``locs.csv``
@@ -32,7 +33,6 @@ from bayespsf.analysis.consistency import PARAMETERS, frame_consistency
 from bayespsf.analysis.joint import joint_posteriors
 from bayespsf.analysis.locs import localizations, write_all
 from bayespsf.analysis.misfit import mean_residuals, width_by_window
-from bayespsf.analysis.model_check import bootstrap_check
 from bayespsf.analysis.width_spread import width_spread
 from bayespsf.batch import sample_many
 from bayespsf.errors import BayespsfInputError
@@ -75,20 +75,16 @@ def valid_rois(movie, found: FoundMolecules, fit: int, block: int = 64):
     return np.concatenate(counts).astype(np.float64), table
 
 
-def _estimates(counts, model: Model, seed: int) -> pd.DataFrame:
-    """The MLE (``<p>_mle``, ``crlb_<p>``), the paper's least squares (``<p>_lsq``) and the
-    bootstrap goodness-of-fit test (``gof_p``, ``bayespsf.analysis.model_check``)."""
+def _estimates(counts, model: Model) -> pd.DataFrame:
+    """The MLE (``<p>_mle``, ``crlb_<p>``) and the paper's least squares (``<p>_lsq``)."""
     mle = fit_mle(counts, model, laplace=False)
     lsq = fit_lsq(counts, model)
-    check = bootstrap_check(counts, model, seed=seed, fits=mle)
     out = pd.DataFrame(index=mle.index)
     for p in PARAMETER_NAMES:
         out[f"{p}_mle"] = mle[p].to_numpy()
         out[f"crlb_{p}"] = mle[f"crlb_{p}"].to_numpy()
         out[f"{p}_lsq"] = lsq[p].where(lsq["converged"]).to_numpy()
     out["mle_converged"] = mle["converged"].to_numpy(bool)
-    for column in check:
-        out[column] = check[column].to_numpy()
     return out
 
 
@@ -124,9 +120,10 @@ def analyze(
     fitting = model.for_roi(fit)
     options = {"method": method} | ({} if ess is None else {"ess": ess})
     posteriors = sample_many(counts, fitting, seed=seed, executor=executor, workers=workers,
-                             store=out / "posteriors", progress=progress, **options)  # fmt: skip
+                             store=out / "posteriors", progress=progress, check=True,
+                             **options)  # fmt: skip
     frames = pd.concat(
-        [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting, seed)], axis=1
+        [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1
     )
     frames["selected"] = True
     frame_z, per_molecule, overall = frame_consistency(frames, PARAMETERS)
@@ -246,7 +243,7 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "## Can the model have made each image?",
         "",
         "A parametric-bootstrap goodness-of-fit test of every frame's ROI "
-        "(`bayespsf.analysis.model_check`: the MLE's negative log-likelihood against 49 "
+        "(`bayespsf.model_check`: the MLE's negative log-likelihood against 49 "
         "refitted replicates; column `gof_p`). Where the model holds, a fraction alpha of the "
         "frames has `gof_p <= alpha`; more flags mean ROIs it does not describe (two "
         "molecules, a hot pixel, a spot that is not Gaussian).",

@@ -28,14 +28,18 @@ from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
 
+REPLICATE_STREAM = 0x6F66  # a ROI's replicates: its seed's stream of this number
 CHUNK = 256  # ROIs whose replicates are drawn and refitted together (memory ~ CHUNK x replicates)
 
 
-def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed: int = 0,
+def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed=0,
                     fits: pd.DataFrame | None = None) -> pd.DataFrame:  # fmt: skip
     """The p-value of every ROI of ``counts`` (n, roi, roi) under ``model`` (module docstring).
 
-    ``fits``: ``fit_mle``'s table of these ROIs, if already made. Returns one row per ROI:
+    ``seed``: one integer for the whole stack, or one per ROI (then ROI ``k``'s replicates
+    depend on ``seed[k]`` alone, not on the stack it is checked in: ``sample_many`` checks
+    each molecule so). ``fits``: ``fit_mle``'s table of these ROIs, if already made. Returns
+    one row per ROI:
     ``gof_p`` (NaN where the ROI's own fit, or every replicate's refit, did not converge),
     ``gof_discrepancy`` (``T(y)``) and ``gof_replicates`` (the replicates whose refit
     converged, which the p-value counts; a replicate that fails to converge is likely one of
@@ -67,11 +71,11 @@ def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed: int = 0
         fits["converged"].to_numpy(bool) & np.isfinite(out["gof_discrepancy"].to_numpy())
     )
     theta = fits[list(PARAMETER_NAMES)].to_numpy(float)
-    rng = np.random.default_rng(seed)
+    draw = _replicate_drawer(seed, len(stack), model, replicates)
     for start in range(0, len(ok), CHUNK):
         rows = ok[start : start + CHUNK]
         lam = np.repeat(model.expected(theta[rows]), replicates, axis=0)
-        refits = fit_mle(model.camera.sample(lam, rng), model,
+        refits = fit_mle(draw(rows, lam), model,
                          start=np.repeat(theta[rows], replicates, axis=0), laplace=False,
                          crlb=False)  # fmt: skip
         t_rep = (-refits["log_likelihood"].to_numpy()).reshape(-1, replicates)
@@ -82,6 +86,30 @@ def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed: int = 0
         out.loc[rows, "gof_p"] = np.where(count > 0, (1 + exceed) / (1 + count), np.nan)
         out.loc[rows, "gof_replicates"] = count
     return out
+
+
+def _replicate_drawer(seed, n: int, model: Model, replicates: int):
+    """``draw(rows, lam)``: the replicates of ``rows`` (expected counts ``lam``, ``replicates``
+    per row), from one stream for the stack or from each ROI's own (``REPLICATE_STREAM``)."""
+    if np.ndim(seed) == 0:
+        rng = np.random.default_rng(seed)
+        return lambda rows, lam: model.camera.sample(lam, rng)
+    seeds = list(seed)  # Python integers: molecule seeds reach 2**64
+    whole = all(isinstance(s, numbers.Integral) and not isinstance(s, bool) for s in seeds)
+    if len(seeds) != n or not whole or min(seeds, default=0) < 0:
+        raise BayespsfInputError(
+            f"seed must be an integer or {n} integers >= 0 (one per ROI), got {len(seeds)} "
+            "values" + ("" if whole else " that are not all integers")
+        )
+
+    def draw(rows, lam):
+        parts = lam.reshape(len(rows), replicates, *lam.shape[1:])
+        return np.concatenate([
+            model.camera.sample(part, np.random.default_rng([int(seeds[k]), REPLICATE_STREAM]))
+            for k, part in zip(rows, parts, strict=True)
+        ])  # fmt: skip
+
+    return draw
 
 
 __all__ = ["bootstrap_check"]

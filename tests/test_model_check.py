@@ -1,14 +1,14 @@
-"""The parametric-bootstrap goodness-of-fit test (bayespsf.analysis.model_check): its false
+"""The parametric-bootstrap goodness-of-fit test (bayespsf.model_check): its false
 alarms at their nominal rate on ROIs the model describes, and flags on ROIs it cannot."""
 
 import numpy as np
 import pytest
 
 from bayespsf import scenes, simulate
-from bayespsf.analysis.model_check import bootstrap_check
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
+from bayespsf.model_check import bootstrap_check
 
 SCENE = scenes.load("emccd-typical").replace(emitter={"position": "pixel", "photons": 1000.0})
 MODEL = Model.from_scene(SCENE)
@@ -47,6 +47,21 @@ def test_a_hot_pixel_is_flagged():
     counts[:, 1, 1] += 100.0 / per_adu
     check = bootstrap_check(counts, MODEL, replicates=19, seed=3)
     assert np.mean(check["gof_p"] <= 0.1) >= 0.9, check["gof_p"].describe()
+
+
+def test_per_roi_seeds_make_a_rois_check_independent_of_its_stack():
+    # with one seed per ROI, a ROI's replicates come from its own seed: the same p-value
+    # whether it is checked alone, first, or among others
+    counts, _ = simulate(SCENE, 6, seed=4)
+    seeds = [100, 101, 102, 103, 104, 2**64 - 1]  # molecule seeds reach 2**64
+    whole = bootstrap_check(counts, MODEL, replicates=9, seed=seeds)
+    alone = bootstrap_check(counts[3:4], MODEL, replicates=9, seed=seeds[3:4])
+    rest = bootstrap_check(counts[2:], MODEL, replicates=9, seed=seeds[2:])
+    assert whole["gof_p"].iloc[3] == alone["gof_p"].iloc[0] == rest["gof_p"].iloc[1]
+    with pytest.raises(BayespsfInputError, match="one per ROI"):
+        bootstrap_check(counts, MODEL, seed=seeds[:5])
+    with pytest.raises(BayespsfInputError, match="one per ROI"):
+        bootstrap_check(counts, MODEL, seed=[-1, *seeds[1:]])
 
 
 def test_bad_replicates_are_named():
