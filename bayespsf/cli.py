@@ -221,6 +221,7 @@ def _fit(args) -> int:
         ess=args.ess,
         method=args.method,
         max_seconds=args.max_seconds,
+        check=args.check,
     )
     for _, row in table.iterrows():
         if row["status"] in ("refused", "failed"):
@@ -446,6 +447,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument(
         "--seed", type=int, default=0, help="run seed (ROI k uses molecule_seed(seed, k))"
     )
+    fit.add_argument(
+        "--check", action="store_true",
+        help="also test whether the model can have made each ROI (a parametric-bootstrap "
+        "goodness-of-fit p-value, gof_p, in each row and result file; about doubles the time)",
+    )  # fmt: skip
     fit.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")
     fit.add_argument("--scheduler", default=None, help="a Dask scheduler address (a cluster)")
     fit.add_argument("--out", default="bayespsf-fit", help="output folder (default bayespsf-fit)")

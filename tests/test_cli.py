@@ -84,6 +84,10 @@ def test_fit_command_tif_and_camera_file(tmp_path, capsys):
     assert post.draws()["s_x"].mean() == pytest.approx(summary.loc[1, "s_x_mean"], rel=1e-12)
     assert cli.main([*args, "--out", str(out), "--workers", "1"]) == 0  # resumes: nothing to do
     assert "ROI 1 (importance): converged" in capsys.readouterr().out  # auto, the default
+    checked = tmp_path / "fit-checked"
+    assert cli.main([*args, "--check", "--out", str(checked), "--workers", "1"]) == 0
+    assert pd.read_csv(checked / "summary.csv")["gof_p"].between(0, 1).all()
+    assert "gof_p" not in summary
     chain = tmp_path / "fit-mcmc"
     args = [*args[:-1], "400", "--method", "mcmc", "--out", str(chain), "--workers", "1"]
     assert cli.main(args) == 0
