@@ -152,3 +152,17 @@ def test_bad_inputs_are_named():
         joint_posterior(counts, MODEL, np.where(truths > 0, np.nan, truths))
     with pytest.raises(BayespsfInputError, match="shared must be one of"):
         joint_posterior(counts, MODEL, truths, shared="everything")
+
+
+def test_one_background_for_all_frames_is_shared_like_the_position():
+    # shared="one b": b is one number for every frame, reported like the position; its joint
+    # SD is below the per-frame Laplace SD over sqrt(K) x 1.3 (the frames' b are the same here)
+    rng = np.random.default_rng(5)
+    counts, _ = frames_of(6, rng)
+    fits = fit_mle(counts, MODEL)
+    post = joint_posterior(counts, MODEL, fits[list(PARAMETER_NAMES)].to_numpy(float), seed=1,
+                           shared="one b")  # fmt: skip
+    row = post.row()
+    assert row["joint_method"] == "importance" and np.ptp(post.draws[:, :, 5], axis=1).max() == 0
+    assert abs(row["b_joint_mean"] - TRUTH[5]) < 4 * row["b_joint_sd"]
+    assert row["b_joint_sd"] < 1.3 * fits["sd_b"].mean() / np.sqrt(6)
