@@ -16,7 +16,7 @@ and 10 000 photons:
   spot peaks near 1 700 ADU);
 - ``hot pixel``: 100 photoelectrons' worth of ADU added to one corner pixel.
 
-    python validation/model_check.py            # 200 ROIs per case and N (about 10 minutes)
+    python validation/model_check.py            # 200 ROIs per case and N (about 2 minutes)
     python validation/model_check.py --quick    # 20 ROIs per case and N
 """
 
