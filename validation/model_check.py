@@ -29,8 +29,8 @@ import numpy as np
 import pandas as pd
 
 from bayespsf import scenes, simulate
-from bayespsf.model_check import bootstrap_check
 from bayespsf.model import Model
+from bayespsf.model_check import bootstrap_check
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import finish, saved_figure, study

@@ -48,11 +48,11 @@ import pandas as pd
 from bayespsf import scenes, simulate
 from bayespsf.analysis.consistency import frame_consistency
 from bayespsf.analysis.joint import joint_posteriors
-from bayespsf.model_check import bootstrap_check
 from bayespsf.analysis.pipeline import valid_rois
 from bayespsf.batch import sample_many
 from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
+from bayespsf.model_check import bootstrap_check
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.select import Rules
 from bayespsf.movie.simulate import match_truth, simulate_movie
