@@ -1,0 +1,84 @@
+"""How well z can be known: its Cramér-Rao bound under the camera law, the first-order error
+propagated from the widths, and the paper's Delta z (issue 16, item 4).
+
+The model of z has the parameters ``theta = (x0, y0, z, N, b)`` and widths
+``(s_x, s_y) = defocus.widths(z)``. Its Fisher information follows from the six-parameter one
+(``bayespsf.theory.fisher_matrix``) by the chain rule, ``I_theta = A' I_p A`` with
+``A = d p / d theta`` (Kay, Fundamentals of Statistical Signal Processing I (1993), sec. 3.8).
+
+The first-order error of z from the widths is the delta method on the calibration curve:
+with ``g = (ds_x/dz, ds_y/dz)`` and ``S`` the covariance of the estimated (s_x, s_y),
+``var(z) = 1 / (g' S^-1 g)`` (the weighted least-squares fit of one z to the two widths). With
+``S`` the widths' own Cramér-Rao covariance (x0, y0, N, b unknown), this equals the bound
+on z exactly: the information on z is ``g' (I_ss - I_sn I_nn^-1 I_ns) g``, the widths'
+information net of the nuisance parameters, projected on ``g``. Localisation software uses
+this error with the covariance at its own fit (picasso's ``lpz`` and ThunderSTORM's
+``uncertainty_z`` are of this kind); where ``g`` vanishes (in focus for the symmetric curve) it
+is infinite, and near there a first-order error does not describe z's posterior.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from bayespsf.axial.defocus import Defocus
+from bayespsf.theory import delta_z, fisher_matrix
+
+THETA_NAMES = ("x0", "y0", "z", "N", "b")
+
+
+def to_widths(theta, defocus: Defocus) -> np.ndarray:
+    """``(x0, y0, z, N, b)`` (..., 5) to the six parameters ``x0 y0 s_x s_y N b``."""
+    theta = np.asarray(theta, dtype=np.float64)
+    s_x, s_y = defocus.widths(theta[..., 2])
+    return np.stack([theta[..., 0], theta[..., 1], s_x, s_y, theta[..., 3], theta[..., 4]], -1)
+
+
+def chain(theta, defocus: Defocus) -> np.ndarray:
+    """``A = d p / d theta`` (..., 6, 5)."""
+    theta = np.asarray(theta, dtype=np.float64)
+    out = np.zeros((*theta.shape[:-1], 6, 5))
+    out[..., 0, 0] = out[..., 1, 1] = out[..., 4, 3] = out[..., 5, 4] = 1.0
+    out[..., 2, 2], out[..., 3, 2] = defocus.slopes(theta[..., 2])
+    return out
+
+
+def fisher_z(model, defocus: Defocus, theta, method: str = "exact") -> np.ndarray:
+    """The Fisher information of ``(x0, y0, z, N, b)`` (..., 5, 5) of one ROI."""
+    a = chain(theta, defocus)
+    info = fisher_matrix(model, to_widths(theta, defocus), method)
+    return np.swapaxes(a, -1, -2) @ info @ a
+
+
+def crlb_z(model, defocus: Defocus, theta, method: str = "exact") -> pd.Series:
+    """sqrt of the Cramér-Rao bound of each of ``x0, y0, z, N, b`` at ``theta`` (5,); z's is
+    infinite where the widths do not change with z (the symmetric curve in focus)."""
+    info = fisher_z(model, defocus, theta, method)
+    scale = np.sqrt(np.diag(info))
+    if scale[2] == 0:  # no information on z: the rest are bounded as if z were known
+        bound = np.full(5, np.inf)
+        keep = [0, 1, 3, 4]
+        bound[keep] = np.sqrt(np.diag(np.linalg.inv(info[np.ix_(keep, keep)])))
+    else:
+        bound = np.sqrt(np.diag(np.linalg.inv(info / np.outer(scale, scale)))) / scale
+    return pd.Series(bound, index=list(THETA_NAMES), name="crlb")
+
+
+def first_order_z_sd(defocus: Defocus, z, covariance) -> np.ndarray:
+    """``1 / sqrt(g' S^-1 g)`` (module docstring): the first-order SD of z from the widths'
+    covariance ``S`` (..., 2, 2) at ``z``; infinite where ``g = 0``."""
+    g = np.stack(defocus.slopes(z), axis=-1)
+    precision = np.einsum("...i,...ij,...j->...", g, np.linalg.inv(covariance), g)
+    with np.errstate(divide="ignore"):
+        return 1.0 / np.sqrt(precision)
+
+
+def paper_delta_z(delta_s, defocus: Defocus, z) -> np.ndarray:
+    """The paper's Delta z from Delta s on the symmetric curve (``bayespsf.theory.delta_z``)."""
+    curve = defocus.x
+    return delta_z(delta_s, curve.w0, curve.width(z), curve.d)
+
+
+__all__ = ["THETA_NAMES", "chain", "crlb_z", "first_order_z_sd", "fisher_z", "paper_delta_z",
+           "to_widths"]  # fmt: skip

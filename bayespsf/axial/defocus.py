@@ -1,0 +1,99 @@
+"""How the spot's widths change with the emitter's axial position z (issue 16, item 1).
+
+One axis follows the defocus curve of Huang, Wang, Bates & Zhuang, Science 319 (2008):
+
+    w(z) = w0 sqrt(1 + u^2 + A u^3 + B u^4),   u = (z - c) / d,
+
+with w0 the in-focus width, c that axis's focal plane, d the depth of focus and A, B the
+higher-order terms. ``Defocus`` pairs two such curves, one per axis:
+
+* ``Defocus.symmetric(s0, depth)``: both axes in focus at z = 0 with ``A = B = 0``. This is
+  the curve ``s(z) = s0 sqrt(1 + (z / D)^2)`` of DeSantis, DeCenzo, Li & Wang, Opt. Express 18
+  (2010), Discussion (D ~ 400 nm): z and -z give the same image.
+* ``Defocus.astigmatic(...)``: the axes focus at different planes (a cylindrical lens), so
+  s_x and s_y change in opposite directions through focus and z has one answer.
+
+Widths are in nm, z in nm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bayespsf._checks import scalar_in_range
+from bayespsf.errors import BayespsfInputError
+
+
+@dataclass(frozen=True)
+class HuangCurve:
+    """``w(z) = w0 sqrt(1 + u^2 + A u^3 + B u^4)``, ``u = (z - c) / d`` (module docstring)."""
+
+    w0: float
+    c: float = 0.0
+    d: float = 400.0
+    A: float = 0.0
+    B: float = 0.0
+
+    def __post_init__(self):
+        scalar_in_range("w0", self.w0, 0.0, np.inf, low_inclusive=False)
+        scalar_in_range("d", self.d, 0.0, np.inf, low_inclusive=False)
+        for name in ("c", "A", "B"):
+            scalar_in_range(name, getattr(self, name), -np.inf, np.inf)
+
+    def _alpha(self, z):
+        u = (np.asarray(z, dtype=np.float64) - self.c) / self.d
+        alpha = 1.0 + u**2 + self.A * u**3 + self.B * u**4
+        if np.any(~(alpha > 0)):
+            bad = np.asarray(z, dtype=np.float64)[np.broadcast_to(~(alpha > 0), np.shape(z))]
+            raise BayespsfInputError(
+                f"z = {bad.ravel()[0]:g} nm is outside this defocus curve's domain: "
+                f"1 + u^2 + A u^3 + B u^4 <= 0 there (A = {self.A:g}, B = {self.B:g})"
+            )
+        return u, alpha
+
+    def width(self, z) -> np.ndarray:
+        _, alpha = self._alpha(z)
+        return self.w0 * np.sqrt(alpha)
+
+    def slope(self, z) -> np.ndarray:
+        """``dw/dz = w0 (2u + 3A u^2 + 4B u^3) / (2 d sqrt(alpha))``."""
+        u, alpha = self._alpha(z)
+        return (
+            self.w0
+            * (2 * u + 3 * self.A * u**2 + 4 * self.B * u**3)
+            / (2 * self.d * np.sqrt(alpha))
+        )
+
+
+@dataclass(frozen=True)
+class Defocus:
+    """The widths (s_x, s_y) of a spot at axial position z: one ``HuangCurve`` per axis."""
+
+    x: HuangCurve
+    y: HuangCurve
+
+    @classmethod
+    def symmetric(cls, s0: float, depth: float = 400.0) -> Defocus:
+        """The paper's ``s(z) = s0 sqrt(1 + (z / D)^2)`` on both axes."""
+        curve = HuangCurve(s0, 0.0, depth)
+        return cls(curve, curve)
+
+    @classmethod
+    def astigmatic(cls, w0: float, separation: float, depth: float, A: float = 0.0,
+                   B: float = 0.0) -> Defocus:  # fmt: skip
+        """Both axes of in-focus width ``w0`` and depth ``depth``, x in focus at
+        ``-separation / 2`` and y at ``+separation / 2``; ``A`` and ``B`` on both (with y's
+        odd term mirrored, so that the two curves are mirror images about z = 0)."""
+        half = 0.5 * scalar_in_range("separation", separation, 0.0, np.inf)
+        return cls(HuangCurve(w0, -half, depth, A, B), HuangCurve(w0, half, depth, -A, B))
+
+    def widths(self, z) -> tuple[np.ndarray, np.ndarray]:
+        return self.x.width(z), self.y.width(z)
+
+    def slopes(self, z) -> tuple[np.ndarray, np.ndarray]:
+        return self.x.slope(z), self.y.slope(z)
+
+
+__all__ = ["Defocus", "HuangCurve"]
