@@ -30,6 +30,7 @@ ESS = 400
 SEED = 1
 
 # %%
+import shutil
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -41,6 +42,7 @@ from bayespsf.movie.select import Rules
 from bayespsf.movie.simulate import match_truth, simulate_movie
 
 OUT = Path("movie-analysis")  # beside the notebook; holds the movie and every result file
+shutil.rmtree(OUT, ignore_errors=True)  # made afresh: a rerun with other budgets is another run
 scene = bayespsf.scenes.load("paper-movie").replace(
     movie={"frames": IMAGES, "molecules": MOLECULES, "dark_frames": 0}
 )
