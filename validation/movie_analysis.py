@@ -32,7 +32,7 @@ same Poisson background), each molecule at one fixed position in all its frames:
 A right model gives z-score SDs of 1 within their SE and a flag rate of 0.1 within its binomial
 SE; the issue asks the check to fail clearly for the other three.
 
-    python validation/movie_analysis.py            # 12 movies and 4 x 1 200 ROIs (about an hour)
+    python validation/movie_analysis.py            # 15 movies and 4 x 1 200 ROIs (about 35 minutes)
     python validation/movie_analysis.py --quick    # 1 small movie and 4 x 60 ROIs
 """
 
@@ -232,7 +232,7 @@ def main(argv=None):
                                      "moving": 0.0})  # fmt: skip
         movies, per_frame, molecules, frames = 1, 1, 2, 15
     else:
-        movies, per_frame, molecules, frames = 12, 1, 40, 30
+        movies, per_frame, molecules, frames = 15, 1, 40, 30
     rules = Rules(min_valid_frames=25) if args.quick else None  # the quick movie is short
     coverage, facts = part_movies(scene, movies, per_frame, workers, rules)
     cases = pd.DataFrame([one_case(name, molecules, frames, workers)
