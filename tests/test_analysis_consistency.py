@@ -47,6 +47,19 @@ def test_understated_errors_fail_clearly():
         assert row["p_value"] < 1e-10
 
 
+def test_overstated_errors_fail_two_sided():
+    # SDs stated 20% large (a gain declared too high reads so): the chi-square is too small,
+    # so its upper-tail p-value is ~1 and only the two-sided one is small
+    _, _, overall = frame_consistency(synthetic(understate=1 / 1.2, seed=2))
+    for _, row in overall.iterrows():
+        assert 1 - row["z_sd"] > 6 * row["z_sd_se"], row
+        assert row["p_value"] > 0.999 and row["p_two_sided"] < 1e-10, row
+    # calibrated: the two-sided p-values of the molecules are uniform too
+    _, calibrated, _ = frame_consistency(synthetic(seed=3))
+    p = calibrated.loc[calibrated["parameter"] == "x0", "p_two_sided"]
+    assert p.between(0, 1).all() and stats.kstest(p, "uniform").pvalue > 1e-3
+
+
 def test_combined_estimate_is_the_weighted_mean():
     table = pd.DataFrame({"molecule": [0, 0, 0], "x0_mean": [1.0, 2.0, 4.0],
                           "x0_sd": [1.0, 2.0, 2.0]})  # fmt: skip

@@ -33,6 +33,13 @@ PARAMETERS = ("x0", "y0", "s_x", "s_y")
 Z95 = stats.norm.ppf(0.975)
 
 
+def two_sided(chi2, dof):
+    """``2 min(P(X >= chi2), P(X <= chi2))`` for X ~ chi-square(dof), at most 1: small both
+    when the frames scatter more than their SDs say (posteriors too narrow) and when they
+    scatter less (too wide: a gain declared too high reads so)."""
+    return np.minimum(1.0, 2 * np.minimum(stats.chi2.sf(chi2, dof), stats.chi2.cdf(chi2, dof)))
+
+
 def frame_consistency(
     table: pd.DataFrame, parameters=PARAMETERS, by: str = "molecule"
 ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
@@ -48,13 +55,14 @@ def frame_consistency(
         ``table``'s ``by`` and ``frame`` (if present), and per parameter ``{p}_z`` and
         ``{p}_covers`` (the frame's 95% interval holds the combined estimate).
     molecules : DataFrame
-        Per molecule and parameter: ``frames``, ``combined`` and ``combined_se``, ``chi2``, ``dof``,
-        ``p_value``, ``z_sd``, ``coverage`` and ``expected_coverage``.
+        Per molecule and parameter: ``frames``, ``combined`` and ``combined_se``, ``chi2``,
+        ``dof``, ``p_value`` (large chi2: frames scatter more than stated), ``p_two_sided``
+        (``two_sided``), ``z_sd``, ``coverage`` and ``expected_coverage``.
     overall : DataFrame
         Per parameter over all molecules: ``frames``, ``molecules``, ``z_sd`` with its
         standard error (``sqrt((kurtosis - 1) / (4 n))`` for the SD of n values, 1/sqrt(2n) for
-        normal ones), total ``chi2``, ``dof`` and ``p_value``, ``coverage`` with its binomial
-        SE and ``expected_coverage``.
+        normal ones), total ``chi2``, ``dof``, ``p_value`` and ``p_two_sided``, ``coverage``
+        with its binomial SE and ``expected_coverage``.
     """
     if isinstance(parameters, str):
         parameters = (parameters,)
@@ -114,6 +122,7 @@ def frame_consistency(
         ).reset_index()
         summary["dof"] = summary["frames"] - 1
         summary["p_value"] = stats.chi2.sf(summary["chi2"], summary["dof"])
+        summary["p_two_sided"] = two_sided(summary["chi2"], summary["dof"])
         molecule_rows.append(summary)
         n = len(per)
         zs = per["z"].to_numpy()
@@ -130,6 +139,7 @@ def frame_consistency(
                 "chi2": float(summary["chi2"].sum()),
                 "dof": dof,
                 "p_value": float(stats.chi2.sf(summary["chi2"].sum(), dof)) if dof else np.nan,
+                "p_two_sided": float(two_sided(summary["chi2"].sum(), dof)) if dof else np.nan,
                 "coverage": coverage,
                 "coverage_se": np.sqrt(coverage * (1 - coverage) / n) if n else np.nan,
                 "expected_coverage": per["expected"].mean(),

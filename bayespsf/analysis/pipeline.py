@@ -92,7 +92,7 @@ def _per_molecule(found: FoundMolecules, molecules: pd.DataFrame) -> pd.DataFram
     """The selection outcome of every candidate; per analysed molecule and parameter the
     combined (inverse-variance) estimate, its SE and the check's chi-square p-value, z-score SD
     and coverage; and the molecule's joint posterior (``joint``)."""
-    values = ["combined", "combined_se", "p_value", "z_sd", "coverage"]
+    values = ["combined", "combined_se", "p_value", "p_two_sided", "z_sd", "coverage"]
     wide = molecules.pivot(index="molecule", columns="parameter", values=values)
     wide.columns = [f"{p}_{stat}" for stat, p in wide.columns]
     return found.molecules.merge(wide.reset_index(), on="molecule", how="left")
@@ -205,7 +205,7 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
     """The run's report: selection, the calibration check, Delta s against N, the files."""
     fmt = {"index": False, "floatfmt": ".4g"}
     check = result.consistency[["parameter", "frames", "molecules", "z_sd", "z_sd_se",
-                                "p_value", "coverage", "coverage_se",
+                                "p_value", "p_two_sided", "coverage", "coverage_se",
                                 "expected_coverage"]]  # fmt: skip
     spread_columns = [c for c in ("molecule", "frames", "N", "delta_s_lsq", "delta_s_mle",
                                   "delta_s_mean", "posterior_sd", "crlb", "eq_sigma2dp3")
@@ -225,7 +225,9 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "Per-frame posterior means about each molecule's combined (inverse-variance weighted) "
         "estimate, in units of their stated SDs (`bayespsf.analysis.consistency`): a calibrated "
         "model gives z-score SDs of 1 within their errors, chi-square p-values that are not "
-        "small, and a coverage at its expected value.",
+        "small, and a coverage at its expected value. `p_value` is small when the frames "
+        "scatter more than their SDs say (posteriors too narrow), `p_two_sided` also when "
+        "they scatter less (too wide, as with a gain declared too high).",
         "",
         check.to_markdown(**fmt),
         "",
