@@ -36,7 +36,9 @@ from bayespsf._progress import progress_bar
 from bayespsf._threads import one_blas_thread
 from bayespsf.errors import BayespsfInputError
 from bayespsf.importance import KHAT_MAX, ImportanceRun, systematic_resample
+from bayespsf.model import LOG_PARAMETERS
 from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.sampler_settings import Settings, check_settings
 from bayespsf.stack_mle import (
     DECREMENT,
     MAX_ITERATIONS,
@@ -46,10 +48,9 @@ from bayespsf.stack_mle import (
     observed_information,
     to_internal,
 )
-from bayespsf.stack_posterior import MAX_DRAWS_PER_ESS
+from bayespsf.stack_posterior import MAX_DRAWS_PER_ESS, score
 
 SHARED = {"b per frame": (0, 1, 2, 3), "one b": (0, 1, 2, 3, 5)}
-MAX_SCORED_ROIS = 4096  # frame evaluations per log-posterior call
 WIDE_FRACTION, WIDE_SCALE = 0.1, 1.5  # the defensive mixture's wide component
 
 
@@ -221,33 +222,32 @@ class DefensiveProposal:
         return self.centre + e @ self.cholesky.T, log_g
 
 
-def joint_log_posterior(model, counts, layout: Layout, z) -> np.ndarray:
+def joint_log_posterior(model, counts, layout: Layout, z, anchor) -> np.ndarray:
     """Log posterior (up to a constant) of joint draws ``z`` (n, size) in sampling
     coordinates: the frames' ``Model.log_posterior`` summed, less the ``K - 1`` extra copies of
-    each shared parameter's log prior and log-coordinate Jacobian."""
+    each shared parameter's log prior and log-coordinate Jacobian.
+
+    The prior is a product over parameters, so a shared parameter's log prior is the log prior
+    of a vector whose other parameters are held at ``anchor`` (one parameter vector (6,) inside
+    the prior's support, the same for every call: the constant it adds must not change between
+    the batches of one importance run)."""
     per_frame = layout.split(z)  # (n, K, 6)
-    n, frames = per_frame.shape[:2]
-    flat = per_frame.reshape(-1, 6)
-    which = np.tile(np.arange(frames), n)
-    total = np.empty(len(flat))
-    for first in range(0, len(flat), MAX_SCORED_ROIS):
-        part = slice(first, first + MAX_SCORED_ROIS)
-        total[part] = model.log_posterior(flat[part], counts, which=which[part])
-    total = total.reshape(n, frames).sum(axis=1)
+    frames = per_frame.shape[1]
+    total = np.sum(score(model, counts, [per_frame[:, k] for k in range(frames)]), axis=0)
     shared = list(layout.shared)
-    reference = per_frame[:, 0].copy()
-    own = list(layout.own)
-    reference[:, own] = per_frame[0, 0, own]  # one fixed value: a constant
-    with np.errstate(over="ignore"):
-        extra = model.log_prior(model.from_unconstrained(reference))
-    extra = extra + per_frame[:, 0, [k for k in shared if k in (2, 3)]].sum(axis=1)
-    out = np.full(n, -np.inf)
+    reference = np.broadcast_to(np.asarray(anchor, dtype=np.float64), per_frame[:, 0].shape)
+    reference = reference.copy()
+    with np.errstate(over="ignore"):  # exp overflow -> inf -> outside the prior's support
+        reference[:, shared] = model.from_unconstrained(per_frame[:, 0])[:, shared]
+    extra = model.log_prior(reference)
+    extra = extra + per_frame[:, 0, [k for k in shared if k in LOG_PARAMETERS]].sum(axis=1)
+    out = np.full(len(per_frame), -np.inf)
     inside = np.isfinite(total) & np.isfinite(extra)
     out[inside] = total[inside] - (frames - 1) * extra[inside]
     return out
 
 
-def joint_posterior(counts, model, starts, *, seed: int = 0, ess: float = 400.0,
+def joint_posterior(counts, model, starts, *, seed: int = 0, ess: float = Settings.ess,
                     shared: str = "b per frame") -> JointPosterior:  # fmt: skip
     """The joint posterior of one immobile molecule (module docstring).
 
@@ -266,10 +266,12 @@ def joint_posterior(counts, model, starts, *, seed: int = 0, ess: float = 400.0,
         Whether the background is each frame's own or shared by all frames.
     """
     started = time.perf_counter()
+    ess = check_settings(seed=seed, ess=ess).ess
     counts, starts, layout = _check(counts, model, starts, shared)
     fit, fit_ok, fit_message = joint_mle(model, counts, starts, layout)
     info = {"frames": layout.frames, "shared": shared, "mle_converged": fit_ok}
     random = np.random.RandomState(np.random.SeedSequence(int(seed)).generate_state(1)[0])
+    anchor = np.clip(fit[0], *model.prior_bounds())
     try:
         centre, covariance = _laplace(model, counts, fit, layout)
         proposal = DefensiveProposal(centre, covariance)
@@ -279,7 +281,7 @@ def joint_posterior(counts, model, starts, *, seed: int = 0, ess: float = 400.0,
     run = ImportanceRun(proposal, ess, int(MAX_DRAWS_PER_ESS * ess), random)
     while not run.done:
         z = run.propose()
-        run.take(joint_log_posterior(model, counts, layout, z))
+        run.take(joint_log_posterior(model, counts, layout, z, anchor))
     keep = max(int(ess), 1)
     ok = fit_ok and run.khat <= KHAT_MAX and run.achieved >= ess
     if ok:
@@ -300,11 +302,16 @@ def joint_posterior(counts, model, starts, *, seed: int = 0, ess: float = 400.0,
 def _molecule_task(task) -> dict:
     """Worker side: one molecule's joint posterior as its table row (picklable in and out)."""
     molecule, counts, model, starts, seed, ess, shared = task
-    post = joint_posterior(counts, model, starts, seed=seed, ess=ess, shared=shared)
+    try:
+        post = joint_posterior(counts, model, starts, seed=seed, ess=ess, shared=shared)
+    except BayespsfInputError as error:  # one molecule's frames: its row says why
+        return {"molecule": molecule, "joint_frames": len(counts), "joint_method": "failed",
+                "joint_converged": False, "joint_why": str(error)}  # fmt: skip
     return {"molecule": molecule, **post.row()}
 
 
-def joint_posteriors(counts, frames: pd.DataFrame, model, *, seed: int = 0, ess: float = 400.0,
+def joint_posteriors(counts, frames: pd.DataFrame, model, *, seed: int = 0,
+                     ess: float = Settings.ess,
                      shared: str = "b per frame", workers: int | None = None, executor=None,
                      progress: bool | None = None) -> pd.DataFrame:  # fmt: skip
     """The joint posterior of every molecule in ``frames``, one row per molecule.
@@ -313,13 +320,15 @@ def joint_posteriors(counts, frames: pd.DataFrame, model, *, seed: int = 0, ess:
     maximum-likelihood fit ``<p>_mle`` and ``mle_converged`` (the joint fit starts from it;
     frames whose fit did not converge are left out of the joint model), and optionally the
     per-frame posterior SDs ``<p>_sd``, whose mean over the frames used is reported beside
-    the joint SD as ``<p>_frame_sd``. Molecule ``m`` is sampled with a seed drawn from
-    ``(seed, m)``; molecules run on local processes (``workers``) or ``executor`` as in
+    the joint SD as ``<p>_frame_sd``. Molecule ``m`` is sampled with the seed
+    ``molecule_seed(seed, m)``; molecules run on local processes (``workers``) or ``executor`` as in
     ``sample_many``. A molecule with fewer than two usable frames gets ``joint_method``
-    ``"none"`` and the reason in ``joint_why``.
+    ``"none"``, one whose frames its model refuses ``"failed"``, with the reason in
+    ``joint_why``.
     """
-    from bayespsf.batch import _executor, _results
+    from bayespsf.batch import _executor, _results, molecule_seed
 
+    ess = check_settings(seed=seed, ess=ess).ess  # named here, not in a worker
     counts = np.asarray(counts, dtype=np.float64)
     if len(frames) != len(counts):
         raise BayespsfInputError(
@@ -338,9 +347,9 @@ def joint_posteriors(counts, frames: pd.DataFrame, model, *, seed: int = 0, ess:
                          "joint_why": "fewer than two frames with a converged fit"})  # fmt: skip
             continue
         rows.append({"molecule": molecule, **extra})
-        state = np.random.SeedSequence([int(seed), int(molecule)]).generate_state(1)[0]
         starts = frames[names].to_numpy(float)[use]
-        tasks.append((molecule, counts[use], model, starts, int(state), ess, shared))
+        tasks.append((molecule, counts[use], model, starts, molecule_seed(seed, molecule), ess,
+                      shared))  # fmt: skip
     runner, owned = _executor(executor, workers)
     bar = progress_bar(len(tasks), progress, unit="molecule", desc="joint posteriors")
     made = {}
