@@ -141,11 +141,14 @@ class EMCCD(Camera):
     def gain_units(self, counts):
         """Counts in ADU as electrons over gain, ``t = (counts - offset) e_per_adu / gain``.
 
-        A nonzero ``counts - offset`` whose scaled value underflows keeps its sign as the
-        smallest subnormal: without readout ``t == 0`` is the atom, and ``t < 0`` is outside
-        the support."""
+        Without readout, where ``t == 0`` is the atom and ``t < 0`` outside the support, a
+        nonzero ``counts - offset`` whose scaled value underflows keeps its sign as the
+        smallest subnormal. With readout the law is continuous at 0, and the two array passes
+        this costs (~4% of a table-tier likelihood call) are skipped."""
         x = np.asarray(counts, dtype=np.float64) - self.offset
         t = x * (self.e_per_adu / self.gain)
+        if self.readout_sd > 0:
+            return t
         underflow = (t == 0) & (x != 0)
         if np.any(underflow):
             tiny = np.copysign(np.finfo(np.float64).smallest_subnormal, x)
