@@ -27,6 +27,7 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.sampler_settings import check_settings
 
 REPLICATE_STREAM = 0x6F66  # a ROI's replicates: its seed's stream of this number
 CHUNK = 256  # ROIs whose replicates are drawn and refitted together (memory ~ CHUNK x replicates)
@@ -92,14 +93,15 @@ def _replicate_drawer(seed, n: int, model: Model, replicates: int):
     """``draw(rows, lam)``: the replicates of ``rows`` (expected counts ``lam``, ``replicates``
     per row), from one stream for the stack or from each ROI's own (``REPLICATE_STREAM``)."""
     if np.ndim(seed) == 0:
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng(check_settings(seed=seed).seed)
         return lambda rows, lam: model.camera.sample(lam, rng)
-    seeds = list(seed)  # Python integers: molecule seeds reach 2**64
-    whole = all(isinstance(s, numbers.Integral) and not isinstance(s, bool) for s in seeds)
-    if len(seeds) != n or not whole or min(seeds, default=0) < 0:
+    try:  # Python integers: molecule seeds reach 2**64
+        seeds = [check_settings(seed=s).seed for s in seed]
+    except BayespsfInputError as error:
+        raise BayespsfInputError(f"{error} (seed: one per ROI)") from None
+    if len(seeds) != n:
         raise BayespsfInputError(
-            f"seed must be an integer or {n} integers >= 0 (one per ROI), got {len(seeds)} "
-            "values" + ("" if whole else " that are not all integers")
+            f"seed must be an integer or {n} integers >= 0 (one per ROI), got {len(seeds)} values"
         )
 
     def draw(rows, lam):

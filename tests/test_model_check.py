@@ -62,6 +62,8 @@ def test_per_roi_seeds_make_a_rois_check_independent_of_its_stack():
         bootstrap_check(counts, MODEL, seed=seeds[:5])
     with pytest.raises(BayespsfInputError, match="one per ROI"):
         bootstrap_check(counts, MODEL, seed=[-1, *seeds[1:]])
+    with pytest.raises(BayespsfInputError, match="seed must be an integer"):
+        bootstrap_check(counts, MODEL, seed=-1)  # numpy's own ValueError before
 
 
 def test_bad_replicates_are_named():
