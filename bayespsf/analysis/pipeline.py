@@ -118,17 +118,17 @@ def analyze(
         )
     counts, place = valid_rois(movie, found, fit)
     fitting = model.for_roi(fit)
-    options = {"method": method} | ({} if ess is None else {"ess": ess})
+    effective = {} if ess is None else {"ess": ess}  # else each sampler's default
     posteriors = sample_many(counts, fitting, seed=seed, executor=executor, workers=workers,
                              store=out / "posteriors", progress=progress, check=True,
-                             **options)  # fmt: skip
+                             method=method, **effective)  # fmt: skip
     frames = pd.concat(
         [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1
     )
     frames["selected"] = True
     frame_z, per_molecule, overall = frame_consistency(frames, PARAMETERS)
-    joint = joint_posteriors(counts, frames, fitting, seed=seed, ess=400.0 if ess is None else ess,
-                             workers=workers, executor=executor, progress=progress)  # fmt: skip
+    joint = joint_posteriors(counts, frames, fitting, seed=seed, workers=workers,
+                             executor=executor, progress=progress, **effective)  # fmt: skip
     molecules = _per_molecule(found, per_molecule).merge(joint, on="molecule", how="left")
     scale = fitting.photoelectrons_per_photon  # Eq. sigma2dp3 is stated in detected photons
     detected = frames.assign(N_mean=frames["N_mean"] * scale, b_mean=frames["b_mean"] * scale,
