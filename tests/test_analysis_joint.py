@@ -61,30 +61,40 @@ def _compose(layout, shared_from, own_from):
     return out
 
 
+# a prior whose log density and log-coordinate Jacobian do not cancel, so that counting a shared
+# parameter's prior or Jacobian K times, not once, changes the differences between draws
+INFORMATIVE = MODEL.__class__.from_scene(scenes.load("emccd-typical").replace(prior={
+    "x0": {"kind": "normal", "mean": 0.0, "sd": 30.0},
+    "s_x": {"kind": "uniform", "low": 10.0, "high": 1500.0},
+    "b": {"kind": "half-normal", "scale": 20.0},
+}))  # fmt: skip
+
+
+@pytest.mark.parametrize("model", [MODEL, INFORMATIVE], ids=["flat", "informative"])
 @pytest.mark.parametrize("shared", [(0, 1, 2, 3), (0, 1, 2, 3, 5)])
-def test_joint_log_posterior_is_its_definition(shared):
+def test_joint_log_posterior_is_its_definition(shared, model):
     # sum over frames of the log-likelihood, the prior of each shared parameter once and each
     # frame's own once, and the log-coordinate Jacobian likewise: compared between draws, as
     # both sides are defined up to the same constant
     rng = np.random.default_rng(1)
     counts, truths = frames_of(4, rng)
-    counts = MODEL._check_shape(counts)
+    counts = model._check_shape(counts)
     layout = Layout(4, shared)
-    z = layout.join(MODEL.to_unconstrained(truths))[None] + rng.normal(0, 0.01, (5, layout.size))
-    ours = joint_log_posterior(MODEL, counts, layout, z, anchor=truths[0])
+    z = layout.join(model.to_unconstrained(truths))[None] + rng.normal(0, 0.01, (5, layout.size))
+    ours = joint_log_posterior(model, counts, layout, z, anchor=truths[0])
     # one importance run scores its draws batch by batch: the constant must not depend on the
     # batch (it once took the frames' own parameters from each batch's first draw)
-    batches = [joint_log_posterior(MODEL, counts, layout, z[part], anchor=truths[0])
+    batches = [joint_log_posterior(model, counts, layout, z[part], anchor=truths[0])
                for part in (slice(0, 2), slice(2, 5))]  # fmt: skip
     assert np.allclose(np.concatenate(batches), ours, rtol=0, atol=1e-9)
-    per_frame = MODEL.from_unconstrained(layout.split(z))  # (5, 4, 6)
+    per_frame = model.from_unconstrained(layout.split(z))  # (5, 4, 6)
     direct = np.empty(5)
     for i in range(5):
         p = per_frame[i]
-        loglik = sum(float(MODEL.log_likelihood(counts[k], p[k])) for k in range(4))
+        loglik = sum(float(model.log_likelihood(counts[k], p[k])) for k in range(4))
         # the prior is a product over parameters: each part scored with the others held fixed
-        prior = MODEL.log_prior(_compose(layout, p[0], truths[0])) + sum(
-            MODEL.log_prior(_compose(layout, truths[0], p[k])) for k in range(4)
+        prior = model.log_prior(_compose(layout, p[0], truths[0])) + sum(
+            model.log_prior(_compose(layout, truths[0], p[k])) for k in range(4)
         )
         jacobian = np.log(p[0, 2]) + np.log(p[0, 3]) + np.log(p[:, 4]).sum()
         direct[i] = loglik + prior + jacobian
@@ -146,6 +156,24 @@ def test_joint_posterior_is_calibrated_and_shrinks_as_one_over_root_k():
     assert crlb[2] / one_frame[2] == pytest.approx(1 / np.sqrt(8), rel=0.25)
 
 
+def test_a_background_free_molecule_is_fitted_on_the_box_edge():
+    # b = 0 in every frame: the per-frame fits end on the box edge b = 0, and the joint fit
+    # must converge there too (it once ran to its iteration limit). Importance sampling from a
+    # Gaussian centred on b = 0 fails its k-hat here, and only (1/2)^5 of the Laplace's draws
+    # have b >= 0 in all five frames: the result says so, with no summary, rather than return
+    # draws outside the prior (it once returned 44% negative backgrounds)
+    rng = np.random.default_rng(0)
+    truth = TRUTH.copy()
+    truth[4], truth[5] = 3000.0, 0.0
+    counts, _ = frames_of(5, rng, truth=truth)
+    fits = fit_mle(counts, MODEL)[list(PARAMETER_NAMES)].to_numpy(float)
+    post = joint_posterior(counts, MODEL, fits, seed=1)
+    row = post.row()
+    assert post.info["mle_converged"] and row["s_x_joint_mle"] == pytest.approx(128, abs=15)
+    assert row["joint_method"] == "none" and "prior's support" in row["joint_why"]
+    assert np.isnan(row["s_x_joint_mean"]) and np.isnan(row["s_x_joint_sd"])
+
+
 def test_bad_inputs_are_named():
     rng = np.random.default_rng(4)
     counts, truths = frames_of(3, rng)
@@ -157,6 +185,8 @@ def test_bad_inputs_are_named():
         joint_posterior(counts, MODEL, np.where(truths > 0, np.nan, truths))
     with pytest.raises(BayespsfInputError, match="shared must be one of"):
         joint_posterior(counts, MODEL, truths, shared="everything")
+    with pytest.raises(BayespsfInputError, match="must be > 0"):
+        joint_posterior(counts, MODEL, np.where(np.arange(6) == 2, -1.0, truths))
 
 
 def test_one_background_for_all_frames_is_shared_like_the_position():

@@ -42,7 +42,9 @@ from bayespsf.sampler_settings import Settings, check_settings
 from bayespsf.stack_mle import (
     DECREMENT,
     MAX_ITERATIONS,
+    STATIONARY,
     _evaluate,
+    _freeze_bounds,
     box,
     from_internal,
     observed_information,
@@ -51,6 +53,7 @@ from bayespsf.stack_mle import (
 from bayespsf.stack_posterior import MAX_DRAWS_PER_ESS, score
 
 SHARED = {"b per frame": (0, 1, 2, 3), "one b": (0, 1, 2, 3, 5)}
+MIN_LAPLACE_DRAWS = 50  # fewest Laplace draws inside the prior that summarise a posterior
 WIDE_FRACTION, WIDE_SCALE = 0.1, 1.5  # the defensive mixture's wide component
 
 
@@ -122,10 +125,11 @@ class JointPosterior:
         out = {}
         for k in self.layout.shared:
             name, x = PARAMETER_NAMES[k], self.draws[:, 0, k]
-            out[f"{name}_joint_mean"] = float(x.mean())
-            out[f"{name}_joint_sd"] = float(x.std(ddof=1))
+            usable = len(x) > 1 and np.isfinite(x).all()  # NaN where there are no draws
+            out[f"{name}_joint_mean"] = float(x.mean()) if usable else np.nan
+            out[f"{name}_joint_sd"] = float(x.std(ddof=1)) if usable else np.nan
             for q in (2.5, 16.0, 84.0, 97.5):
-                out[f"{name}_joint_q{q:g}"] = float(np.percentile(x, q))
+                out[f"{name}_joint_q{q:g}"] = float(np.percentile(x, q)) if usable else np.nan
             out[f"{name}_joint_mle"] = float(self.fit[0, k])
         out.update({f"joint_{key}": value for key, value in self.info.items()})
         return out
@@ -144,6 +148,8 @@ def _check(counts, model, starts, shared):
             f"starts must be finite per-frame parameters of shape ({len(counts)}, 6), got "
             f"shape {starts.shape}"
         )
+    if np.any(starts[:, 2:5] <= 0):
+        raise BayespsfInputError("starts: s_x, s_y and N must be > 0 in every frame")
     if shared not in SHARED:
         raise BayespsfInputError(f"shared must be one of {sorted(SHARED)}, got {shared!r}")
     problems = [p for p in model.roi_problems(counts) if p is not None]
@@ -154,19 +160,22 @@ def _check(counts, model, starts, shared):
 
 def joint_mle(model, counts, starts, layout: Layout):
     """The joint maximum-likelihood fit (module docstring, step 1) from per-frame ``starts``
-    (frames, 6; the shared parameters start at their per-frame median). Returns
-    ``(params (frames, 6), converged, message)``."""
+    (frames, 6; the shared parameters start at their per-frame median), with
+    ``stack_mle``'s rules: a coordinate on the search box's edge whose gradient points out is
+    held there (``_freeze_bounds``: b = 0 for a background-free frame), and a fit where no step
+    lowers ``-log L`` is converged if its Newton decrement is below ``STATIONARY`` per frame.
+    Returns ``(params (frames, 6), converged, message)``."""
     a = model.pixel_size
     low, high = box(model.roi)
     u = np.clip(to_internal(starts, a), low, high)
     u[:, list(layout.shared)] = np.median(u[:, list(layout.shared)], axis=0)
-    v = layout.join(u)
     f, grad, metric = _evaluate(model, counts, from_internal(u, a))
-    damping, message = 1e-3, f"iteration limit ({MAX_ITERATIONS})"
+    if not np.isfinite(f.sum()):
+        return from_internal(u, a), False, "non-finite likelihood at the start"
+    damping = 1e-3
     for _ in range(MAX_ITERATIONS):
-        if not np.isfinite(f.sum()):
-            return from_internal(u, a), False, "non-finite likelihood at the start"
-        g, m = layout.gather(grad), layout.arrow(metric)
+        g, m = _freeze_bounds(u, grad, metric, low, high)
+        g, m = layout.gather(g), layout.arrow(m)
         try:
             decrement = float(g @ np.linalg.solve(m, g))
             step = np.linalg.solve(m + damping * np.diag(np.diag(m)), -g)
@@ -174,17 +183,18 @@ def joint_mle(model, counts, starts, layout: Layout):
             return from_internal(u, a), False, "singular joint information"
         if decrement < DECREMENT * layout.frames:
             return from_internal(u, a), True, "Newton decrement below 1e-10 per frame"
-        trial = np.clip(layout.split(v + step), low, high)
+        trial = np.clip(layout.split(layout.join(u) + step), low, high)
         f_trial, grad_trial, metric_trial = _evaluate(model, counts, from_internal(trial, a))
-        if np.isfinite(f_trial.sum()) and f_trial.sum() <= f.sum():
-            u, v, f, grad, metric = trial, layout.join(trial), f_trial, grad_trial, metric_trial
+        if np.isfinite(f_trial.sum()) and f_trial.sum() < f.sum():
+            u, f, grad, metric = trial, f_trial, grad_trial, metric_trial
             damping /= 10
-        else:
-            damping *= 10
-            if damping > 1e12:
-                message = "no step lowers -log L"
-                break
-    return from_internal(u, a), False, message
+            continue
+        damping *= 10
+        if damping > 1e12:  # no step lowers -log L: stationary in float64, or stuck
+            if decrement < STATIONARY * layout.frames:
+                return from_internal(u, a), True, "no step lowers -log L (stationary to rounding)"
+            return from_internal(u, a), False, "no step lowers -log L away from a stationary point"
+    return from_internal(u, a), False, f"iteration limit ({MAX_ITERATIONS})"
 
 
 def _laplace(model, counts, fit, layout: Layout):
@@ -194,7 +204,8 @@ def _laplace(model, counts, fit, layout: Layout):
     information = observed_information(model, counts, fit) * dp_dz[:, :, None]
     information *= dp_dz[:, None, :]
     precision = layout.arrow(information)
-    return layout.join(model.to_unconstrained(fit)), np.linalg.inv(precision)
+    centre = np.clip(fit, *model.prior_bounds())  # as stack_posterior.laplace_in_z
+    return layout.join(model.to_unconstrained(centre)), np.linalg.inv(precision)
 
 
 class DefensiveProposal:
@@ -209,6 +220,10 @@ class DefensiveProposal:
     def __init__(self, centre, covariance):
         self.centre = np.asarray(centre, dtype=np.float64)
         self.cholesky = np.linalg.cholesky(covariance)
+
+    def laplace(self, n: int, random) -> np.ndarray:
+        """``n`` draws of the Laplace Gaussian alone."""
+        return self.centre + random.standard_normal((n, len(self.centre))) @ self.cholesky.T
 
     def draw(self, n: int, random) -> tuple[np.ndarray, np.ndarray]:
         d = len(self.centre)
@@ -283,19 +298,38 @@ def joint_posterior(counts, model, starts, *, seed: int = 0, ess: float = Settin
         z = run.propose()
         run.take(joint_log_posterior(model, counts, layout, z, anchor))
     keep = max(int(ess), 1)
-    ok = fit_ok and run.khat <= KHAT_MAX and run.achieved >= ess
+    # importance sampling is exact where k-hat passes, wherever its proposal is centred
+    ok = run.khat <= KHAT_MAX and run.achieved >= ess
     if ok:
-        z = run.draws[systematic_resample(run.weights, keep, random)]
+        draws = model.from_unconstrained(
+            layout.split(run.draws[systematic_resample(run.weights, keep, random)])
+        )
         why = f"importance sampling: k-hat {run.khat:.2f} <= {KHAT_MAX}"
     else:
-        z, _ = proposal.draw(keep, random)
-        why = (f"the Laplace approximation: importance sampling failed (k-hat {run.khat:.2f}, "
-               f"ESS {run.achieved:.0f} of {ess:g})") if fit_ok else fit_message  # fmt: skip
-    info.update(method="importance" if ok else "laplace", converged=bool(ok), why=why,
+        draws = _laplace_within_prior(model, layout, proposal, keep, random)
+        why = (
+            f"the Laplace approximation: importance sampling failed (k-hat {run.khat:.2f}, "
+            f"ESS {run.achieved:.0f} of {ess:g})"
+        ) + ("" if fit_ok else f"; {fit_message}")
+    method = "importance" if ok else "laplace"
+    if len(draws) < MIN_LAPLACE_DRAWS:
+        method, draws = "none", np.full((1, layout.frames, 6), np.nan)
+        why += (f"; and fewer than {MIN_LAPLACE_DRAWS} of its Laplace draws lie in the prior's "
+                "support (a fit on its edge, such as b = 0)")  # fmt: skip
+    info.update(method=method, converged=bool(ok), why=why,
                 khat=float(run.khat), ess=float(run.achieved),
                 draws_scored=len(run.draws), seconds=time.perf_counter() - started)  # fmt: skip
-    draws = model.from_unconstrained(layout.split(z))
     return JointPosterior(layout, draws, fit, info)
+
+
+def _laplace_within_prior(model, layout: Layout, proposal, keep: int, random) -> np.ndarray:
+    """``keep`` draws of the joint Laplace Gaussian (not the defensive mixture) inside the
+    prior's support, as ``stack_posterior`` keeps a ROI's Laplace draws; fewer if the
+    support holds less than half of ``2 keep`` draws."""
+    with np.errstate(over="ignore"):  # exp overflow -> inf -> outside the prior's support
+        draws = model.from_unconstrained(layout.split(proposal.laplace(2 * keep, random)))
+    inside = np.isfinite(model.log_prior(draws)).all(axis=1)
+    return draws[inside][:keep]
 
 
 @one_blas_thread
@@ -335,6 +369,11 @@ def joint_posteriors(counts, frames: pd.DataFrame, model, *, seed: int = 0,
             f"frames has {len(frames)} rows for {len(counts)} ROIs; give one row per ROI"
         )
     names = [f"{p}_mle" for p in PARAMETER_NAMES]
+    missing = [c for c in ("molecule", "mle_converged", *names) if c not in frames]
+    if missing:
+        raise BayespsfInputError(f"frames: no column {', '.join(missing)}")
+    if shared not in SHARED:
+        raise BayespsfInputError(f"shared must be one of {sorted(SHARED)}, got {shared!r}")
     usable = frames["mle_converged"].to_numpy(bool) & np.isfinite(frames[names]).all(axis=1)
     tasks, rows = [], []
     for molecule, index in frames.groupby("molecule").indices.items():
