@@ -14,7 +14,7 @@ and 10 000 photons:
   130 nm, the scene's s0), fitted with the Gaussian;
 - ``saturated``: an ADC that saturates at 1 500 ADU, undeclared to the model (a 1 000-photon
   spot peaks near 1 700 ADU);
-- ``hot pixel``: 100 photoelectrons' worth of ADU added to one corner pixel.
+- ``hot pixel``: 100 photoelectrons' worth of ADU added to pixel (1, 1), next to the corner.
 
     python validation/model_check.py            # 200 ROIs per case and N (about 2 minutes)
     python validation/model_check.py --quick    # 20 ROIs per case and N

@@ -33,7 +33,7 @@ A right model gives z-score SDs of 1 within their SE and a flag rate of 0.1 with
 SE; the issue asks the check to fail clearly for the other three.
 
     python validation/movie_analysis.py            # 15 movies and 4 x 1 200 ROIs (about 25 minutes)
-    python validation/movie_analysis.py --quick    # 1 small movie and 4 x 60 ROIs
+    python validation/movie_analysis.py --quick    # 1 small movie and 4 x 30 ROIs
 """
 
 from __future__ import annotations
@@ -214,6 +214,7 @@ def one_case(name: str, molecules: int, frames: int, workers: int) -> dict:
         out[f"{p} z-score SD"] = float(row["z_sd"])
         out[f"{p} SE"] = float(row["z_sd_se"])
         out[f"{p} chi2 p"] = float(row["p_value"])
+        out[f"{p} two-sided p"] = float(row["p_two_sided"])
     out["GOF flagged at 0.1"] = float(flagged)
     out["GOF SE"] = float(np.sqrt(0.09 / max(n, 1)))
     return out
