@@ -67,5 +67,9 @@ def test_bad_inputs_are_named():
         central(counts, 8)
     with pytest.raises(BayespsfInputError, match="window must be odd"):
         central(counts, 17)
+    with pytest.raises(BayespsfInputError, match="window must be odd"):
+        central(counts[:, :14, :14], 7)  # an even ROI has no central pixel
+    with pytest.raises(BayespsfInputError, match="none of"):
+        width_by_window(counts, MODEL, [0, 0], windows=(21,))
     with pytest.raises(BayespsfInputError, match="one entry per ROI"):
         mean_residuals(counts, MODEL, np.zeros((3, 6)), [0, 0])

@@ -23,7 +23,8 @@ import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle
-from bayespsf.model import Model
+from bayespsf.model import MIN_ROI, Model
+from bayespsf.movie.extract import check_sizes
 
 
 def pearson_residuals(counts, model: Model, params) -> np.ndarray:
@@ -54,10 +55,20 @@ def mean_residuals(counts, model: Model, params, molecules) -> tuple[np.ndarray,
 
 
 def central(counts, window: int) -> np.ndarray:
-    """The central ``window x window`` pixels of ROIs (n, roi, roi) of odd sizes."""
+    """The central ``window x window`` pixels of ROIs (n, roi, roi) of odd sizes (the sizes
+    checked as ``movie.extract.check_sizes`` checks a fit inside a ROI)."""
     roi = counts.shape[-1]
-    if window % 2 == 0 or not 5 <= window <= roi:
-        raise BayespsfInputError(f"window must be odd, from 5 to the ROI size {roi}; got {window}")
+    try:
+        check_sizes(roi, window)
+        small = window < MIN_ROI
+    except BayespsfInputError as error:
+        small, detail = True, f" ({error})"
+    else:
+        detail = ""
+    if small:
+        raise BayespsfInputError(
+            f"window must be odd, from {MIN_ROI} to the ROI size {roi}; got {window!r}{detail}"
+        )
     first = (roi - window) // 2
     return counts[..., first : first + window, first : first + window]
 
@@ -69,8 +80,17 @@ def width_by_window(counts, model: Model, molecules, windows=(7, 11, 15)) -> pd.
     windows larger than the ROI are skipped)."""
     counts = np.asarray(counts, dtype=np.float64)
     molecules = np.asarray(molecules)
+    if len(molecules) != len(counts):
+        raise BayespsfInputError(
+            f"molecules ({len(molecules)}) must name the molecule of each ROI ({len(counts)})"
+        )
+    fitted = sorted(w for w in np.atleast_1d(windows) if w <= counts.shape[-1])
+    if not fitted:
+        raise BayespsfInputError(
+            f"windows: none of {windows!r} fits in the {counts.shape[-1]}-pixel ROIs"
+        )
     rows = []
-    for window in sorted(w for w in windows if w <= counts.shape[-1]):
+    for window in fitted:
         fits = fit_mle(central(counts, window), model.for_roi(window), laplace=False, crlb=False)
         table = fits[["s_x", "s_y"]].where(fits["converged"].astype(bool), axis=0)
         table["molecule"] = molecules
