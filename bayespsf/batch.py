@@ -393,6 +393,8 @@ def sample_many(
         )
     from bayespsf.sampler_settings import check_settings
 
+    if not isinstance(check, bool | np.bool_):
+        raise BayespsfInputError(f"check must be True or False, got {check!r}")
     options.setdefault("method", "auto")
     settings = check_settings(seed=seed, **options)  # a bad setting fails here, not in workers
     stack = model._check_shape(counts)

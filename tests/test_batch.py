@@ -168,6 +168,8 @@ def test_the_model_check_is_stored_with_each_posterior(stack, tmp_path):
     with pytest.raises(BayespsfInputError, match="model check"):  # a store made with it
         sample_many(counts, model, seed=5, workers=1, store=tmp_path / "s", method="laplace")
     assert "gof_p" not in sample_many(counts[:1], model, seed=5, workers=1, method="laplace")
+    with pytest.raises(BayespsfInputError, match="check must be True or False"):
+        sample_many(counts[:1], model, workers=1, method="laplace", check="no")
 
 
 def test_bad_input_is_named(stack):

@@ -149,4 +149,4 @@ def frame_consistency(
     return frames, molecules, pd.DataFrame(overall_rows)
 
 
-__all__ = ["PARAMETERS", "frame_consistency"]
+__all__ = ["PARAMETERS", "frame_consistency", "two_sided"]

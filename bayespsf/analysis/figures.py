@@ -98,14 +98,18 @@ def zscores(frame_z: pd.DataFrame, parameters, path) -> Path:
 
 
 def gof_pvalues(p_values, path) -> Path:
-    """Histogram of the goodness-of-fit p-values: flat where the model holds."""
+    """Histogram of the goodness-of-fit p-values: flat where the model holds. The p-values lie
+    on the lattice k / 50 (49 replicates); each of the 10 bins holds 5 of its points (edges
+    halfway between them), so a flat law gives a flat histogram (20 equal bins held 2 or 3
+    points each, a sawtooth with no misfit at all)."""
     path = Path(path)
     p = np.asarray(p_values, dtype=float)
     p = p[np.isfinite(p)]
+    edges = (np.arange(0, 51, 5) + 0.5) / 50
     with _figure(path, figsize=(5, 3)) as (_, ax):
-        ax.hist(p, bins=20, range=(0, 1), color="C0")
+        ax.hist(p, bins=edges, color="C0")
         if p.size:
-            ax.axhline(p.size / 20, color="k", lw=1, ls="--", label="uniform (model holds)")
+            ax.axhline(p.size / 10, color="k", lw=1, ls="--", label="uniform (model holds)")
             ax.legend(fontsize=7)
         ax.set_xlabel("goodness-of-fit p-value per frame (gof_p)")
         ax.set_ylabel("frames")
@@ -154,4 +158,4 @@ def width_precision(spread: pd.DataFrame, path) -> Path:
     return path
 
 
-__all__ = ["detections", "traces", "width_precision", "zscores"]
+__all__ = ["detections", "gof_pvalues", "residual_images", "traces", "width_precision", "zscores"]
