@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayespsf import scenes
-from bayespsf.axial.bounds import crlb_z, first_order_z_sd, fisher_z, to_widths
+from bayespsf.axial.bounds import crlb_z, first_order_z_sd, fisher_z, paper_delta_z, to_widths
 from bayespsf.axial.defocus import Defocus, HuangCurve
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
@@ -75,3 +75,10 @@ def test_bad_curves_are_named():
         HuangCurve(120.0, d=-1.0)
     with pytest.raises(BayespsfInputError, match="outside this defocus curve's domain"):
         HuangCurve(120.0, d=100.0, A=-3.0).width(150.0)  # 1 + 2.25 - 10.1 < 0
+    with pytest.raises(BayespsfInputError, match="depth must be in"):
+        Defocus.astigmatic(130.0, 400.0, -400.0)
+    with pytest.raises(BayespsfInputError, match="needs the paper's symmetric curve"):
+        paper_delta_z(5.0, ASTIGMATIC, 100.0)  # it read 4.97 where 1/|dw/dz| is 4.47
+    with pytest.raises(BayespsfInputError, match="theta must be one"):
+        crlb_z(MODEL, ASTIGMATIC, [0.0, 0.0, 100.0, 3000.0])
+    assert HuangCurve("130").width(0.0) == 130.0  # a number given as text, kept as a float

@@ -22,7 +22,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from bayespsf._checks import finite_array
 from bayespsf.axial.defocus import Defocus
+from bayespsf.errors import BayespsfInputError
 from bayespsf.theory import delta_z, fisher_matrix
 
 THETA_NAMES = ("x0", "y0", "z", "N", "b")
@@ -53,7 +55,11 @@ def fisher_z(model, defocus: Defocus, theta, method: str = "exact") -> np.ndarra
 
 def crlb_z(model, defocus: Defocus, theta, method: str = "exact") -> pd.Series:
     """sqrt of the Cramér-Rao bound of each of ``x0, y0, z, N, b`` at ``theta`` (5,); z's is
-    infinite where the widths do not change with z (the symmetric curve in focus)."""
+    infinite where the widths do not change with z (the symmetric curve in focus: the others
+    are then bounded as if z were known, not as the limit towards focus)."""
+    theta = finite_array("theta", theta)
+    if theta.shape != (5,) or theta[3] <= 0:
+        raise BayespsfInputError(f"theta must be one (x0, y0, z, N, b) with N > 0, got {theta!r}")
     info = fisher_z(model, defocus, theta, method)
     scale = np.sqrt(np.diag(info))
     if scale[2] == 0:  # no information on z: the rest are bounded as if z were known
@@ -65,20 +71,39 @@ def crlb_z(model, defocus: Defocus, theta, method: str = "exact") -> pd.Series:
     return pd.Series(bound, index=list(THETA_NAMES), name="crlb")
 
 
+def precision(covariance) -> np.ndarray:
+    """The inverse of a widths' covariance ``S`` (2 x 2, finite, positive definite)."""
+    covariance = np.asarray(covariance, dtype=np.float64)
+    if covariance.shape != (2, 2) or not np.all(np.isfinite(covariance)):
+        raise BayespsfInputError(f"covariance must be a finite 2 x 2 matrix, got {covariance!r}")
+    try:
+        np.linalg.cholesky(covariance)
+    except np.linalg.LinAlgError:
+        raise BayespsfInputError("covariance must be positive definite") from None
+    return np.linalg.inv(covariance)
+
+
 def first_order_z_sd(defocus: Defocus, z, covariance) -> np.ndarray:
     """``1 / sqrt(g' S^-1 g)`` (module docstring): the first-order SD of z from the widths'
-    covariance ``S`` (..., 2, 2) at ``z``; infinite where ``g = 0``."""
-    g = np.stack(defocus.slopes(z), axis=-1)
-    precision = np.einsum("...i,...ij,...j->...", g, np.linalg.inv(covariance), g)
+    covariance ``S`` (2 x 2) at ``z``; infinite where ``g = 0``."""
+    g = np.stack(defocus.slopes(finite_array("z", z)), axis=-1)
+    information = np.einsum("...i,ij,...j->...", g, precision(covariance), g)
     with np.errstate(divide="ignore"):
-        return 1.0 / np.sqrt(precision)
+        return 1.0 / np.sqrt(information)
 
 
 def paper_delta_z(delta_s, defocus: Defocus, z) -> np.ndarray:
-    """The paper's Delta z from Delta s on the symmetric curve (``bayespsf.theory.delta_z``)."""
+    """The paper's Delta z from Delta s (``bayespsf.theory.delta_z``), for the paper's
+    symmetric curve only (both axes the same, in focus at 0, ``A = B = 0``); for another
+    curve the error of z is ``first_order_z_sd``."""
     curve = defocus.x
+    if not (defocus.y == curve and curve.c == 0.0 and curve.A == 0.0 and curve.B == 0.0):
+        raise BayespsfInputError(
+            "paper_delta_z needs the paper's symmetric curve (Defocus.symmetric); use "
+            "first_order_z_sd for another curve"
+        )
     return delta_z(delta_s, curve.w0, curve.width(z), curve.d)
 
 
 __all__ = ["THETA_NAMES", "chain", "crlb_z", "first_order_z_sd", "fisher_z", "paper_delta_z",
-           "to_widths"]  # fmt: skip
+           "precision", "to_widths"]  # fmt: skip

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayespsf._checks import scalar_in_range
+from bayespsf._checks import finite_array, scalar_in_range
 from bayespsf.errors import BayespsfInputError
 
 
@@ -37,18 +37,17 @@ class HuangCurve:
     B: float = 0.0
 
     def __post_init__(self):
-        scalar_in_range("w0", self.w0, 0.0, np.inf, low_inclusive=False)
-        scalar_in_range("d", self.d, 0.0, np.inf, low_inclusive=False)
-        for name in ("c", "A", "B"):
-            scalar_in_range(name, getattr(self, name), -np.inf, np.inf)
+        for name, low in (("w0", 0.0), ("d", 0.0), ("c", -np.inf), ("A", -np.inf), ("B", -np.inf)):
+            value = scalar_in_range(name, getattr(self, name), low, low_inclusive=low == -np.inf)
+            object.__setattr__(self, name, value)  # a float, whatever number was given
 
     def _alpha(self, z):
-        u = (np.asarray(z, dtype=np.float64) - self.c) / self.d
+        z = finite_array("z", z)
+        u = (z - self.c) / self.d
         alpha = 1.0 + u**2 + self.A * u**3 + self.B * u**4
-        if np.any(~(alpha > 0)):
-            bad = np.asarray(z, dtype=np.float64)[np.broadcast_to(~(alpha > 0), np.shape(z))]
+        if np.any(alpha <= 0):
             raise BayespsfInputError(
-                f"z = {bad.ravel()[0]:g} nm is outside this defocus curve's domain: "
+                f"z = {z[alpha <= 0].ravel()[0]:g} nm is outside this defocus curve's domain: "
                 f"1 + u^2 + A u^3 + B u^4 <= 0 there (A = {self.A:g}, B = {self.B:g})"
             )
         return u, alpha
@@ -77,7 +76,8 @@ class Defocus:
     @classmethod
     def symmetric(cls, s0: float, depth: float = 400.0) -> Defocus:
         """The paper's ``s(z) = s0 sqrt(1 + (z / D)^2)`` on both axes."""
-        curve = HuangCurve(s0, 0.0, depth)
+        s0 = scalar_in_range("s0", s0, 0.0, low_inclusive=False)
+        curve = HuangCurve(s0, 0.0, scalar_in_range("depth", depth, 0.0, low_inclusive=False))
         return cls(curve, curve)
 
     @classmethod
@@ -87,6 +87,7 @@ class Defocus:
         ``-separation / 2`` and y at ``+separation / 2``; ``A`` and ``B`` on both (with y's
         odd term mirrored, so that the two curves are mirror images about z = 0)."""
         half = 0.5 * scalar_in_range("separation", separation, 0.0, np.inf)
+        depth = scalar_in_range("depth", depth, 0.0, low_inclusive=False)
         return cls(HuangCurve(w0, -half, depth, A, B), HuangCurve(w0, half, depth, -A, B))
 
     def widths(self, z) -> tuple[np.ndarray, np.ndarray]:

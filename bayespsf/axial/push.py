@@ -3,93 +3,121 @@
 Each posterior draw of ``(s_x, s_y)`` is mapped to the z whose calibrated widths are nearest
 in the metric of the widths' covariance ``S`` (generalised least squares,
 ``r' S^-1 r`` with ``r = s - w(z)``; by default ``S`` is the draws' own covariance): a grid over
-``z_range`` finds the nearest grid point and Gauss-Newton steps refine it. Near the curve the
-z draws then spread as the delta method says, ``1 / sqrt(g' S^-1 g)`` with ``g = dw/dz``, which
-is z's Cramér-Rao bound when ``S`` is the widths' (``bayespsf.axial.bounds``). It is a
-projection, not z's posterior under a model of z: the widths' posterior also spreads off the
-curve, and ``distance`` says how far.
+``z_range`` finds the nearest grid point and a golden-section search between its neighbours
+refines it (Gauss-Newton steps, tried first, could end further from the optimum than they
+started, up to 1.8 nm off the curve). Near the curve the z draws then spread as the
+delta method says, ``1 / sqrt(g' S^-1 g)`` with ``g = dw/dz``, which is z's Cramér-Rao bound
+when ``S`` is the widths' (``bayespsf.axial.bounds``). It is a projection, not z's posterior
+under a model of z: the widths' posterior also spreads off the curve, and ``nearest_z``
+returns that distance (in nm with the identity metric, in widths' SDs with ``S``).
 
-With the symmetric curve (``Defocus.symmetric``) the widths cannot tell z from -z. Each draw
-then gets a sign at random: under a prior symmetric in z the posterior is exactly symmetric,
-so both modes are reported, never one by chance. ``near`` gives each draw's distance from the
-curve (nm), so that draws far off the calibration (a width pair the curve never makes) can be
-seen (in units of the widths' SD along ``S``).
+Where both axes are even about one plane ``c`` (both in focus at ``c``, no odd term: the
+paper's symmetric curve is one), the widths cannot tell ``c + d`` from ``c - d``. Each draw then
+gets one of the two at random, among those inside ``z_range``: under a prior symmetric about
+``c`` the posterior is exactly symmetric, so both modes are reported, never one by chance.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from bayespsf._checks import as_generator, broadcast_pair, finite_array, scalar_in_range
+from bayespsf.axial.bounds import precision
 from bayespsf.axial.defocus import Defocus
 from bayespsf.errors import BayespsfInputError
 
 GRID_STEP = 2.0  # nm
-NEWTON_STEPS = 8
+BLOCK = 4096  # width pairs per grid search
+GOLDEN_STEPS = 50  # shrink the bracket by 0.618^50 ~ 3e-11
+
+
+def _widths(s_x, s_y):
+    s_x = finite_array("s_x", s_x)
+    s_y = finite_array("s_y", s_y)
+    if np.any(s_x <= 0) or np.any(s_y <= 0):
+        raise BayespsfInputError("s_x and s_y must be > 0 nm")
+    return broadcast_pair("s_x", s_x, "s_y", s_y)
+
+
+def _range(z_range) -> tuple[float, float]:
+    try:
+        low, high = z_range
+    except (TypeError, ValueError):
+        raise BayespsfInputError(
+            f"z_range must be two numbers (low, high), got {z_range!r}"
+        ) from None
+    low = scalar_in_range("z_range low", low, -np.inf)
+    high = scalar_in_range("z_range high", high, -np.inf)
+    if not low < high:
+        raise BayespsfInputError(f"z_range must have low < high; got {z_range!r}")
+    return low, high
 
 
 def nearest_z(defocus: Defocus, s_x, s_y, z_range=(-800.0, 800.0), covariance=None):
-    """Per width pair (n,), the z in ``z_range`` (nm) whose calibrated widths are nearest in
-    the metric ``covariance^-1`` (2 x 2; default the identity, distances in nm), and that
+    """Per width pair, the z in ``z_range`` (nm) whose calibrated widths are nearest in the
+    metric ``covariance^-1`` (2 x 2; default the identity, distances in nm), and that
     distance: ``(z, distance)``."""
-    s_x, s_y = np.broadcast_arrays(np.asarray(s_x, float), np.asarray(s_y, float))
-    low, high = map(float, z_range)
-    if not (np.isfinite(low) and np.isfinite(high) and low < high):
-        raise BayespsfInputError(f"z_range must be two finite numbers, low < high; got {z_range}")
-    metric = np.eye(2) if covariance is None else _metric(covariance)
+    s_x, s_y = _widths(s_x, s_y)
+    low, high = _range(z_range)
+    metric = np.eye(2) if covariance is None else precision(covariance)
 
-    def norm(rx, ry):
+    def distance2(z):
+        wx, wy = defocus.widths(z)
+        rx, ry = s_x - wx, s_y - wy
         return metric[0, 0] * rx * rx + 2 * metric[0, 1] * rx * ry + metric[1, 1] * ry * ry
 
-    grid = np.arange(low, high + GRID_STEP, GRID_STEP)
+    grid = np.linspace(low, high, int(np.ceil((high - low) / GRID_STEP)) + 1)
     wx, wy = defocus.widths(grid)
-    z = grid[np.argmin(norm(s_x[..., None] - wx, s_y[..., None] - wy), axis=-1)]
-    for _ in range(NEWTON_STEPS):  # Gauss-Newton on f(z) = r' M r / 2, r = s - w(z)
-        (wx, wy), (gx, gy) = defocus.widths(z), defocus.slopes(z)
-        mr_x = metric[0, 0] * (s_x - wx) + metric[0, 1] * (s_y - wy)
-        mr_y = metric[1, 0] * (s_x - wx) + metric[1, 1] * (s_y - wy)
-        gradient = -(gx * mr_x + gy * mr_y)
-        curvature = norm(gx, gy)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = np.where(curvature > 0, -gradient / curvature, 0.0)
-        z = np.clip(z + np.clip(step, -GRID_STEP, GRID_STEP), low, high)
-    wx, wy = defocus.widths(z)
-    return z, np.sqrt(norm(s_x - wx, s_y - wy))
+    flat_x, flat_y = s_x.ravel(), s_y.ravel()
+    nearest = np.empty(flat_x.size, dtype=np.int64)
+    for first in range(0, flat_x.size, BLOCK):  # memory: BLOCK x grid, not draws x grid
+        part = slice(first, first + BLOCK)
+        rx, ry = flat_x[part, None] - wx, flat_y[part, None] - wy
+        on_grid = metric[0, 0] * rx * rx + 2 * metric[0, 1] * rx * ry + metric[1, 1] * ry * ry
+        nearest[part] = np.argmin(on_grid, axis=-1)
+    z = grid[nearest].reshape(s_x.shape)
+    # golden-section search on the grid point's two neighbouring intervals (the distance is
+    # unimodal there at this grid step), to 1e-9 of a grid step
+    a, b = np.maximum(z - GRID_STEP, low), np.minimum(z + GRID_STEP, high)
+    inner = (np.sqrt(5.0) - 1.0) / 2.0
+    for _ in range(GOLDEN_STEPS):
+        left, right = b - inner * (b - a), a + inner * (b - a)
+        lower = distance2(left) < distance2(right)
+        a, b = np.where(lower, a, left), np.where(lower, right, b)
+    z = 0.5 * (a + b)
+    f = distance2(z)
+    return z, np.sqrt(f)
 
 
-def _metric(covariance) -> np.ndarray:
-    covariance = np.asarray(covariance, dtype=np.float64)
-    if covariance.shape != (2, 2) or not np.all(np.isfinite(covariance)):
-        raise BayespsfInputError(f"covariance must be a finite 2 x 2 matrix, got {covariance!r}")
-    try:
-        np.linalg.cholesky(covariance)
-    except np.linalg.LinAlgError:
-        raise BayespsfInputError("covariance must be positive definite") from None
-    return np.linalg.inv(covariance)
+def symmetry_plane(defocus: Defocus) -> float | None:
+    """The plane ``c`` about which both axes' widths are even (both in focus at ``c``, no
+    odd term ``A``), or None: there z = c + d and c - d give the same widths."""
+    x, y = defocus.x, defocus.y
+    return x.c if x.c == y.c and x.A == 0.0 and y.A == 0.0 else None
 
 
-def is_symmetric(defocus: Defocus) -> bool:
-    """Whether the curve gives the same widths at z and -z (both axes in focus at 0, no odd
-    term, the same curve on both axes)."""
-    return defocus.x == defocus.y and defocus.x.c == 0.0 and defocus.x.A == 0.0
-
-
-def z_draws(defocus: Defocus, s_x, s_y, rng=None, z_range=(-800.0, 800.0),
+def z_draws(defocus: Defocus, s_x, s_y, rng, z_range=(-800.0, 800.0),
             covariance=None) -> np.ndarray:  # fmt: skip
     """Draws of z from draws of the widths (module docstring), each at its nearest z in the
     metric of ``covariance`` (default: the draws' own covariance, or the identity where they
-    do not spread in both widths); the symmetric curve's
-    draws get a random sign (``rng``, a Generator or seed)."""
-    s_x, s_y = np.asarray(s_x, float), np.asarray(s_y, float)
-    if covariance is None:
-        covariance = np.cov(np.stack([s_x.ravel(), s_y.ravel()])) if s_x.size > 2 else None
-        if covariance is not None and not np.all(np.linalg.eigvalsh(covariance) > 0):
+    do not spread in both widths). Where the curve is even about a plane (``symmetry_plane``),
+    each draw gets one of its two mirror values inside ``z_range`` at random (``rng``: a
+    Generator or an integer seed)."""
+    s_x, s_y = _widths(s_x, s_y)
+    low, high = _range(z_range)
+    if covariance is None and s_x.size > 2:
+        covariance = np.cov(np.stack([s_x.ravel(), s_y.ravel()]))
+        if not np.all(np.linalg.eigvalsh(covariance) > 0):
             covariance = None  # draws that do not spread in 2-D: any metric gives one answer
-    if is_symmetric(defocus):
-        reach = max(abs(z_range[0]), abs(z_range[1]))
-        z, _ = nearest_z(defocus, s_x, s_y, (0.0, reach), covariance)
-        sign = np.where(np.random.default_rng(rng).random(z.shape) < 0.5, -1.0, 1.0)
-        return sign * z
-    return nearest_z(defocus, s_x, s_y, z_range, covariance)[0]
+    c = symmetry_plane(defocus)
+    if c is None or not low < c < high:
+        return nearest_z(defocus, s_x, s_y, (low, high), covariance)[0]
+    half, _ = nearest_z(defocus, s_x, s_y, (c, c + max(high - c, c - low)), covariance)
+    d = half - c
+    below_fits, above_fits = c - d >= low, c + d <= high
+    pick_below = as_generator(rng).random(np.shape(d)) < 0.5
+    below = np.where(below_fits & above_fits, pick_below, below_fits)
+    return np.where(below, c - d, c + d)
 
 
-__all__ = ["is_symmetric", "nearest_z", "z_draws"]
+__all__ = ["nearest_z", "symmetry_plane", "z_draws"]
