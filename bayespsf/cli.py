@@ -487,9 +487,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="The molecules `bayespsf detect` selects, then a posterior, the MLE and "
         "the paper's least squares for every valid frame (DeSantis et al., Opt. Express 18 "
         "(2010)); the calibration check without ground truth; the paper's Delta s per "
-        "molecule. Writes into --out: locs.hdf5 + locs.yaml (picasso), locs.csv "
+        "molecule; each molecule's joint posterior over its frames; a goodness-of-fit p-value "
+        "per frame. Writes into --out: locs.hdf5 + locs.yaml (picasso), locs.csv "
         "(ThunderSTORM), locs.parquet, molecules.csv, consistency.csv, width_spread.csv, "
-        "report.md, the selection's tables and posteriors/ (a rerun continues there).",
+        "width_by_window.csv, report.md with its figures, the selection's tables and "
+        "posteriors/ (a rerun continues there).",
     )
     analyze.add_argument("movie", help="the movie: .tif/.tiff/.ome.tif or .npy")
     analyze.add_argument("--camera", required=True, help="the camera file (as for detect)")

@@ -90,11 +90,15 @@ result.consistency[["parameter", "frames", "molecules", "z_sd", "z_sd_se", "cove
 #
 # Each molecule's frames share x0, y0, s_x and s_y; N and b are each frame's own. The joint
 # SD is about one frame's over √K. The simulator knows the truth, so we can see whether the
-# joint 95% interval of s_x holds it.
+# joint 95% interval of s_x holds it (NaN where a selected molecule is not one immobile
+# fluorophore of the simulation: the rules can let such a molecule through).
 
 # %%
-truth = made.molecules.iloc[match_truth(chosen, made.molecules)]
-joint = chosen.assign(s_x_truth=truth["s_x"].to_numpy())
+row = match_truth(chosen, made.molecules)  # -1: a selected molecule that matches none
+truth = made.molecules.iloc[np.maximum(row, 0)]
+one_fluorophore = (truth["fluorophores"] == 1) & ~truth["moving"].astype(bool)
+joint = chosen.assign(s_x_truth=truth["s_x"].where((row >= 0) & one_fluorophore.to_numpy())
+                      .to_numpy())  # fmt: skip
 joint["covers s_x"] = joint["s_x_joint_q2.5"].le(joint["s_x_truth"]) & joint["s_x_truth"].le(
     joint["s_x_joint_q97.5"]
 )
