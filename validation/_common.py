@@ -93,28 +93,22 @@ def saved_figure(path: Path, figsize, columns: int = 1):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, columns, figsize=figsize)
-    yield axes
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        yield axes
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+    finally:
+        plt.close(fig)
 
 
 @contextmanager
 def per_movie_figure(path: Path, ylabel: str):
     """The axes of a figure with one point per movie, saved to ``path`` on exit."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3))
-    yield ax
-    ax.set_xlabel("movie")
-    ax.set_ylabel(ylabel)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    with saved_figure(path, (6, 3)) as ax:
+        yield ax
+        ax.set_xlabel("movie")
+        ax.set_ylabel(ylabel)
+        ax.legend(fontsize=7)
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:

@@ -265,9 +265,10 @@ def figure(coverage: pd.DataFrame, cases: pd.DataFrame, path: Path) -> None:
 def _coverage_panel(left, coverage: pd.DataFrame) -> None:
     labels = [f"{r.posterior}\n{r.parameter}" for r in coverage.itertuples()]
     k = np.arange(len(coverage))
-    for level, column, marker in ((0.68, "coverage 68%", "o"), (0.95, "coverage 95%", "s")):
+    for shift, level, column, marker in ((-0.1, 0.68, "coverage 68%", "o"),
+                                         (0.1, 0.95, "coverage 95%", "s")):  # fmt: skip
         se = coverage[f"SE {column.split()[-1]}"]
-        left.errorbar(k, coverage[column], yerr=2 * se, fmt=marker, label=column)
+        left.errorbar(k + shift, coverage[column], yerr=2 * se, fmt=marker, label=column)
         left.axhline(level, lw=0.8, ls="--", color="grey")
     left.set_xticks(k, labels, fontsize=6)
     left.set_ylabel("coverage of the truth (+-2 SE)")
@@ -282,6 +283,7 @@ def _check_panel(right, cases: pd.DataFrame) -> None:
     right.plot(k, cases["GOF flagged at 0.1"] * 10, "kx", label="GOF flag rate x 10")
     right.axhline(1.0, lw=0.8, ls="--", color="grey")
     right.set_xticks(k, cases["case"], fontsize=7)
+    right.set_ylabel("z-score SD (+-2 SE); flag rate x 10")
     right.legend(fontsize=6)
 
 
