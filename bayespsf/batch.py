@@ -102,9 +102,9 @@ def _sample_one(task):
                                 progress=False, **options)  # fmt: skip
     except BayespsfInputError as error:  # e.g. a ROI outside the likelihood tier's support
         return index, None, _outcome_row(index, seed, "failed", str(error))
+    info = dict(post.info, **verdict, seconds=time.perf_counter() - started)  # the posterior's
     if check and checked is None:
         checked = _model_checks(counts[None], model, [seed])[0]
-    info = dict(post.info, **verdict, seconds=time.perf_counter() - started)
     post.tree.attrs["sampler"] = json.dumps(info)
     row = molecule_row(post, index, seed) | (checked or {})
     post.tree.attrs["summary_row"] = json.dumps(row)
