@@ -20,6 +20,7 @@ import numpy as np
 from scipy import special
 
 from bayespsf import psf
+from bayespsf.axial.defocus import Defocus
 from bayespsf.cameras._draws import add_normal, gamma_register
 
 STAGES = ("truth", "expected", "photoelectrons", "electrons", "adu")
@@ -102,6 +103,41 @@ class UniformPosition(Effect):
     def apply(self, batch, rng):
         xy = rng.uniform(-self.half_width, self.half_width, size=(2, batch.n))
         batch.truth["x0"], batch.truth["y0"] = xy[0], xy[1]
+
+
+@dataclass(repr=False)
+class AxialPosition(Effect):
+    """The emitter's axial position ``z`` (nm) of each image: ``fixed`` at ``z0``, ``uniform``
+    in [``low``, ``high``] or ``normal`` (mean ``z0``, SD ``sd``): a scene's ``[axial]`` table."""
+
+    law: str
+    z0: float = 0.0
+    low: float = 0.0
+    high: float = 0.0
+    sd: float = 0.0
+
+    @property
+    def draws(self) -> bool:
+        return self.law != "fixed"
+
+    def apply(self, batch, rng):
+        if self.law == "fixed":
+            batch.truth["z"] = np.full(batch.n, float(self.z0))
+        elif self.law == "uniform":
+            batch.truth["z"] = rng.uniform(self.low, self.high, size=batch.n)
+        else:
+            batch.truth["z"] = self.z0 + self.sd * rng.standard_normal(batch.n)
+
+
+@dataclass(repr=False)
+class DefocusWidths(Effect):
+    """``s_x``, ``s_y`` of each image from its ``z`` through the defocus curves
+    (``bayespsf.axial.defocus``; the emitter's s0x, s0y are their in-focus widths)."""
+
+    defocus: Defocus
+
+    def apply(self, batch, rng):
+        batch.truth["s_x"], batch.truth["s_y"] = self.defocus.widths(batch.truth["z"])
 
 
 @dataclass(repr=False)

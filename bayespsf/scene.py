@@ -14,471 +14,30 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from bayespsf import photon_units
+import numpy as np
+
+from bayespsf.axial.defocus import Defocus
 from bayespsf.errors import BayespsfInputError
+from bayespsf.scene_schema import (
+    _PRIOR_ARGS,
+    _PRIOR_KEY,
+    _PRIOR_KINDS,
+    OPTIONAL_SECTIONS,
+    PRIOR_PARAMETERS,
+    SCHEMA,
+    Key,
+)
 
 
 class SceneError(BayespsfInputError):
     """A scene key is unknown, unused by its kind, of the wrong type or out of range."""
 
 
-@dataclass(frozen=True)
-class Key:
-    """One scene key: its type, default, unit, allowed values and meaning."""
-
-    name: str
-    kind: type | tuple[str, ...]  # float, int, bool, str, list, or a tuple of allowed strings
-    default: Any
-    unit: str
-    doc: str
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-    when: Callable[[Mapping], bool] | None = None  # the key applies only when this is true
-    when_doc: str = ""
-
-    def allowed(self) -> str:
-        if isinstance(self.kind, tuple):
-            return "one of " + ", ".join(repr(c) for c in self.kind)
-        if self.low is None and self.high is None:
-            return self.kind.__name__
-        lo = "-inf" if self.low is None else f"{self.low:g}"
-        hi = "inf" if self.high is None else f"{self.high:g}"
-        return ("(" if self.low_open else "[") + f"{lo}, {hi}" + (")" if self.high_open else "]")
-
-
-def _is(section_key: str, *values: str) -> Callable[[Mapping], bool]:
-    return lambda section: section.get(section_key) in values
-
-
-_PRIOR_KINDS = ("uniform", "log-uniform", "normal", "half-normal")
-
-SCHEMA: dict[str, tuple[Key, ...]] = {
-    "geometry": (
-        Key("roi", int, 15, "pixels", "side of the square region of interest (odd)", 1, 401),
-        Key("pixel_size", float, 100.0, "nm", "pixel side a in object space", 1.0, 1e5),
-    ),
-    "emitter": (
-        Key("photons", float, 1000.0, "photons", "mean total photons N of the spot", 0, 1e9, True),
-        Key(
-            "photon_statistics",
-            ("poisson", "fixed"),
-            "poisson",
-            "",
-            "'poisson': the photon count of an image is Poisson(N); 'fixed': exactly N photons, "
-            "so pixel counts are multinomial",
-        ),
-        Key(
-            "photon_jitter",
-            float,
-            0.0,
-            "relative",
-            "N of each image drawn uniformly in N (1 +- photon_jitter) (the paper keeps frames "
-            "within +-20% of the mean: 0.2); 0 declares no jitter",
-            0.0,
-            1.0,
-            high_open=True,
-        ),
-        Key("s0x", float, 120.0, "nm", "spot SD along x (columns)", 0.0, 1e5, True),
-        Key("s0y", float, 120.0, "nm", "spot SD along y (rows)", 0.0, 1e5, True),
-        Key(
-            "width_jitter",
-            float,
-            0.0,
-            "nm",
-            "SD of a per-photon change of both widths (emission bandwidth; the paper uses 2 nm); "
-            "> 0 makes the simulator bin photon by photon",
-            0.0,
-            1e4,
-        ),
-        Key(
-            "position",
-            ("fixed", "pixel", "box"),
-            "fixed",
-            "",
-            "'fixed': at (x0, y0); 'pixel': uniform within the central pixel; 'box': uniform in "
-            "[-box, box]^2",
-        ),
-        Key("x0", float, 0.0, "nm", "x position", -1e6, 1e6, when=_is("position", "fixed")),
-        Key("y0", float, 0.0, "nm", "y position", -1e6, 1e6, when=_is("position", "fixed")),
-        Key(
-            "box",
-            float,
-            50.0,
-            "nm",
-            "half-width of the box",
-            0.0,
-            1e6,
-            True,
-            when=_is("position", "box"),
-        ),
-    ),
-    "optics": (
-        Key(
-            "psf",
-            ("gaussian", "airy"),
-            "gaussian",
-            "",
-            "'gaussian': the elliptical Gaussian (s0x, s0y); 'airy': the in-focus Born-Wolf Airy "
-            "pattern of wavelength and na (photon by photon); inference always fits a Gaussian",
-        ),
-        Key(
-            "wavelength",
-            float,
-            580.0,
-            "nm",
-            "emission wavelength",
-            0.0,
-            1e4,
-            True,
-            when=_is("psf", "airy"),
-        ),
-        Key("na", float, 1.45, "", "numerical aperture", 0.0, 2.0, True, when=_is("psf", "airy")),
-    ),
-    "background": (
-        Key(
-            "kind",
-            ("none", "poisson", "gaussian", "truncated-gaussian", "binomial"),
-            "none",
-            "",
-            "law of the background photons of each pixel (i.i.d.); they are amplified like "
-            "signal photons. 'gaussian' rounds Normal(mean, sd) and must be (almost) never "
-            "negative; 'truncated-gaussian' rounds Normal(mean, sd) truncated at 0; 'binomial' "
-            "has the given mean and sd (needs sd^2 < mean and an integer number of trials)",
-        ),
-        Key(
-            "mean",
-            float,
-            0.0,
-            "photons",
-            "mean (for the Gaussians: of the parent normal) background photons per pixel",
-            0.0,
-            1e7,
-            when=lambda s: s.get("kind", "none") != "none",
-        ),
-        Key(
-            "sd",
-            float,
-            1.0,
-            "photons",
-            "SD (for the Gaussians: of the parent normal) of the background photons",
-            0.0,
-            1e7,
-            True,
-            when=_is("kind", "gaussian", "truncated-gaussian", "binomial"),
-        ),
-    ),
-    "camera": (
-        Key(
-            "kind",
-            ("photon", "emccd", "scmos"),
-            "photon",
-            "",
-            "'photon': ideal photon counting; 'emccd'; 'scmos' (scalar gain, offset, variance)",
-        ),
-        Key(
-            "gain",
-            float,
-            100.0,
-            "e-/e- or ADU/e-",
-            "EMCCD: mean EM gain; sCMOS: ADU per photoelectron",
-            0.0,
-            1e5,
-            True,
-            when=_is("kind", "emccd", "scmos"),
-        ),
-        Key(
-            "readout_sd",
-            float,
-            0.0,
-            "e-",
-            "EMCCD readout noise SD",
-            0.0,
-            1e4,
-            when=_is("kind", "emccd"),
-        ),
-        Key(
-            "offset",
-            float,
-            0.0,
-            "ADU",
-            "bias added to every pixel",
-            -1e9,
-            1e9,
-            when=_is("kind", "emccd", "scmos"),
-        ),
-        Key(
-            "e_per_adu",
-            float,
-            1.0,
-            "e-/ADU",
-            "EMCCD: electrons per ADU",
-            0.0,
-            1e6,
-            True,
-            when=_is("kind", "emccd"),
-        ),
-        Key(
-            "variance",
-            float,
-            0.0,
-            "ADU^2",
-            "sCMOS readout variance",
-            0.0,
-            1e9,
-            when=_is("kind", "scmos"),
-        ),
-        Key(
-            "clock_induced_charge",
-            float,
-            0.0,
-            "e-/pixel",
-            "EMCCD: mean spurious electrons per pixel per frame, amplified like photoelectrons; "
-            "0 declares none",
-            0.0,
-            100.0,
-            when=_is("kind", "emccd"),
-        ),
-        Key(
-            "register",
-            ("gamma", "stages"),
-            "gamma",
-            "",
-            "EMCCD multiplication: 'gamma' (the Gamma(n, gain) law the likelihood uses) or "
-            "'stages' (each electron multiplies stage by stage with probability "
-            "gain^(1/stages) - 1)",
-            when=_is("kind", "emccd"),
-        ),
-        Key(
-            "stages",
-            int,
-            512,
-            "",
-            "number of EM stages for register = 'stages'",
-            1,
-            10000,
-            when=_is("register", "stages"),
-        ),
-        Key(
-            "quantize",
-            bool,
-            False,
-            "",
-            "round counts to whole ADU (the ADC); false declares continuous counts",
-            when=_is("kind", "emccd", "scmos"),
-        ),
-        Key(
-            "saturation",
-            float,
-            0.0,
-            "ADU",
-            "counts above this are recorded as this (the ADC's full scale); 0 declares none",
-            0.0,
-            1e12,
-            when=_is("kind", "emccd", "scmos"),
-        ),
-        Key(
-            "quantum_efficiency",
-            float,
-            1.0,
-            "e-/photon",
-            "probability that an incident photon (signal or background) becomes a "
-            "photoelectron; the simulator thins the photons binomially when it is below 1, and "
-            "N and b can then be incident photons (see photon_unit); 1 declares none",
-            0.0,
-            1.0,
-            low_open=True,
-        ),
-        Key(
-            "photon_unit",
-            photon_units.UNITS,
-            "incident",
-            "",
-            "unit of N and b in the prior, the model, the truth table and every result: "
-            "'incident' photons (photoelectrons / quantum_efficiency) or 'detected' "
-            "photoelectrons (the same when quantum_efficiency is 1)",
-        ),
-        Key("likelihood", str, "", "", "likelihood tier for inference ('' = the camera's default)"),
-    ),
-    # Optional (OPTIONAL_SECTIONS): the table's presence declares a movie, read only by
-    # bayespsf.movie.simulate; every effect in it applies only when its key is declared.
-    "movie": (
-        Key("frames", int, 100, "frames", "number of frames of the movie", 1, 10_000_000),
-        Key("height", int, 256, "pixels", "frame height (rows)", 1, 100_000),
-        Key("width", int, 256, "pixels", "frame width (columns)", 1, 100_000),
-        Key(
-            "exposure",
-            float,
-            0.0,
-            "s",
-            "time per frame, written as the OME TimeIncrement (the paper's illumination "
-            "intervals: 1 to 500 ms); 0 declares none",
-            0.0,
-            1e5,
-        ),
-        Key(
-            "molecules",
-            int,
-            10,
-            "",
-            "number of molecules, placed uniformly at random (one after another, each where it "
-            "keeps min_spacing and edge)",
-            0,
-            10_000_000,
-        ),
-        Key(
-            "min_spacing",
-            int,
-            25,
-            "pixels",
-            "least distance in rows or in columns (Chebyshev) between two molecules' nearest "
-            "pixels at frame 0, so that ROIs of this side never overlap (the paper's 25 x 25 "
-            "ROIs)",
-            0,
-            100_000,
-        ),
-        Key(
-            "edge",
-            int,
-            12,
-            "pixels",
-            "least number of pixels between a molecule's nearest pixel and the frame's border "
-            "at frame 0 (12: a 25 x 25 ROI fits)",
-            0,
-            100_000,
-        ),
-        Key(
-            "photons_low",
-            float,
-            0.0,
-            "photons",
-            "each molecule's mean photons per frame and fluorophore is log-uniform between "
-            "photons_low and photons_high; 0 stands for emitter.photons",
-            0.0,
-            1e9,
-        ),
-        Key(
-            "photons_high",
-            float,
-            0.0,
-            "photons",
-            "the other end of the log-uniform range (0 stands for emitter.photons)",
-            0.0,
-            1e9,
-        ),
-        Key(
-            "bleach_mean",
-            float,
-            0.0,
-            "frames",
-            "mean of the exponential time at which each fluorophore bleaches in one step; 0 "
-            "declares no bleaching",
-            0.0,
-            1e9,
-        ),
-        Key(
-            "two_fluorophores",
-            float,
-            0.0,
-            "fraction",
-            "fraction of molecules carrying two fluorophores that blink and bleach "
-            "independently (two bleaching steps, which the paper excluded); 0 declares none",
-            0.0,
-            1.0,
-        ),
-        Key(
-            "drift_x",
-            float,
-            0.0,
-            "nm/frame",
-            "stage drift of the whole field along x (columns); 0 declares none",
-            -1e5,
-            1e5,
-        ),
-        Key(
-            "drift_y",
-            float,
-            0.0,
-            "nm/frame",
-            "stage drift of the whole field along y (rows); 0 declares none",
-            -1e5,
-            1e5,
-        ),
-        Key(
-            "moving",
-            float,
-            0.0,
-            "fraction",
-            "fraction of molecules that also move by a random walk; 0 declares none",
-            0.0,
-            1.0,
-        ),
-        Key(
-            "moving_step",
-            float,
-            10.0,
-            "nm",
-            "SD per frame and axis of the moving molecules' random-walk steps",
-            0.0,
-            1e5,
-        ),
-        Key(
-            "blink_on",
-            float,
-            0.0,
-            "frames",
-            "mean on time of a two-state Markov blinking (declare it with blink_off); 0 "
-            "declares no blinking",
-            0.0,
-            1e9,
-        ),
-        Key(
-            "blink_off",
-            float,
-            0.0,
-            "frames",
-            "mean off time of the blinking (declare it with blink_on); 0 declares no blinking",
-            0.0,
-            1e9,
-        ),
-        Key(
-            "dark_frames",
-            int,
-            0,
-            "frames",
-            "frames recorded without light before the movie (camera calibration), written to a "
-            "separate file; 0 declares none",
-            0,
-            1_000_000,
-        ),
-    ),
-}
-OPTIONAL_SECTIONS = ("movie",)  # present in a scene only where declared
-
-_PRIOR_KEY = Key(
-    "<parameter>",
-    dict,
-    None,
-    "",
-    "prior of one of x0, y0, s_x, s_y, N, b: a table with kind = "
-    + " | ".join(repr(k) for k in _PRIOR_KINDS)
-    + " and its parameters: low, high (uniform, log-uniform); mean, sd (normal); "
-    "scale (half-normal, for b). Parameters left out get the documented weak default",
-)
-PRIOR_PARAMETERS = ("x0", "y0", "s_x", "s_y", "N", "b")
-_PRIOR_ARGS = {
-    "uniform": ("low", "high"),
-    "log-uniform": ("low", "high"),
-    "normal": ("mean", "sd"),
-    "half-normal": ("scale",),
-}
 TOP_LEVEL = ("name", "description")
 MAX_SCENE_CHARACTERS = 65536  # tomllib's time grows with the square of a dotted key's depth
 
@@ -828,9 +387,39 @@ def _check_consistency(d: Mapping) -> None:
     cam = d["camera"]
     if cam["kind"] == "emccd" and cam["gain"] < 1.0:
         raise SceneError(f"camera.gain must be >= 1 for an EMCCD, got {cam['gain']:g}")
+    if "axial" in d:
+        _check_axial(d)
+
+
+def _check_axial(d: Mapping) -> None:
+    """The [axial] table needs the Gaussian PSF (its widths follow z) and a z range on which
+    both curves are defined (1 + u^2 + A u^3 + B u^4 > 0)."""
+    ax = d["axial"]
+    if d["optics"]["psf"] != "gaussian":
+        raise SceneError("[axial] needs optics.psf = 'gaussian': the Airy pattern is in focus only")
+    if ax["z"] == "uniform" and not ax["z_low"] < ax["z_high"]:
+        raise SceneError(
+            f"axial.z_low must be below axial.z_high, got {ax['z_low']:g} and {ax['z_high']:g}"
+        )
+    low, high = {
+        "fixed": (ax.get("z0"), ax.get("z0")),
+        "uniform": (ax.get("z_low"), ax.get("z_high")),
+        "normal": (ax.get("z0", 0.0) - 6 * ax.get("z_sd", 0.0),
+                   ax.get("z0", 0.0) + 6 * ax.get("z_sd", 0.0)),
+    }[ax["z"]]  # fmt: skip
+    e = d["emitter"]
+    defocus = Defocus.from_table(ax, e["s0x"], e["s0y"])
+    try:
+        defocus.widths(np.linspace(low, high, 2001))
+    except BayespsfInputError as exc:
+        raise SceneError(f"[axial]: {exc} (the z range the scene draws from)") from None
 
 
 _OPTIONAL_DOC = {
+    "axial": "Optional: the table's presence declares that the spot's widths follow the "
+    "emitter's axial position z through a defocus curve (`bayespsf.axial.defocus`); "
+    "emitter.s0x and s0y are then the in-focus widths, and the truth table gains a `z` column. "
+    "Movies do not take it yet.",
     "movie": "Optional: the table's presence declares a movie, simulated by "
     "`bayespsf.movie.simulate.simulate_movie` (`bayespsf simulate SCENE --movie`); "
     "`bayespsf.simulate` ignores it. Each key below declares one effect; an absent key (or 0) "

@@ -2,7 +2,8 @@
 
 ``simulate(scene, n, seed)`` returns ``(counts, truth)``: counts ``(n, roi, roi)`` in ADU and a
 DataFrame with one row per image and the columns ``x0 y0 s_x s_y N b`` (plus
-``photons_emitted`` when photons are binned one by one). ``build_pipeline(scene)`` shows the
+``photons_emitted`` when photons are binned one by one, and ``z`` where the scene declares
+``[axial]``). ``build_pipeline(scene)`` shows the
 effects and their order.
 
 Photon paths, chosen from what the scene declares: Poisson pixel counts from the expected image
@@ -26,6 +27,7 @@ import pandas as pd
 
 from bayespsf import effects as fx
 from bayespsf import photon_units
+from bayespsf.axial.defocus import Defocus
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.scene import Scene
@@ -70,6 +72,8 @@ def build_pipeline(scene: Scene) -> list[fx.Effect]:
     else:
         s_x, s_y = e["s0x"], e["s0y"]
     steps: list[fx.Effect] = [fx.EmitterTruth(x0, y0, s_x, s_y, e["photons"], b_mean)]
+    if "axial" in scene.to_dict():
+        steps += axial_effects(scene)
     if e["position"] == "pixel":
         steps.append(fx.UniformPosition(0.5 * a))
     elif e["position"] == "box":
@@ -94,6 +98,20 @@ def build_pipeline(scene: Scene) -> list[fx.Effect]:
     if (factor := truth_photon_factor(scene)) != 1.0:
         steps.append(fx.DetectedTruth(factor))
     return steps
+
+
+def axial_effects(scene: Scene) -> list[fx.Effect]:
+    """The emitter's z and the widths it gives, where the scene declares ``[axial]``."""
+    ax, e = scene.axial, scene.emitter
+    law = ax["z"]
+    position = fx.AxialPosition(
+        law,
+        z0=ax.get("z0", 0.0),
+        low=ax.get("z_low", 0.0),
+        high=ax.get("z_high", 0.0),
+        sd=ax.get("z_sd", 0.0),
+    )
+    return [position, fx.DefocusWidths(Defocus.from_table(ax, e["s0x"], e["s0y"]))]
 
 
 def scene_photon_label(scene: Scene) -> str:

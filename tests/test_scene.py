@@ -43,7 +43,15 @@ PHOTON_CAMERA = {
     "photon_unit": "incident",
     "likelihood": "",
 }
-SHIPPED = ("emccd-typical", "ideal", "paper-fig2", "paper-fig3", "paper-movie", "scmos-typical")
+SHIPPED = (
+    "astigmatic",
+    "emccd-typical",
+    "ideal",
+    "paper-fig2",
+    "paper-fig3",
+    "paper-movie",
+    "scmos-typical",
+)
 KEYS: dict[str, dict[str, Key]] = {sec: {k.name: k for k in keys} for sec, keys in SCHEMA.items()}
 
 
@@ -202,6 +210,9 @@ def scene_dicts(draw):
     psf = draw(st.sampled_from(KEYS["optics"]["psf"].kind))
     expected: dict = {}
     for section, keys in SCHEMA.items():
+        optional = section in OPTIONAL_SECTIONS
+        if optional and ((section == "axial" and psf == "airy") or draw(st.booleans())):
+            continue  # an optional table left out (the Airy PSF takes no [axial])
         given: dict = {}
         normal: dict = {}
         for key in keys:
@@ -232,7 +243,17 @@ def scene_dicts(draw):
             mean, sd = n * p, math.sqrt(n * p * (1 - p))
             given.update(mean=mean, sd=sd)
             normal.update(mean=mean, sd=sd)
-        if given or draw(st.booleans()):
+        if section == "axial":  # a z range inside both curves' domain: A = 0, B >= 0
+            for key in ("A_x", "A_y", "B_x", "B_y"):
+                if key in normal:
+                    value = 0.0 if key[0] == "A" else abs(normal[key])
+                    given[key] = normal[key] = value
+            if "z_low" in normal:
+                low, high = sorted(draw(st.lists(st.floats(-1e6, 1e6), min_size=2, max_size=2,
+                                                 unique=True)))  # fmt: skip
+                given.update(z_low=low, z_high=high)
+                normal.update(z_low=low, z_high=high)
+        if given or optional or draw(st.booleans()):
             d[section] = given
         expected[section] = normal
     priors = {name: draw(_prior_spec(name)) for name in PRIOR_PARAMETERS if draw(st.booleans())}
@@ -249,7 +270,8 @@ def test_random_valid_scenes_round_trip_exactly(case):
     out = scene.to_dict()
     for top in ("name", "description"):
         assert out.get(top) == d.get(top)
-    for section in SCHEMA:
+    assert set(out) - {"name", "description", "prior"} == set(expected)
+    for section in expected:
         assert list(out[section]) == list(expected[section]), section
         for key, value in expected[section].items():
             want = float(value) if KEYS[section][key].kind is float else value
@@ -499,7 +521,7 @@ def _outside(key: Key):
 def _inside(key: Key):
     if key.kind is int:
         return [int(key.low), int(key.high) if key.name != "roi" else 401]
-    low = key.low + 1e-12 if key.low_open else key.low
+    low = max(key.low + 1e-12, math.nextafter(key.low, math.inf)) if key.low_open else key.low
     high = math.nextafter(key.high, -math.inf) if key.high_open else key.high
     return [low, high]
 
@@ -519,6 +541,8 @@ def test_every_numeric_key_checks_its_range(section, key):
         base["kind"] = "poisson" if key.name == "mean" else "truncated-gaussian"
     if section == "camera" and base.get("kind") == "emccd" and key.name == "gain":
         base = {"kind": "scmos"}  # the EMCCD's own gain >= 1 rule is tested separately
+    if section == "axial" and key.name in ("z_low", "z_high"):  # z_low < z_high is its own rule
+        base.update({"z_low": -1e6, "z_high": 1e6})
     for value in _outside(key):
         _raises({section: {**base, key.name: value}}, re.escape(f"{section}.{key.name} must be"))
         msg = _raises({section: {**base, key.name: value}}, re.escape(key.allowed()))

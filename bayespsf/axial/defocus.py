@@ -5,7 +5,13 @@ One axis follows the defocus curve of Huang, Wang, Bates & Zhuang, Science 319 (
     w(z) = w0 sqrt(1 + u^2 + A u^3 + B u^4),   u = (z - c) / d,
 
 with w0 the in-focus width, c that axis's focal plane, d the depth of focus and A, B the
-higher-order terms. ``Defocus`` pairs two such curves, one per axis:
+higher-order terms (``HuangCurve``), or its polynomial alternative
+
+    w(z) = w0 (1 + u^2 + A u^3 + B u^4)
+
+(``PolynomialCurve``; with A = B = 0 the parabola ``a (z - c)^2 + b`` of ThunderSTORM's first
+calibration model, Ovesny et al., Bioinformatics 30 (2014)). ``Defocus`` pairs two curves,
+one per axis:
 
 * ``Defocus.symmetric(s0, depth)``: both axes in focus at z = 0 with ``A = B = 0``. This is
   the curve ``s(z) = s0 sqrt(1 + (z / D)^2)`` of DeSantis, DeCenzo, Li & Wang, Opt. Express 18
@@ -18,6 +24,7 @@ Widths are in nm, z in nm.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +36,8 @@ from bayespsf.errors import BayespsfInputError
 @dataclass(frozen=True)
 class HuangCurve:
     """``w(z) = w0 sqrt(1 + u^2 + A u^3 + B u^4)``, ``u = (z - c) / d`` (module docstring)."""
+
+    kind = "huang"
 
     w0: float
     c: float = 0.0
@@ -43,8 +52,14 @@ class HuangCurve:
 
     def _alpha(self, z):
         z = finite_array("z", z)
-        u = (z - self.c) / self.d
-        alpha = 1.0 + u**2 + self.A * u**3 + self.B * u**4
+        with np.errstate(over="ignore", invalid="ignore"):
+            u = (z - self.c) / self.d
+            alpha = 1.0 + u**2 + self.A * u**3 + self.B * u**4
+        if not np.all(np.isfinite(alpha)):
+            raise BayespsfInputError(
+                f"z = {z[~np.isfinite(alpha)].ravel()[0]:g} nm is too many depths of focus "
+                f"(d = {self.d:g} nm) from this curve's focus for its width to be a number"
+            )
         if np.any(alpha <= 0):
             raise BayespsfInputError(
                 f"z = {z[alpha <= 0].ravel()[0]:g} nm is outside this defocus curve's domain: "
@@ -65,12 +80,32 @@ class HuangCurve:
             / (2 * self.d * np.sqrt(alpha))
         )
 
+    def even_plane(self) -> float | None:
+        """The plane about which the width is even (``c`` when ``A = 0``), or None."""
+        return self.c if self.A == 0.0 else None
+
+
+@dataclass(frozen=True)
+class PolynomialCurve(HuangCurve):
+    """``w(z) = w0 (1 + u^2 + A u^3 + B u^4)``, ``u = (z - c) / d`` (module docstring)."""
+
+    kind = "polynomial"
+
+    def width(self, z) -> np.ndarray:
+        _, alpha = self._alpha(z)
+        return self.w0 * alpha
+
+    def slope(self, z) -> np.ndarray:
+        """``dw/dz = w0 (2u + 3A u^2 + 4B u^3) / d``."""
+        u, _ = self._alpha(z)
+        return self.w0 * (2 * u + 3 * self.A * u**2 + 4 * self.B * u**3) / self.d
+
 
 @dataclass(frozen=True)
 class Defocus:
     """The widths (s_x, s_y) of a spot at axial position z: one ``HuangCurve`` per axis."""
 
-    x: HuangCurve
+    x: HuangCurve  # or PolynomialCurve
     y: HuangCurve
 
     @classmethod
@@ -90,6 +125,20 @@ class Defocus:
         depth = scalar_in_range("depth", depth, 0.0, low_inclusive=False)
         return cls(HuangCurve(w0, -half, depth, A, B), HuangCurve(w0, half, depth, -A, B))
 
+    @classmethod
+    def from_table(cls, table: Mapping, s0x: float, s0y: float) -> Defocus:
+        """The defocus of a scene's ``[axial]`` table (``bayespsf.scene_schema``), with the
+        emitter's in-focus widths ``s0x``, ``s0y``."""
+        if table["curve"] == "symmetric":
+            curves = [HuangCurve(s0, 0.0, table["depth"]) for s0 in (s0x, s0y)]
+            return cls(*curves)
+        kind = HuangCurve if table["curve"] == "huang" else PolynomialCurve
+        return cls(*(
+            kind(s0, table[f"focus_{axis}"], table[f"depth_{axis}"], table[f"A_{axis}"],
+                 table[f"B_{axis}"])
+            for axis, s0 in (("x", s0x), ("y", s0y))
+        ))  # fmt: skip
+
     def widths(self, z) -> tuple[np.ndarray, np.ndarray]:
         return self.x.width(z), self.y.width(z)
 
@@ -97,4 +146,4 @@ class Defocus:
         return self.x.slope(z), self.y.slope(z)
 
 
-__all__ = ["Defocus", "HuangCurve"]
+__all__ = ["Defocus", "HuangCurve", "PolynomialCurve"]

@@ -92,8 +92,8 @@ def nearest_z(defocus: Defocus, s_x, s_y, z_range=(-800.0, 800.0), covariance=No
 def symmetry_plane(defocus: Defocus) -> float | None:
     """The plane ``c`` about which both axes' widths are even (both in focus at ``c``, no
     odd term ``A``), or None: there z = c + d and c - d give the same widths."""
-    x, y = defocus.x, defocus.y
-    return x.c if x.c == y.c and x.A == 0.0 and y.A == 0.0 else None
+    x, y = defocus.x.even_plane(), defocus.y.even_plane()
+    return x if x is not None and x == y else None
 
 
 def z_draws(defocus: Defocus, s_x, s_y, rng, z_range=(-800.0, 800.0),

@@ -81,6 +81,11 @@ def movie_settings(scene: Scene) -> dict:
         raise SceneError("the scene declares no [movie] table (e.g. the shipped paper-movie)")
     if scene.optics["psf"] != "gaussian":
         raise SceneError("optics.psf must be 'gaussian' in a movie scene (movies draw its image)")
+    if "axial" in scene.to_dict():
+        raise SceneError(
+            "[axial] is not used by movies yet (their molecules have the emitter's s0x, s0y); "
+            "remove it, or simulate ROIs with bayespsf.simulate"
+        )
     if scene.emitter["width_jitter"] > 0:
         raise SceneError(
             "emitter.width_jitter is not used by movies (photons are not binned one by one); "
