@@ -164,24 +164,26 @@ def observed_information(model, counts, p):
     return 0.5 * (hessian + np.swapaxes(hessian, 1, 2))
 
 
-def maximise(model, counts: np.ndarray, starts: np.ndarray):
+def maximise(model, counts: np.ndarray, starts: np.ndarray, held=None):
     """Maximum-likelihood parameters of every ROI of ``counts`` (n, roi, roi) from ``starts``
-    (n, 6), block by block.
+    (n, 6), block by block; ``held`` (6,) bool marks parameters kept at their start (the
+    widths, for a fit at a given axial position: ``bayespsf.axial.posterior``).
 
     Returns ``(params (n, 6), log_likelihood (n,), converged (n,) bool, message (n,) str)``.
     """
     n = len(counts)
+    held = np.zeros(6, dtype=bool) if held is None else np.asarray(held, dtype=bool)
     params, logl = np.empty((n, 6)), np.empty(n)
     converged, message = np.zeros(n, dtype=bool), np.empty(n, dtype=object)
     for first in range(0, n, BLOCK):
         block = slice(first, min(first + BLOCK, n))
         params[block], logl[block], converged[block], message[block] = _maximise_block(
-            model, counts[block], starts[block]
+            model, counts[block], starts[block], held
         )
     return params, logl, converged, message
 
 
-def _maximise_block(model, counts, starts):
+def _maximise_block(model, counts, starts, held):
     a = model.pixel_size
     low, high = box(model.roi)
     u = np.clip(to_internal(starts, a), low, high)
@@ -196,7 +198,7 @@ def _maximise_block(model, counts, starts):
         if active.size == 0:
             break
         ua = u[active]
-        grad, metric = _freeze_bounds(ua, gradients[active], metrics[active], low, high)
+        grad, metric = _freeze_bounds(ua, gradients[active], metrics[active], low, high, held)
         diagonal = np.einsum("nkk->nk", metric)
         decrement = np.einsum("nk,nk->n", grad, _solve(metric, grad))
         finished = decrement < DECREMENT
@@ -238,12 +240,13 @@ def _maximise_block(model, counts, starts):
     return p, -f, converged, message
 
 
-def _freeze_bounds(u, grad, metric, low, high):
+def _freeze_bounds(u, grad, metric, low, high, held=False):
     """Projected Newton (Bertsekas, SIAM J. Control Optim. 20 (1982)): a coordinate on a bound
     of the box whose gradient points out of it is held there, its gradient zeroed and its
     metric row and column made the identity, so that a maximum on the boundary (b = 0 for a
-    spot without background) converges instead of pushing at the bound."""
-    out = ((u <= low) & (grad > 0)) | ((u >= high) & (grad < 0))
+    spot without background) converges instead of pushing at the bound. Coordinates marked
+    ``held`` are held so everywhere."""
+    out = ((u <= low) & (grad > 0)) | ((u >= high) & (grad < 0)) | held
     if not out.any():
         return grad, metric
     grad = np.where(out, 0.0, grad)

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf._checks import finite_array
-from bayespsf.axial.defocus import Defocus
+from bayespsf.axial.defocus import Defocus, HuangCurve
 from bayespsf.errors import BayespsfInputError
 from bayespsf.theory import delta_z, fisher_matrix
 
@@ -97,7 +97,8 @@ def paper_delta_z(delta_s, defocus: Defocus, z) -> np.ndarray:
     symmetric curve only (both axes the same, in focus at 0, ``A = B = 0``); for another
     curve the error of z is ``first_order_z_sd``."""
     curve = defocus.x
-    if not (defocus.y == curve and curve.c == 0.0 and curve.A == 0.0 and curve.B == 0.0):
+    symmetric = type(curve) is HuangCurve and defocus.y == curve
+    if not (symmetric and curve.c == 0.0 and curve.A == 0.0 and curve.B == 0.0):
         raise BayespsfInputError(
             "paper_delta_z needs the paper's symmetric curve (Defocus.symmetric); use "
             "first_order_z_sd for another curve"

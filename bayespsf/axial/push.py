@@ -39,7 +39,8 @@ def _widths(s_x, s_y):
     return broadcast_pair("s_x", s_x, "s_y", s_y)
 
 
-def _range(z_range) -> tuple[float, float]:
+def check_z_range(z_range) -> tuple[float, float]:
+    """``z_range`` as ``(low, high)`` floats with low < high, or a named error."""
     try:
         low, high = z_range
     except (TypeError, ValueError):
@@ -58,7 +59,7 @@ def nearest_z(defocus: Defocus, s_x, s_y, z_range=(-800.0, 800.0), covariance=No
     metric ``covariance^-1`` (2 x 2; default the identity, distances in nm), and that
     distance: ``(z, distance)``."""
     s_x, s_y = _widths(s_x, s_y)
-    low, high = _range(z_range)
+    low, high = check_z_range(z_range)
     metric = np.eye(2) if covariance is None else precision(covariance)
 
     def distance2(z):
@@ -104,7 +105,7 @@ def z_draws(defocus: Defocus, s_x, s_y, rng, z_range=(-800.0, 800.0),
     each draw gets one of its two mirror values inside ``z_range`` at random (``rng``: a
     Generator or an integer seed)."""
     s_x, s_y = _widths(s_x, s_y)
-    low, high = _range(z_range)
+    low, high = check_z_range(z_range)
     if covariance is None and s_x.size > 2:
         covariance = np.cov(np.stack([s_x.ravel(), s_y.ravel()]))
         if not np.all(np.linalg.eigvalsh(covariance) > 0):
@@ -120,4 +121,4 @@ def z_draws(defocus: Defocus, s_x, s_y, rng, z_range=(-800.0, 800.0),
     return np.where(below, c - d, c + d)
 
 
-__all__ = ["nearest_z", "symmetry_plane", "z_draws"]
+__all__ = ["check_z_range", "nearest_z", "symmetry_plane", "z_draws"]
