@@ -102,7 +102,7 @@ def test_the_papers_symmetric_defocus_reports_both_modes():
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"defocus": "huang"}, "defocus must be a Defocus"),
+        ({"defocus": "huang"}, "defocus must be a Defocus or a Calibration"),
         ({"z_range": (100.0, -100.0)}, "z_range must have low < high"),
         ({"z_range": 5}, "z_range must be two numbers"),
         ({"ess": 5}, "ess must be a number in"),

@@ -37,6 +37,7 @@ import pandas as pd
 
 from bayespsf._checks import as_generator
 from bayespsf.axial.bounds import THETA_NAMES
+from bayespsf.axial.calibrate import Calibration
 from bayespsf.axial.defocus import Defocus
 from bayespsf.axial.push import check_z_range, symmetry_plane
 from bayespsf.errors import BayespsfInputError
@@ -190,8 +191,9 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
         One ROI in ADU, as ``Model`` reads it.
     model : Model
         Camera, geometry and the prior of x0, y0, N and b (its width priors are not used).
-    defocus : Defocus
-        The calibration: ``(s_x(z), s_y(z))``.
+    defocus : Defocus or Calibration
+        The curves ``(s_x(z), s_y(z))``; a ``Calibration`` (``bayespsf.axial.calibrate``) is
+        also recorded in ``info["calibration"]``.
     z_range : (low, high)
         Support of z's uniform prior (nm).
     seed : int or Generator
@@ -208,8 +210,12 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
     c = model.check_counts(counts)
     if c.ndim != 2:
         raise BayespsfInputError(f"counts must be one ROI of shape ({model.roi}, {model.roi})")
+    calibration = defocus if isinstance(defocus, Calibration) else None
+    defocus = defocus.defocus if calibration is not None else defocus
     if not isinstance(defocus, Defocus):
-        raise BayespsfInputError(f"defocus must be a Defocus, got {type(defocus).__name__}")
+        raise BayespsfInputError(
+            f"defocus must be a Defocus or a Calibration, got {type(defocus).__name__}"
+        )
     if not (isinstance(ess, int | float) and np.isfinite(ess) and 10 <= ess <= 1e6):
         raise BayespsfInputError(f"ess must be a number in [10, 1e6], got {ess!r}")
     rng = as_generator(seed)
@@ -250,6 +256,8 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
             f"k-hat {khat:.2f} > {KHAT_MAX}" if khat > KHAT_MAX
             else f"ESS {achieved:.0f} < {ess:g} after {len(v)} draws"
         )  # fmt: skip
+    if calibration is not None:
+        info["calibration"] = calibration.record()
     plane = symmetry_plane(defocus)
     if plane is not None:
         info["plane"] = plane
