@@ -287,17 +287,22 @@ def _analyze(args) -> int:
 
     out = _output_folder(args.out)
     movie, model, s0 = _movie_model(args)
-    rules = (
-        Rules() if args.min_valid_frames is None else Rules(min_valid_frames=args.min_valid_frames)
-    )
+    settings = {} if args.min_valid_frames is None else {"min_valid_frames": args.min_valid_frames}
+    rules = Rules(**settings, skip=tuple(args.skip_rule))
     command = "bayespsf analyze " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
     out.mkdir(parents=True, exist_ok=True)
     camera_path = _copy_camera_file(args, out)
+    z_calibration = None
+    if args.z_calibration is not None:
+        from bayespsf.axial.calibration_file import load_calibration
+
+        z_calibration = load_calibration(args.z_calibration)
     result = analyze(
         movie, model, s0=s0, out=out, roi=args.roi, fit=args.fit, rules=rules,
         method=args.method, ess=args.ess, seed=args.seed,
         workers=None if args.scheduler else args.workers, executor=args.scheduler,
         provenance={"command": command, "camera file": camera_path.read_text()},
+        z_calibration=z_calibration, z_range=tuple(args.z_range),
     )  # fmt: skip
     result.paths["camera.toml"] = camera_path
     check = result.consistency.set_index("parameter")
@@ -503,6 +508,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="valid frames a molecule needs (default 75, the paper's)",
     )  # fmt: skip
     analyze.add_argument(
+        "--skip-rule", action="append", default=[], metavar="RULE",
+        help="switch off one of the paper's selection rules by its name in selection.md "
+        "(repeatable); an astigmatic movie needs equal_widths and width_range off",
+    )  # fmt: skip
+    analyze.add_argument(
         "--method", choices=("auto", "mcmc", "importance", "laplace"), default="auto",
         help="posterior method (default auto: the batched engine, emcee where it fails)",
     )  # fmt: skip
@@ -510,6 +520,15 @@ def build_parser() -> argparse.ArgumentParser:
     analyze.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     analyze.add_argument("--workers", type=int, default=None, help="local processes")
     analyze.add_argument("--scheduler", default=None, help="a Dask scheduler address")
+    analyze.add_argument(
+        "--z-calibration", default=None,
+        help="a z calibration file (bayespsf.axial.calibration_file): every frame also gets "
+        "the posterior of its axial position z, in the tables as picasso's z and lpz (nm)",
+    )  # fmt: skip
+    analyze.add_argument(
+        "--z-range", type=float, nargs=2, default=(-800.0, 800.0), metavar=("LOW", "HIGH"),
+        help="support of z's uniform prior in nm (default -800 800)",
+    )  # fmt: skip
     analyze.add_argument("--out", default="bayespsf-analyze", help="output folder")
     analyze.set_defaults(run=_analyze)
     calibrate = commands.add_parser(

@@ -419,7 +419,7 @@ _OPTIONAL_DOC = {
     "axial": "Optional: the table's presence declares that the spot's widths follow the "
     "emitter's axial position z through a defocus curve (`bayespsf.axial.defocus`); "
     "emitter.s0x and s0y are then the in-focus widths, and the truth table gains a `z` column. "
-    "Movies do not take it yet.",
+    "In a movie each molecule keeps the z it draws in every frame (immobile).",
     "movie": "Optional: the table's presence declares a movie, simulated by "
     "`bayespsf.movie.simulate.simulate_movie` (`bayespsf simulate SCENE --movie`); "
     "`bayespsf.simulate` ignores it. Each key below declares one effect; an absent key (or 0) "

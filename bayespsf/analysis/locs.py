@@ -22,6 +22,10 @@ writers put it into
   two position SDs;
 * ``locs.parquet``: the whole table.
 
+With a z calibration (``bayespsf.axial``), picasso's ``z`` and ``lpz`` follow ``lpy`` (nm:
+the z posterior's mean and SD) and ThunderSTORM's table has ``z [nm]`` and ``uncertainty_z
+[nm]``; the z posterior's interval, k-hat and verdict are among bayespsf's columns.
+
 Photons are in the model's ``photon_unit`` (a column of every table; picasso's and
 ThunderSTORM's ``photon`` columns hold the same numbers).
 """
@@ -74,6 +78,9 @@ def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
             "lpy": (t["y0_sd"] / a).to_numpy(np.float32),
         }
     )
+    if "z_mean" in t:  # a z calibration was given (bayespsf.axial): picasso's z and lpz, nm
+        locs["z"] = t["z_mean"].to_numpy(np.float32)
+        locs["lpz"] = t["z_sd"].to_numpy(np.float32)
     rest = [c for c in t.columns if c not in (*PICASSO_COLUMNS, "row", "col")]
     return pd.concat([locs, t[rest].reset_index(drop=True)], axis=1)
 
@@ -171,6 +178,9 @@ def thunderstorm_table(locs: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
             * a,
         }
     )
+    if "z" in locs:
+        table.insert(4, "z [nm]", locs["z"].astype(float))
+        table["uncertainty_z [nm]"] = locs["lpz"].astype(float)
     if "molecule" in locs:
         table["molecule"] = locs["molecule"].to_numpy()
     return table

@@ -102,10 +102,14 @@ def analyze(
     movie, model: Model, *, s0: float, out, roi: int = 25, fit: int = 15, rules=None,
     method: str = "auto", ess: float | None = None, seed: int = 0, workers: int | None = None,
     executor=None, progress: bool | None = None, provenance: dict | None = None,
+    z_calibration=None, z_range=(-800.0, 800.0),
 ) -> Analysis:  # fmt: skip
     """The module docstring's stages on ``movie`` with ``model`` (a camera file's model, its
     ROI size unused); every file goes into the folder ``out``. ``provenance`` (the camera
-    file's text, the command) is recorded in ``locs.yaml`` and the report."""
+    file's text, the command) is recorded in ``locs.yaml`` and the report. With
+    ``z_calibration`` (a ``bayespsf.axial.calibrate.Calibration``), every frame also gets its
+    z posterior (``bayespsf.axial.table.z_posteriors``, z uniform on ``z_range`` nm), whose
+    summary goes into the localisation tables and whose calibration into ``locs.yaml``."""
     movie = open_movie(movie)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -126,6 +130,14 @@ def analyze(
         [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1
     )
     frames["selected"] = True
+    if z_calibration is not None:
+        from bayespsf.axial.table import z_posteriors
+
+        z_rows = z_posteriors(counts, fitting, z_calibration, seed=seed, z_range=z_range,
+                              workers=workers, executor=executor, progress=progress,
+                              **effective)  # fmt: skip
+        frames = pd.concat([frames, z_rows], axis=1)
+        provenance = {**(provenance or {}), "z calibration": z_calibration.record()}
     frame_z, per_molecule, overall = frame_consistency(frames, PARAMETERS)
     joint = joint_posteriors(counts, frames, fitting, seed=seed, workers=workers,
                              executor=executor, progress=progress, **effective)  # fmt: skip

@@ -49,6 +49,7 @@ from bayespsf import psf
 from bayespsf.errors import BayespsfInputError
 from bayespsf.scene import Scene, SceneError
 from bayespsf.simulator import (
+    axial_effects,
     camera_effects,
     detection_effects,
     scene_photon_label,
@@ -61,7 +62,7 @@ MOLECULE_COLUMNS = (
 )  # fmt: skip
 TRUTH_COLUMNS = ("molecule", "frame", "x", "y", "photons", "on", "fluorophores_on", "photon_unit")
 WINDOW_SDS = 6.0  # the PSF window's half-side in SDs
-_PLACE, _PHOTONS, _FLUOROPHORES, _BLEACH, _MOVING, _BLINK = range(6)  # per-movie streams
+_PLACE, _PHOTONS, _FLUOROPHORES, _BLEACH, _MOVING, _BLINK, _AXIAL = range(7)  # per movie
 _NOISE, _JITTER, _WALK, _BLINKING, _DARK = range(10, 15)  # per-frame streams
 
 
@@ -81,11 +82,6 @@ def movie_settings(scene: Scene) -> dict:
         raise SceneError("the scene declares no [movie] table (e.g. the shipped paper-movie)")
     if scene.optics["psf"] != "gaussian":
         raise SceneError("optics.psf must be 'gaussian' in a movie scene (movies draw its image)")
-    if "axial" in scene.to_dict():
-        raise SceneError(
-            "[axial] is not used by movies yet (their molecules have the emitter's s0x, s0y); "
-            "remove it, or simulate ROIs with bayespsf.simulate"
-        )
     if scene.emitter["width_jitter"] > 0:
         raise SceneError(
             "emitter.width_jitter is not used by movies (photons are not binned one by one); "
@@ -168,6 +164,9 @@ class _Molecules:
     present: np.ndarray  # (n, 2) bool: the molecule carries this fluorophore
     bleach: np.ndarray  # (n, 2) bleaching time in frames (inf: none)
     moving: np.ndarray
+    s_x: np.ndarray  # widths, nm: the emitter's, or those of each molecule's z ([axial])
+    s_y: np.ndarray
+    z: np.ndarray | None  # axial position, nm, where the scene declares [axial]
     on: np.ndarray  # (n, 2) blinking state
     next_switch: np.ndarray  # (n, 2) time of the next blinking switch (inf: none)
     walk: np.ndarray  # (2, n) random-walk displacement so far, nm
@@ -201,7 +200,14 @@ def _draw_molecules(scene: Scene, seed: int) -> _Molecules:
         rng = _rng(seed, _BLINK)
         on = rng.random((n, 2)) < m["blink_on"] / (m["blink_on"] + m["blink_off"])
         next_switch = rng.exponential(np.where(on, m["blink_on"], m["blink_off"]))
-    return _Molecules(x, y, photons, present, bleach, moving, on, next_switch, np.zeros((2, n)))
+    s_x, s_y, z = np.full(n, float(e["s0x"])), np.full(n, float(e["s0y"])), None
+    if "axial" in scene.to_dict():  # one z per molecule, kept in every frame (immobile)
+        batch = fx.Batch(n, 0, {"s_x": s_x, "s_y": s_y})
+        for step in axial_effects(scene):
+            step(batch, _rng(seed, _AXIAL))
+        s_x, s_y, z = batch.truth["s_x"], batch.truth["s_y"], batch.truth["z"]
+    return _Molecules(x, y, photons, present, bleach, moving, s_x, s_y, z, on, next_switch,
+                      np.zeros((2, n)))  # fmt: skip
 
 
 def _emitting_fraction(mol: _Molecules, frame: int, m: dict, rng) -> np.ndarray:
@@ -244,19 +250,19 @@ def _as_frame(counts: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
     return counts.astype(dtype)
 
 
-def _expected_frame(x, y, n_photons, scene: Scene, rng) -> tuple[np.ndarray, str]:
+def _expected_frame(x, y, n_photons, widths, scene: Scene, rng) -> tuple[np.ndarray, str]:
     """The signal of one frame: expected photons (Poisson statistics) or whole photoelectrons
     (fixed statistics, a multinomial over each molecule's window), and its stage."""
     m, e, a = scene.movie, scene.emitter, scene.geometry["pixel_size"]
     h, w = m["height"], m["width"]
     fixed = e["photon_statistics"] == "fixed"
     lit = n_photons > 0
-    half = math.ceil(WINDOW_SDS * max(e["s0x"], e["s0y"]) / a + 0.5)
+    s_x, s_y = (w_[lit] for w_ in widths)
+    half = math.ceil(WINDOW_SDS * max(s_x.max(initial=0.0), s_y.max(initial=0.0)) / a + 0.5)
     r, c = _nearest(y[lit]), _nearest(x[lit])
     k = r.size
     params = np.column_stack(
-        [(x[lit] - c) * a, (y[lit] - r) * a, np.full(k, e["s0x"]), np.full(k, e["s0y"]),
-         np.ones(k), np.zeros(k)]
+        [(x[lit] - c) * a, (y[lit] - r) * a, s_x, s_y, np.ones(k), np.zeros(k)]
     )  # fmt: skip
     window = psf.expected_counts(params, 2 * half + 1, a)
     offsets = np.arange(-half, half + 1)
@@ -297,7 +303,7 @@ def iter_movie(scene: Scene, seed: int) -> Iterator[tuple[np.ndarray, pd.DataFra
         x = mol.x + (m["drift_x"] * f + mol.walk[0]) / a
         y = mol.y + (m["drift_y"] * f + mol.walk[1]) / a
         rng = _rng(seed, _NOISE, f)
-        image, stage = _expected_frame(x, y, n_photons, scene, rng)
+        image, stage = _expected_frame(x, y, n_photons, (mol.s_x, mol.s_y), scene, rng)
         batch = fx.Batch(n=1, roi=0, image=image[None], stage=stage)
         for step in detection_effects(scene, stage):
             step(batch, rng)
@@ -326,22 +332,26 @@ def iter_dark_frames(scene: Scene, seed: int) -> Iterator[np.ndarray]:
 
 def molecule_table(scene: Scene, seed: int) -> pd.DataFrame:
     """One row per molecule (``MOLECULE_COLUMNS``): position at frame 0 (pixels, picasso's
-    convention, and nm from the centre of pixel (0, 0)), widths (nm), mean photons per frame
+    convention, and nm from the centre of pixel (0, 0)), widths (nm; where the scene declares
+    ``[axial]``, those of the molecule's ``z``, a column before them), mean photons per frame
     of each fluorophore, fluorophores, the first frame after the last bleaching step (empty
     if it is not within the movie) and whether it moves (random walk)."""
-    m, e, a = movie_settings(scene), scene.emitter, scene.geometry["pixel_size"]
+    m, a = movie_settings(scene), scene.geometry["pixel_size"]
     _check_seed(seed)
     mol = _draw_molecules(scene, seed)
     last = mol.bleach_frame
     bleach = pd.Series(np.where(last < m["frames"], last, np.nan)).astype("Int64")
-    return pd.DataFrame(
+    table = pd.DataFrame(
         {"molecule": np.arange(mol.x.size), "x": mol.x, "y": mol.y, "x_nm": mol.x * a,
-         "y_nm": mol.y * a, "s_x": e["s0x"], "s_y": e["s0y"],
+         "y_nm": mol.y * a, "s_x": mol.s_x, "s_y": mol.s_y,
          "photons": mol.photons * truth_photon_factor(scene),
          "fluorophores": mol.present.sum(axis=1), "bleach_frame": bleach,
          "moving": mol.moving, "photon_unit": scene_photon_label(scene)},
         columns=list(MOLECULE_COLUMNS),
     )  # fmt: skip
+    if mol.z is not None:
+        table.insert(table.columns.get_loc("s_x"), "z", mol.z)
+    return table
 
 
 def simulate_movie(scene: Scene, seed: int, out: str | Path | None = None) -> MovieTruth:
