@@ -5,6 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from test_analysis_pipeline import CAMERA  # the paper-movie scene's camera, as a camera file
 
 from bayespsf import Scene, cli, scenes
 from bayespsf.axial.calibrate import calibrate
@@ -12,18 +13,6 @@ from bayespsf.axial.calibration_file import save_calibration
 from bayespsf.axial.defocus import Defocus
 from bayespsf.movie.simulate import match_truth, simulate_movie
 
-CAMERA = """[geometry]
-pixel_size = 79.0
-
-[camera]
-kind = "emccd"
-gain = 200.0
-readout_sd = 50.0
-offset = 100.0
-e_per_adu = 12.0
-quantize = true
-saturation = 65535.0
-"""
 AXIAL = {"curve": "huang", "focus_x": -200.0, "focus_y": 200.0, "z": "uniform",
          "z_low": -400.0, "z_high": 400.0}  # fmt: skip
 
