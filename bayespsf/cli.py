@@ -316,6 +316,45 @@ def _analyze(args) -> int:
     return 0
 
 
+def _calibrate_z(args) -> int:
+    from pathlib import Path
+
+    from bayespsf.axial.calibrate import bead_rois, calibrate, step_widths, zstack_positions
+    from bayespsf.axial.calibration_file import save_calibration
+
+    out = Path(args.out)
+    if out.is_dir():
+        raise CommandError(f"--out {out} is a folder; give the calibration file's name")
+    movie, model, s0 = _movie_model(args)
+    steps, extra = divmod(len(movie), args.frames_per_step)
+    if steps == 0 or extra:
+        raise CommandError(
+            f"the stack has {len(movie)} frames, not a whole number of steps of "
+            f"--frames-per-step {args.frames_per_step}"
+        )
+    z = zstack_positions(args.z_start, args.z_step, steps, args.frames_per_step)
+    rois, bead = bead_rois(movie, model, s0=s0, fit=args.fit, roi=args.roi)
+    widths = step_widths(rois, z, model, seed=args.seed, workers=args.workers)
+    command = "bayespsf calibrate-z " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
+    source = {"command": command, "stack": str(args.movie), "camera file": Path(args.camera)
+              .read_text(encoding="utf-8"), "bead x": float(bead["x"].iloc[0]),
+              "bead y": float(bead["y"].iloc[0])}  # fmt: skip
+    calibration = calibrate(widths, args.curve, higher_order=not args.no_higher_order,
+                            source=source)  # fmt: skip
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_calibration(calibration, out)
+    fits = calibration.fits
+    for axis in ("x", "y"):
+        row = fits.loc[axis]
+        print(f"{axis}: w0 {row['w0']:.1f} +- {row['w0_sd']:.1f} nm, focus {row['c']:.0f} +- "
+              f"{row['c_sd']:.0f} nm, depth {row['d']:.0f} +- {row['d_sd']:.0f} nm; chi2 "
+              f"{row['chi2']:.1f} on {int(row['dof'])} dof (p = {row['p']:.2g})")  # fmt: skip
+    for problem in calibration.problems:
+        print(f"warning: {problem}")
+    print(f"wrote {out}")
+    return 0
+
+
 def _calibrate(args) -> int:
     from pathlib import Path
 
@@ -531,6 +570,35 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     analyze.add_argument("--out", default="bayespsf-analyze", help="output folder")
     analyze.set_defaults(run=_analyze)
+    calibrate_z = commands.add_parser(
+        "calibrate-z",
+        help="defocus curves (a z calibration file) from a bead z-stack",
+        description="The brightest bead of STACK (frames at stage positions --z-start, "
+        "--z-start + --z-step, ..., --frames-per-step frames each): each step's widths as the "
+        "joint posterior over its frames, then per axis a defocus curve (Huang et al., Science "
+        "319 (2008), or its polynomial alternative) by weighted least squares, with a "
+        "chi-square test that warns where the curve does not fit the stack. Writes the "
+        "calibration file (TOML) that `bayespsf analyze --z-calibration` reads.",
+    )
+    calibrate_z.add_argument("movie", metavar="STACK", help="the z-stack: .tif/.ome.tif or .npy")
+    calibrate_z.add_argument("--camera", required=True, help="the camera file (as for detect)")
+    calibrate_z.add_argument(
+        "--psf-sd", type=float, default=None,
+        help="the bead's in-focus SD in nm (the detector's template)",
+    )  # fmt: skip
+    calibrate_z.add_argument("--z-start", type=float, required=True, help="first step's z, nm")
+    calibrate_z.add_argument("--z-step", type=float, required=True, help="z per step, nm")
+    calibrate_z.add_argument("--frames-per-step", type=int, required=True,
+                             help="frames at each step")  # fmt: skip
+    calibrate_z.add_argument("--curve", choices=("huang", "polynomial"), default="huang")
+    calibrate_z.add_argument("--no-higher-order", action="store_true",
+                             help="hold A = B = 0 (three terms per axis)")  # fmt: skip
+    calibrate_z.add_argument("--roi", type=int, default=25, help="ROI cut (default 25)")
+    calibrate_z.add_argument("--fit", type=int, default=15, help="fitted centre (default 15)")
+    calibrate_z.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    calibrate_z.add_argument("--workers", type=int, default=None, help="local processes")
+    calibrate_z.add_argument("--out", default="z-calibration.toml", help="the file to write")
+    calibrate_z.set_defaults(run=_calibrate_z)
     calibrate = commands.add_parser(
         "calibrate",
         help="a camera file from a movie of immobile molecules (and dark frames, if any)",

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 import tifffile
 
-from bayespsf import scenes, simulate
+from bayespsf import cli, scenes, simulate
 from bayespsf.axial.calibrate import (
     TERMS,
     bead_rois,
@@ -155,16 +155,58 @@ def test_round_trip_z_of_molecules_from_the_calibrated_curves(calibrated, tmp_pa
     assert covered >= 21
 
 
-def test_bead_rois_find_the_bead_of_a_tiff_stack(stack, tmp_path):
-    """The bead's ROIs cut from a 45 x 45 movie are the simulated ones, pixel for pixel."""
-    _, counts, _ = stack
+CAMERA = """[geometry]
+pixel_size = 100.0
+
+[camera]
+kind = "emccd"
+gain = 200.0
+readout_sd = 50.0
+offset = 100.0
+e_per_adu = 12.0
+quantize = true
+saturation = 65535.0
+"""
+
+
+def _tiff_stack(counts, path):
+    """The stack's ROIs at the centre of 45 x 45 frames whose other pixels image no spot."""
     dark = BEAD.replace(emitter={"photons": 1e-9})
     frames, _ = simulate(dark, 9 * len(counts), 9)
     movie = frames.reshape(len(counts), 3, 3, 15, 15).transpose(0, 1, 3, 2, 4)
     movie = movie.reshape(len(counts), 45, 45).copy()
     movie[:, 15:30, 15:30] = counts
-    path = tmp_path / "stack.tif"
     tifffile.imwrite(path, movie.astype(np.float32))
+    return path
+
+
+def test_bead_rois_find_the_bead_of_a_tiff_stack(stack, tmp_path):
+    """The bead's ROIs cut from a 45 x 45 movie are the simulated ones, pixel for pixel."""
+    _, counts, _ = stack
+    path = _tiff_stack(counts, tmp_path / "stack.tif")
     rois, bead = bead_rois(path, MODEL, s0=130.0, roi=25)
     assert (bead["x"].iloc[0], bead["y"].iloc[0]) == pytest.approx((22.0, 22.0), abs=0.6)
     np.testing.assert_array_equal(rois, counts.astype(np.float32))
+
+
+def test_calibrate_z_command_writes_the_file_analyze_reads(stack, tmp_path, capsys):
+    _, counts, _ = stack
+    path = _tiff_stack(counts, tmp_path / "stack.tif")
+    (tmp_path / "camera.toml").write_text(CAMERA)
+    args = ["calibrate-z", str(path), "--camera", str(tmp_path / "camera.toml"), "--psf-sd",
+            "130", "--z-start", "-700", "--z-step", "50", "--frames-per-step", "5",
+            "--no-higher-order", "--workers", "1", "--out", str(tmp_path / "z.toml")]  # fmt: skip
+    assert cli.main(args) == 0
+    printed = capsys.readouterr().out
+    assert printed.startswith("x: w0 ") and f"wrote {tmp_path / 'z.toml'}" in printed
+    loaded = load_calibration(tmp_path / "z.toml")
+    for axis, curve in (("x", TRUE.x), ("y", TRUE.y)):
+        fit = loaded.fits.loc[axis]
+        assert (
+            abs(fit["c"] - curve.c) < 4 * fit["c_sd"] and abs(fit["w0"] - 130.0) < 4 * fit["w0_sd"]
+        )
+    assert loaded.source["command"].startswith("bayespsf calibrate-z ")
+    bad = [*args[:-1], str(tmp_path / "z2.toml")]
+    bad[bad.index("--frames-per-step") + 1] = "4"
+    with pytest.raises(SystemExit, match="145 frames, not a whole number of steps"):
+        cli.main(bad)
