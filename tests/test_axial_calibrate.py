@@ -3,6 +3,8 @@ trip from a simulated stack to the z of simulated molecules."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -210,3 +212,29 @@ def test_calibrate_z_command_writes_the_file_analyze_reads(stack, tmp_path, caps
     bad[bad.index("--frames-per-step") + 1] = "4"
     with pytest.raises(SystemExit, match="145 frames, not a whole number of steps"):
         cli.main(bad)
+
+
+def test_the_calibrations_uncertainty_widens_z_by_what_the_stack_left_unknown(calibrated):
+    """With each axis's focus c uncertain by 30 nm (SD), z's posterior SD grows as the delta
+    method says, sqrt(sd0^2 + s_c^2), s_c^2 = sum over axes of (dz/dc)^2 30^2, with dz/dc that
+    axis's weight in the fit of z: 1/2 at z = 0, where the two slopes are equal in size, so
+    s_c^2 = 30^2 / 2 (within 15%). With the stack's own term SDs (~1 nm) the marginalised
+    posterior equals the plain one within Monte Carlo error."""
+    counts, _ = simulate(ASTIGMATIC.replace(axial={"z": "fixed", "z0": 0.0},
+                                            emitter={"photons": 10_000.0}), 1, 6)  # fmt: skip
+    model = Model.from_scene(ASTIGMATIC)
+    plain = z_posterior(counts[0], model, calibrated, seed=1).summary().loc["z", "sd"]
+    same = z_posterior(counts[0], model, calibrated, seed=1, calibration_uncertainty=True)
+    assert same.info["calibration_uncertainty"] and same.info["converged"]
+    # the stack's own term SDs are ~1 nm: they widen an SD of ~10 nm by under 1%
+    assert same.summary().loc["z", "sd"] == pytest.approx(plain, rel=0.1)
+    wide = copy.deepcopy(calibrated)
+    for axis in ("x", "y"):
+        wide.covariance[axis][1, 1] = 30.0**2
+        wide.fits.loc[axis, "c_sd"] = 30.0
+    post = z_posterior(counts[0], model, wide, seed=1, calibration_uncertainty=True)
+    assert post.info["converged"], post.info
+    expected = np.sqrt(plain**2 + 30.0**2 / 2)
+    assert post.summary().loc["z", "sd"] == pytest.approx(expected, rel=0.15)
+    with pytest.raises(BayespsfInputError, match="calibration_uncertainty needs a Calibration"):
+        z_posterior(counts[0], model, TRUE, calibration_uncertainty=True)

@@ -67,9 +67,14 @@ class HuangCurve:
             )
         return u, alpha
 
+    @staticmethod
+    def _shape(alpha):
+        """The width over w0 as a function of ``alpha = 1 + u^2 + A u^3 + B u^4``."""
+        return np.sqrt(alpha)
+
     def width(self, z) -> np.ndarray:
         _, alpha = self._alpha(z)
-        return self.w0 * np.sqrt(alpha)
+        return self.w0 * self._shape(alpha)
 
     def slope(self, z) -> np.ndarray:
         """``dw/dz = w0 (2u + 3A u^2 + 4B u^3) / (2 d sqrt(alpha))``."""
@@ -91,14 +96,26 @@ class PolynomialCurve(HuangCurve):
 
     kind = "polynomial"
 
-    def width(self, z) -> np.ndarray:
-        _, alpha = self._alpha(z)
-        return self.w0 * alpha
+    @staticmethod
+    def _shape(alpha):
+        return alpha
 
     def slope(self, z) -> np.ndarray:
         """``dw/dz = w0 (2u + 3A u^2 + 4B u^3) / d``."""
         u, _ = self._alpha(z)
         return self.w0 * (2 * u + 3 * self.A * u**2 + 4 * self.B * u**3) / self.d
+
+
+def widths_of_terms(kind: type[HuangCurve], terms: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """The width at each ``z`` (n,) of curves of class ``kind`` with per-row terms ``terms``
+    (n, 5: w0 c d A B), unchecked: NaN where a row's curve is undefined (calibration draws,
+    ``bayespsf.axial.posterior``)."""
+    w0, c, d, a, b = np.moveaxis(np.asarray(terms, dtype=np.float64), -1, 0)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        u = (z - c) / d
+        alpha = 1.0 + u**2 + a * u**3 + b * u**4
+        ok = np.isfinite(alpha) & (alpha > 0) & (d > 0) & (w0 > 0)
+        return np.where(ok, w0 * kind._shape(np.where(ok, alpha, 1.0)), np.nan)
 
 
 @dataclass(frozen=True)
@@ -146,4 +163,4 @@ class Defocus:
         return self.x.slope(z), self.y.slope(z)
 
 
-__all__ = ["Defocus", "HuangCurve", "PolynomialCurve"]
+__all__ = ["Defocus", "HuangCurve", "PolynomialCurve", "widths_of_terms"]

@@ -25,6 +25,13 @@ Where the curves are even about a plane (the paper's symmetric defocus: z and -z
 same image), both mirror modes are on the grid with their exact weight, so the posterior
 reports both; ``info["above_plane"]`` is the posterior probability of the upper one.
 
+The calibration's own uncertainty can be marginalised (``calibration_uncertainty``): each
+draw then also carries curve terms drawn from their Gaussian (``Calibration.covariance``),
+in the proposal and in the target alike, so the weights are unchanged in form and the z
+draws are those of the posterior integrated over the curves. The proposal's z is moved, given
+the drawn terms, by the first-order shift that keeps the widths at the grid's mode (a
+translation: its density is unchanged), so that it follows the curves of each draw.
+
 Sampling coordinates: ``v = (x0, y0, z, log N, b)`` (nm, nm, nm, log photons, photons).
 """
 
@@ -37,8 +44,8 @@ import pandas as pd
 
 from bayespsf._checks import as_generator
 from bayespsf.axial.bounds import THETA_NAMES
-from bayespsf.axial.calibrate import Calibration
-from bayespsf.axial.defocus import Defocus
+from bayespsf.axial.calibrate import CURVES, TERMS, Calibration
+from bayespsf.axial.defocus import Defocus, widths_of_terms
 from bayespsf.axial.push import check_z_range, symmetry_plane
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import start_values
@@ -74,27 +81,58 @@ class ZPosterior:
 
 
 class _Problem:
-    """One ROI's exact log posterior in ``v`` and the conditional fits on a grid of z."""
+    """One ROI's exact log posterior in ``v`` and the conditional fits on a grid of z; with
+    a ``calibration``, also at curve terms drawn from its uncertainty (``draw_terms``)."""
 
-    def __init__(self, counts, model: Model, defocus: Defocus, z_range):
+    def __init__(self, counts, model: Model, defocus: Defocus, z_range, calibration=None):
         self.counts, self.model, self.defocus = counts, model, defocus
+        self.calibration = calibration
         self.low, self.high = z_range
         defocus.widths(np.linspace(self.low, self.high, 1001))  # names a z outside its domain
         self.prior = _PriorTerms({**model.prior, "s_x": FLAT_WIDTH_PRIOR, "s_y": FLAT_WIDTH_PRIOR})
         self.start = start_values(model.to_photons(counts[None]), model)[0]
 
-    def params(self, v: np.ndarray) -> np.ndarray:
-        s_x, s_y = self.defocus.widths(v[:, 2])
+    def draw_terms(self, n: int, rng) -> np.ndarray:
+        """``n`` draws (2, n, 5) of both curves' terms from the calibration's Gaussian."""
+        out = []
+        for axis in ("x", "y"):
+            mean = self.calibration.fits.loc[axis, list(TERMS)].to_numpy(float)
+            values, vectors = np.linalg.eigh(self.calibration.covariance[axis])
+            root = vectors * np.sqrt(np.clip(values, 0.0, None))  # held terms: no spread
+            out.append(mean + rng.standard_normal((n, 5)) @ root.T)
+        return np.stack(out)
+
+    def shift(self, terms: np.ndarray, z: float) -> np.ndarray:
+        """How far z moves (n,) when the curves are drawn ``terms`` (2, n, 5) instead of the
+        fitted ones, to first order at ``z``: the least-squares z-shift that restores the
+        widths, ``-g'(w_drawn - w) / g'g`` with ``g`` the slopes (0 where g vanishes). The
+        proposal's z is moved by it, so that it follows the curves the target uses."""
+        kind = CURVES[self.calibration.curve]
+        g = np.array(self.defocus.slopes(z), dtype=np.float64).ravel()
+        if g @ g < 1e-12:  # in focus on a symmetric curve: no first-order shift
+            return np.zeros(terms.shape[1])
+        w = np.array(self.defocus.widths(z), dtype=np.float64).ravel()
+        change = np.stack([widths_of_terms(kind, terms[a], z) - w[a] for a in (0, 1)])
+        return -np.nan_to_num(g @ change) / (g @ g)
+
+    def params(self, v: np.ndarray, terms: np.ndarray | None = None) -> np.ndarray:
+        if terms is None:
+            s_x, s_y = self.defocus.widths(v[:, 2])
+        else:
+            kind = CURVES[self.calibration.curve]
+            s_x, s_y = (widths_of_terms(kind, t, v[:, 2]) for t in terms)
         with np.errstate(over="ignore"):
             n = np.exp(v[:, 3])
         return np.column_stack([v[:, 0], v[:, 1], s_x, s_y, n, v[:, 4]])
 
-    def log_posterior(self, v: np.ndarray) -> np.ndarray:
+    def log_posterior(self, v: np.ndarray, terms: np.ndarray | None = None) -> np.ndarray:
+        """Up to a constant; with ``terms`` (2, n, 5), at each draw's own curves (their
+        Gaussian is the proposal's too, so it cancels from the importance weights)."""
         out = np.full(len(v), -np.inf)
         inside = (v[:, 2] >= self.low) & (v[:, 2] <= self.high) & np.all(np.isfinite(v), axis=1)
         if not inside.any():
             return out
-        p = self.params(v[inside])
+        p = self.params(v[inside], None if terms is None else terms[:, inside])
         log_prior = self.prior(p) + v[inside, 3]  # + log N: the density of log N
         ok = np.isfinite(log_prior)
         values = np.full(len(p), -np.inf)
@@ -182,7 +220,8 @@ def _grid(problem: _Problem):
 
 
 def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.0),
-                seed=0, ess: float = 400.0) -> ZPosterior:  # fmt: skip
+                seed=0, ess: float = 400.0,
+                calibration_uncertainty: bool = False) -> ZPosterior:  # fmt: skip
     """The posterior of ``(x0, y0, z, N, b)`` of one ROI (module docstring).
 
     Parameters
@@ -199,6 +238,10 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
     seed : int or Generator
     ess : float
         Effective sample size of the importance weights to reach (draws returned).
+    calibration_uncertainty : bool
+        With a ``Calibration``: marginalise its curves' uncertainty (each draw at curve terms
+        drawn from the terms' Gaussian, ``Calibration.covariance``), so that z's posterior
+        widens by what the stack left unknown. Default False: the fitted curves as exact.
 
     Returns
     -------
@@ -219,20 +262,28 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
     if not (isinstance(ess, int | float) and np.isfinite(ess) and 10 <= ess <= 1e6):
         raise BayespsfInputError(f"ess must be a number in [10, 1e6], got {ess!r}")
     rng = as_generator(seed)
-    problem = _Problem(c, model, defocus, check_z_range(z_range))
+    if calibration_uncertainty and calibration is None:
+        raise BayespsfInputError("calibration_uncertainty needs a Calibration, not a Defocus")
+    problem = _Problem(c, model, defocus, check_z_range(z_range),
+                       calibration if calibration_uncertainty else None)  # fmt: skip
     points, fit, covariance, log_m, (coarse, coarse_log_m) = _grid(problem)
     edges = np.concatenate([[problem.low], 0.5 * (points[1:] + points[:-1]), [problem.high]])
     lower = np.maximum(edges[:-1], points - FINE_STEP / 2)
     upper = np.minimum(edges[1:], points + FINE_STEP / 2)
     centre = np.column_stack([fit[:, 0], fit[:, 1], np.log(fit[:, 4]), fit[:, 5]])
     proposal = _GridProposal(lower, upper, log_m + np.log(upper - lower), centre, covariance)
-    drawn, log_ratio = [], []
+    drawn, drawn_terms, log_ratio = [], [], []
+    mode = float(points[np.argmax(log_m)])
     batch, max_draws = int(np.ceil(ess / 0.7)), int(MAX_DRAWS_PER_ESS * ess)
     scored = 0
     while True:
         v, log_q = proposal.draw(batch, rng)
+        terms = None if problem.calibration is None else problem.draw_terms(batch, rng)
+        if terms is not None:  # a translation given the terms: log_q is unchanged
+            v[:, 2] += problem.shift(terms, mode)
         drawn.append(v)
-        log_ratio.append(problem.log_posterior(v) - log_q)
+        drawn_terms.append(terms)
+        log_ratio.append(problem.log_posterior(v, terms) - log_q)
         scored += batch
         weights, khat = psis(np.concatenate(log_ratio))
         achieved = 1.0 / np.sum(weights**2)
@@ -242,7 +293,8 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
                             min(BATCH * 16, max_draws - scored)))  # fmt: skip
     v = np.concatenate(drawn)
     keep = systematic_resample(weights, int(np.ceil(ess)), rng)
-    params = problem.params(v[keep])
+    terms = None if problem.calibration is None else np.concatenate(drawn_terms, axis=1)
+    params = problem.params(v[keep], None if terms is None else terms[:, keep])
     draws = pd.DataFrame(
         np.column_stack([params[:, 0], params[:, 1], v[keep, 2], params[:, 4], params[:, 5]]),
         columns=list(THETA_NAMES),
@@ -258,6 +310,7 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
         )  # fmt: skip
     if calibration is not None:
         info["calibration"] = calibration.record()
+        info["calibration_uncertainty"] = bool(calibration_uncertainty)
     plane = symmetry_plane(defocus)
     if plane is not None:
         info["plane"] = plane
