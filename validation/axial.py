@@ -221,18 +221,47 @@ def main(argv=None):
     table = summarise(per_roi)
     figure(table, args.out / f"{stem}.png")
     fmt = {"index": False, "floatfmt": ".3g"}
-    posterior = table[table["method"] == "posterior"]
-    met = posterior[["within 2 SE 68%", "within 2 SE 95%"]].to_numpy().all(axis=1)
-    verdict = (
-        f"The posterior's 68% and 95% coverage are within 2 binomial SE of nominal at "
-        f"{int(met.sum())} of {len(posterior)} points."
+    verdict = "The posterior's 68% and 95% coverage within 2 binomial SE of nominal: " + verdicts(
+        table
     )
     text = (
         f"# Axial z: posterior, first-order and pushed-Laplace errors\n\n{verdict}\n\n"
         f"{table.to_markdown(**fmt)}\n\nFigure: [{stem}.png]({stem}.png)."
     )
-    summary = f"{verdict}\n\n{table.to_markdown(**fmt)}\n\n![z SD against z](results/{stem}.png)"
+    summary = (
+        f"{verdict}\n\n{compact(table).to_markdown(**fmt)}\n\n![z SD against z](results/{stem}.png)"
+    )
     return finish(args, "axial", table, text, started, summary)
+
+
+def verdicts(table: pd.DataFrame) -> str:
+    """How many points of each kind (curve; z fixed or drawn from the prior) the posterior's
+    coverage met, in words."""
+    posterior = table[table["method"] == "posterior"]
+    parts = []
+    for (curve, drawn), g in posterior.groupby(["curve", posterior["z"].isna()], sort=False):
+        met = int((g["within 2 SE 68%"] & g["within 2 SE 95%"]).sum())
+        kind = "z drawn from the prior" if drawn else "fixed z"
+        parts.append(f"{curve} curve, {kind}: {met} of {len(g)} points")
+    return "; ".join(parts) + "."
+
+
+def compact(table: pd.DataFrame) -> pd.DataFrame:
+    """One row per point: each method's 68% and 95% coverage, and the posterior's SD over
+    sqrt(CRLB_z) and the share of its importance weights that passed (the README's table)."""
+    keys = ["curve", "z", "N"]
+    out = table[table["method"] == "posterior"][keys].reset_index(drop=True)
+    short = {"posterior": "post", "first order": "1st order", "pushed Laplace": "pushed"}
+    for method, name in short.items():
+        rows = table[table["method"] == method].reset_index(drop=True)
+        out[f"{name} 68%"] = rows["coverage 68%"]
+        out[f"{name} 95%"] = rows["coverage 95%"]
+    posterior = table[table["method"] == "posterior"].reset_index(drop=True)
+    out["post SD / sqrt CRLB"] = posterior["mean SD / sqrt CRLB"]
+    out["1st order SD unusable"] = table[table["method"] == "first order"]["SD unusable"].to_numpy()
+    out["post passed"] = posterior["passed"]
+    out["z"] = out["z"].map(lambda z: "prior" if np.isnan(z) else f"{z:g}")
+    return out
 
 
 def figure(table: pd.DataFrame, path: Path) -> None:
