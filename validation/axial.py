@@ -165,6 +165,13 @@ def one_point(task) -> list[dict]:
     return rows
 
 
+def _median(values: pd.Series) -> float:
+    """The median of the finite values; NaN where there are none (in focus on the symmetric
+    curve, where z's bound is infinite)."""
+    finite = values[np.isfinite(values)]
+    return float(finite.median()) if len(finite) else np.nan
+
+
 def summarise(per_roi: pd.DataFrame) -> pd.DataFrame:
     rows = []
     keys = ["curve", "z", "N", "method"]
@@ -176,7 +183,7 @@ def summarise(per_roi: pd.DataFrame) -> pd.DataFrame:
             "curve": curve, "z": z0, "N": photons, "method": method, "ROIs": n,
             "coverage 68%": g["in68"].mean(), "coverage 95%": g["in95"].mean(),
             "SE 68%": np.sqrt(0.68 * 0.32 / n), "SE 95%": np.sqrt(0.95 * 0.05 / n),
-            "sqrt CRLB (nm)": g["sqrt CRLB_z"].median(), "median SD (nm)": g["sd"].median(),
+            "sqrt CRLB (nm)": _median(g["sqrt CRLB_z"]), "median SD (nm)": g["sd"].median(),
             "mean SD / sqrt CRLB": (g["sd"][finite] / g["sqrt CRLB_z"][finite]).mean(),
             "RMSE / sqrt CRLB": float(np.sqrt(np.mean(
                 ((g["estimate"] - target) / g["sqrt CRLB_z"]) ** 2
