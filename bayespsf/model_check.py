@@ -21,6 +21,7 @@ import numbers
 
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 from bayespsf._checks import real_array
 from bayespsf.errors import BayespsfInputError
@@ -114,4 +115,17 @@ def _replicate_drawer(seed, n: int, model: Model, replicates: int):
     return draw
 
 
-__all__ = ["bootstrap_check"]
+def flag_excess_p(gof_p: pd.Series, alpha: float) -> float:
+    """The dataset-level test of the per-frame goodness-of-fit flags: the binomial probability
+    of at least as many frames with ``gof_p <= alpha`` as observed if each is flagged with
+    probability ``alpha`` (the model holding in every frame). A misfit shared by every frame
+    (an Airy spot fitted with a Gaussian), which the check across frames cannot see, shows
+    here; NaN without p-values."""
+    p = np.asarray(gof_p, dtype=np.float64)
+    p = p[np.isfinite(p)]
+    if not len(p):
+        return np.nan
+    return float(stats.binom.sf(int((p <= alpha).sum()) - 1, len(p), alpha))
+
+
+__all__ = ["bootstrap_check", "flag_excess_p"]

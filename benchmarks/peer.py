@@ -6,7 +6,7 @@ camera law of two likelihood tiers, 'poisson' (photon camera, or EMCCD counts co
 photons) and 'gaussian' (the EMCCD chi-square model). NUTS samples the same coordinates as
 emcee, ``x0, y0, log s_x, log s_y, log N, b``, with the log-Jacobian added, so its potential
 energy is minus :meth:`bayespsf.model.Model.log_posterior` up to a constant (tested in
-tests/test_peer_benchmark.py) and both samplers face the same geometry.
+tests/peer_checks.py) and both samplers face the same geometry.
 
 For molecules of the `ideal` scene (Poisson likelihood) and of `emccd-typical` (gaussian tier),
 spot fixed at the centre: the wall time of `sample_posterior` (ESS 400; its MLE start, burn-in

@@ -74,3 +74,20 @@ def test_bad_replicates_are_named():
         bootstrap_check(counts[0], MODEL)
     with pytest.raises(BayespsfInputError, match="fits must be fit_mle's table"):
         bootstrap_check(counts, MODEL, fits=fit_mle(counts[:1], MODEL))
+
+
+def test_flag_excess_p_is_the_binomial_tail_of_the_flags():
+    """At least k of n frames flagged at alpha when each is with probability alpha: the tail
+    sum written out, against the function; uniform p-values are not called excessive, and
+    the Airy-like excess of validation/movie_analysis.py (22% of 1 200 at 0.1) is."""
+    from math import comb
+
+    from bayespsf.model_check import flag_excess_p
+
+    p = np.r_[np.full(20, 0.05), np.full(80, 0.5), np.nan]
+    exact = sum(comb(100, k) * 0.1**k * 0.9 ** (100 - k) for k in range(20, 101))
+    assert flag_excess_p(p, 0.1) == pytest.approx(exact, rel=1e-10)
+    rng = np.random.default_rng(0)
+    assert flag_excess_p(rng.random(1200), 0.1) > 0.01
+    assert flag_excess_p(np.r_[np.full(264, 0.01), np.full(936, 0.6)], 0.1) < 1e-30
+    assert np.isnan(flag_excess_p(np.array([np.nan]), 0.1))

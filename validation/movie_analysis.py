@@ -52,7 +52,7 @@ from bayespsf.analysis.pipeline import valid_rois
 from bayespsf.batch import sample_many
 from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
-from bayespsf.model_check import bootstrap_check
+from bayespsf.model_check import bootstrap_check, flag_excess_p
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.select import Rules
 from bayespsf.movie.simulate import match_truth, simulate_movie
@@ -220,6 +220,7 @@ def one_case(name: str, molecules: int, frames: int, workers: int) -> dict:
         out[f"{p} two-sided p"] = float(row["p_two_sided"])
     out["GOF flagged at 0.1"] = float(flagged)
     out["GOF SE"] = float(np.sqrt(0.09 / max(n, 1)))
+    out["GOF flags p"] = flag_excess_p(check["gof_p"], 0.1)
     return out
 
 
