@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import tifffile
+from test_analysis_pipeline import CAMERA as PAPER_CAMERA
 
 from bayespsf import cli, scenes, simulate
 from bayespsf.axial.calibrate import (
@@ -157,18 +158,7 @@ def test_round_trip_z_of_molecules_from_the_calibrated_curves(calibrated, tmp_pa
     assert covered >= 21
 
 
-CAMERA = """[geometry]
-pixel_size = 100.0
-
-[camera]
-kind = "emccd"
-gain = 200.0
-readout_sd = 50.0
-offset = 100.0
-e_per_adu = 12.0
-quantize = true
-saturation = 65535.0
-"""
+CAMERA = PAPER_CAMERA.replace("pixel_size = 79.0", "pixel_size = 100.0")  # the scene's
 
 
 def _tiff_stack(counts, path):
