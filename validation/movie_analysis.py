@@ -32,7 +32,7 @@ same Poisson background), each molecule at one fixed position in all its frames:
 A right model gives z-score SDs of 1 within their SE and a flag rate of 0.1 within its binomial
 SE; the issue asks the check to fail clearly for the other three.
 
-    python validation/movie_analysis.py            # 30 movies and 4 x 1 200 ROIs (about 30 minutes)
+    python validation/movie_analysis.py            # 30 movies and 4 x 1 200 ROIs (about 21 minutes)
     python validation/movie_analysis.py --quick    # 1 small movie and 4 x 30 ROIs
 """
 
