@@ -303,8 +303,8 @@ def _analyze(args) -> int:
         workers=None if args.scheduler else args.workers, executor=args.scheduler,
         provenance={"command": command, "camera file": camera_path.read_text()},
         z_calibration=z_calibration, z_range=tuple(args.z_range),
+        files={"camera.toml": camera_path},
     )  # fmt: skip
-    result.paths["camera.toml"] = camera_path
     check = result.consistency.set_index("parameter")
     print(
         f"{movie!r}: {int(result.molecules['selected'].sum())} molecules selected, "

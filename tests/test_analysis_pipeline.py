@@ -70,6 +70,7 @@ def test_every_file_is_written_with_one_row_per_analysed_frame(run):
     assert (out / "posteriors" / "summary.csv").exists()
     report = (out / "report.md").read_text()
     assert "calibration check" in report and "(zscores.png)" in report
+    assert "- `camera.toml`" in report  # the camera file the run used, in the Files list
     assert locs["gof_p"].between(0, 1).all() and "goodness-of-fit" in report
 
 

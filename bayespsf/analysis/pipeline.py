@@ -103,19 +103,21 @@ def analyze(
     movie, model: Model, *, s0: float, out, roi: int = 25, fit: int = 15, rules=None,
     method: str = "auto", ess: float | None = None, seed: int = 0, workers: int | None = None,
     executor=None, progress: bool | None = None, provenance: dict | None = None,
-    z_calibration=None, z_range=(-800.0, 800.0),
+    z_calibration=None, z_range=(-800.0, 800.0), files: dict | None = None,
 ) -> Analysis:  # fmt: skip
     """The module docstring's stages on ``movie`` with ``model`` (a camera file's model, its
     ROI size unused); every file goes into the folder ``out``. ``provenance`` (the camera
     file's text, the command) is recorded in ``locs.yaml`` and the report. With
     ``z_calibration`` (a ``bayespsf.axial.calibrate.Calibration``), every frame also gets its
     z posterior (``bayespsf.axial.table.z_posteriors``, z uniform on ``z_range`` nm), whose
-    summary goes into the localisation tables and whose calibration into ``locs.yaml``."""
+    summary goes into the localisation tables and whose calibration into ``locs.yaml``.
+    ``files`` (name: path) are files the caller put into ``out`` (the camera file), listed in
+    the report beside the run's own."""
     movie = open_movie(movie)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     found = find_molecules(movie, model, s0=s0, roi=roi, fit=fit, rules=rules, progress=progress)
-    paths = write_selection(found, out)
+    paths = {**(files or {}), **write_selection(found, out)}
     if not found.molecules["selected"].any():
         raise BayespsfInputError(
             "no molecule passed the selection rules: nothing to analyse (see "
