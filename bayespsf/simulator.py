@@ -102,7 +102,7 @@ def build_pipeline(scene: Scene) -> list[fx.Effect]:
 
 def axial_effects(scene: Scene) -> list[fx.Effect]:
     """The emitter's z and the widths it gives, where the scene declares ``[axial]``."""
-    ax, e = scene.axial, scene.emitter
+    ax = scene.axial
     law = ax["z"]
     position = fx.AxialPosition(
         law,
@@ -111,7 +111,7 @@ def axial_effects(scene: Scene) -> list[fx.Effect]:
         high=ax.get("z_high", 0.0),
         sd=ax.get("z_sd", 0.0),
     )
-    return [position, fx.DefocusWidths(Defocus.from_table(ax, e["s0x"], e["s0y"]))]
+    return [position, fx.DefocusWidths(Defocus.from_scene(scene))]
 
 
 def scene_photon_label(scene: Scene) -> str:

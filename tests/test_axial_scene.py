@@ -10,6 +10,7 @@ from scipy import stats
 from bayespsf import scenes, simulate
 from bayespsf.axial.defocus import Defocus, HuangCurve, PolynomialCurve
 from bayespsf.effects import AxialPosition, DefocusWidths
+from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
 from bayespsf.movie.simulate import simulate_movie
 from bayespsf.scene import Scene, SceneError
@@ -81,6 +82,9 @@ def test_a_scene_with_axial_round_trips_and_names_its_defocus():
     assert Scene.loads(scene.dumps()) == scene
     defocus = Defocus.from_table(scene.axial, 130.0, 130.0)
     assert defocus.x == HuangCurve(130.0, -200.0, 400.0) and defocus.y == HuangCurve(130.0, 200.0)
+    assert Defocus.from_scene(scene) == defocus
+    with pytest.raises(BayespsfInputError, match=r"no \[axial\] table"):
+        Defocus.from_scene(scenes.load("emccd-typical"))
 
 
 @pytest.mark.parametrize(

@@ -83,7 +83,7 @@ def scene_at(curve: str, z0: float, photons: float):
 
 
 def defocus_of(scene) -> Defocus:
-    return Defocus.from_table(scene.axial, scene.emitter["s0x"], scene.emitter["s0y"])
+    return Defocus.from_scene(scene)
 
 
 def _interval_hits(low68, high68, low95, high95, truth) -> tuple[bool, bool]:

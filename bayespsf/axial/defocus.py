@@ -156,6 +156,14 @@ class Defocus:
             for axis, s0 in (("x", s0x), ("y", s0y))
         ))  # fmt: skip
 
+    @classmethod
+    def from_scene(cls, scene) -> Defocus:
+        """The defocus a ``Scene`` declares in ``[axial]``, with its emitter's in-focus
+        widths."""
+        if "axial" not in scene.to_dict():
+            raise BayespsfInputError("the scene declares no [axial] table: no defocus")
+        return cls.from_table(scene.axial, scene.emitter["s0x"], scene.emitter["s0y"])
+
     def widths(self, z) -> tuple[np.ndarray, np.ndarray]:
         return self.x.width(z), self.y.width(z)
 
