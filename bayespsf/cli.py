@@ -325,6 +325,8 @@ def _calibrate_z(args) -> int:
     out = Path(args.out)
     if out.is_dir():
         raise CommandError(f"--out {out} is a folder; give the calibration file's name")
+    if args.frames_per_step < 1:
+        raise CommandError(f"--frames-per-step must be >= 1, got {args.frames_per_step}")
     movie, model, s0 = _movie_model(args)
     steps, extra = divmod(len(movie), args.frames_per_step)
     if steps == 0 or extra:

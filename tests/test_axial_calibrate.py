@@ -202,6 +202,9 @@ def test_calibrate_z_command_writes_the_file_analyze_reads(stack, tmp_path, caps
     bad[bad.index("--frames-per-step") + 1] = "4"
     with pytest.raises(SystemExit, match="145 frames, not a whole number of steps"):
         cli.main(bad)
+    bad[bad.index("--frames-per-step") + 1] = "0"
+    with pytest.raises(SystemExit, match="--frames-per-step must be >= 1, got 0"):
+        cli.main(bad)
 
 
 def test_the_calibrations_uncertainty_widens_z_by_what_the_stack_left_unknown(calibrated):

@@ -116,3 +116,13 @@ def test_bad_inputs_are_named(kwargs, message):
     args = {"counts": counts[0], "model": MODEL, "defocus": DEFOCUS, **kwargs}
     with pytest.raises(BayespsfInputError, match=message):
         z_posterior(args.pop("counts"), args.pop("model"), args.pop("defocus"), **args)
+
+
+def test_z_posteriors_names_a_bad_range_or_calibration_before_any_roi_runs():
+    from bayespsf.axial.table import z_posteriors
+
+    counts, _ = simulate(ASTIGMATIC, 2, 0)
+    with pytest.raises(BayespsfInputError, match="z_range must have low < high"):
+        z_posteriors(counts, MODEL, DEFOCUS, z_range=(100.0, -100.0), workers=1)
+    with pytest.raises(BayespsfInputError, match="calibration must be a Calibration or a Defocus"):
+        z_posteriors(counts, MODEL, "z.toml", workers=1)

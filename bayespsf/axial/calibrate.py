@@ -198,6 +198,8 @@ def fit_curve(z, width, sd, curve: str = "huang", higher_order: bool = True) -> 
             continue
         if best is None or result.cost < best.cost:
             best = result
+    if best is None:
+        raise BayespsfInputError(f"no start of the {curve} curve could be fitted to these widths")
     jac = best.jac
     covariance = np.zeros((5, 5))
     try:

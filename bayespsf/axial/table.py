@@ -6,7 +6,10 @@ from __future__ import annotations
 import pandas as pd
 
 from bayespsf._progress import progress_bar
+from bayespsf.axial.calibrate import Calibration
+from bayespsf.axial.defocus import Defocus
 from bayespsf.axial.posterior import z_posterior
+from bayespsf.axial.push import check_z_range
 from bayespsf.errors import BayespsfInputError
 
 COLUMNS = ("z_mean", "z_sd", "z_q0025", "z_q0975", "z_khat", "z_converged")
@@ -43,6 +46,11 @@ def z_posteriors(counts, model, calibration, *, seed: int = 0, ess: float = 400.
     from bayespsf.batch import _executor, _results, molecule_seed
 
     counts = model.check_counts(counts)
+    z_range = check_z_range(z_range)  # named here, not once per ROI in the workers
+    if not isinstance(calibration, Calibration | Defocus):
+        raise BayespsfInputError(
+            f"calibration must be a Calibration or a Defocus, got {type(calibration).__name__}"
+        )
     if counts.ndim != 3:
         raise BayespsfInputError(f"counts must be a stack (n, roi, roi), got {counts.shape}")
     seeds = [molecule_seed(seed, i) for i in range(len(counts))]
