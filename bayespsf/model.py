@@ -343,6 +343,15 @@ class Model:
         lam = self.expected(finite_array("params", params))
         return self.camera._log_likelihood(c, lam).sum(axis=(-2, -1))
 
+    def log_likelihood_unchecked(self, counts, params) -> np.ndarray:
+        """``log_likelihood`` without checking its inputs: ``counts`` already validated
+        (``check_counts``) and ``params`` (..., 6) finite and inside the PSF's domain (the
+        samplers' hot path)."""
+        lam = self._detected(
+            psf.expected_counts_unchecked(params, self.roi, self.pixel_size, self.pixel_model)
+        )
+        return self.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
+
     def to_photons(self, counts) -> np.ndarray:
         """Counts converted to N's unit with the camera's mean conversion (offset removed,
         times photoelectrons per ADU, over ``photoelectrons_per_photon``): what the paper fits
@@ -405,13 +414,8 @@ class Model:
         inside = np.isfinite(out)
         if inside.any():
             # inside the prior's support the parameters are valid: skip the PSF's input checks
-            lam = self._detected(
-                psf.expected_counts_unchecked(
-                    p[inside], self.roi, self.pixel_size, self.pixel_model
-                )
-            )
             data = counts if which is None else counts[np.asarray(which)[inside]]
-            out[inside] += self.camera._log_likelihood(data, lam).sum(axis=(-2, -1))
+            out[inside] += self.log_likelihood_unchecked(data, p[inside])
         out[~np.isfinite(out)] = -np.inf
         return out
 

@@ -139,7 +139,7 @@ class _Problem:
         ok = np.isfinite(log_prior)
         values = np.full(len(p), -np.inf)
         if ok.any():
-            values[ok] = log_prior[ok] + self.model.log_likelihood(self.counts, p[ok])
+            values[ok] = log_prior[ok] + self.model.log_likelihood_unchecked(self.counts, p[ok])
         out[inside] = values
         return out
 
