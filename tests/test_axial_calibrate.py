@@ -181,24 +181,28 @@ def test_bead_rois_find_the_bead_of_a_tiff_stack(stack, tmp_path):
     np.testing.assert_array_equal(rois, counts.astype(np.float32))
 
 
-def test_calibrate_z_command_writes_the_file_analyze_reads(stack, tmp_path, capsys):
+def test_calibrate_z_command_writes_the_file_analyze_reads(stack, tmp_path, capsys, monkeypatch):
+    """As documented, without --out: the default file z-calibration.toml in the folder it
+    runs in."""
     _, counts, _ = stack
     path = _tiff_stack(counts, tmp_path / "stack.tif")
     (tmp_path / "camera.toml").write_text(CAMERA)
-    args = ["calibrate-z", str(path), "--camera", str(tmp_path / "camera.toml"), "--psf-sd",
-            "130", "--z-start", "-700", "--z-step", "50", "--frames-per-step", "5",
-            "--no-higher-order", "--workers", "1", "--out", str(tmp_path / "z.toml")]  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    args = ["calibrate-z", "stack.tif", "--camera", "camera.toml", "--psf-sd", "130",
+            "--z-start", "-700", "--z-step", "50", "--frames-per-step", "5",
+            "--no-higher-order", "--workers", "1"]  # fmt: skip
     assert cli.main(args) == 0
     printed = capsys.readouterr().out
-    assert printed.startswith("x: w0 ") and f"wrote {tmp_path / 'z.toml'}" in printed
-    loaded = load_calibration(tmp_path / "z.toml")
+    assert printed.startswith("x: w0 ") and "wrote z-calibration.toml" in printed
+    loaded = load_calibration(tmp_path / "z-calibration.toml")
+    assert path.exists()
     for axis, curve in (("x", TRUE.x), ("y", TRUE.y)):
         fit = loaded.fits.loc[axis]
         assert (
             abs(fit["c"] - curve.c) < 4 * fit["c_sd"] and abs(fit["w0"] - 130.0) < 4 * fit["w0_sd"]
         )
     assert loaded.source["command"].startswith("bayespsf calibrate-z ")
-    bad = [*args[:-1], str(tmp_path / "z2.toml")]
+    bad = [*args, "--out", str(tmp_path / "z2.toml")]
     bad[bad.index("--frames-per-step") + 1] = "4"
     with pytest.raises(SystemExit, match="145 frames, not a whole number of steps"):
         cli.main(bad)
