@@ -185,10 +185,11 @@ class _GridProposal:
         self.log_det = 2 * np.log(np.diagonal(self.cholesky, axis1=1, axis2=2)).sum(axis=1)
 
     def _nearest(self, z: np.ndarray) -> np.ndarray:
-        right = np.clip(np.searchsorted(self.points, z), 1, len(self.points) - 1)
-        left = right - 1
+        """The index of the cell centre nearest each z."""
         if len(self.points) == 1:
             return np.zeros(len(z), dtype=np.int64)
+        right = np.clip(np.searchsorted(self.points, z), 1, len(self.points) - 1)
+        left = right - 1
         return np.where(z - self.points[left] <= self.points[right] - z, left, right)
 
     def draw(self, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
