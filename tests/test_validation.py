@@ -25,7 +25,7 @@ def test_quick_run_as_documented(script):
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert (ROOT / "validation" / "README.md").read_text() == readme
-    written = sorted(RESULTS.glob(f"{script.stem}*_quick*"))
+    written = sorted(RESULTS.glob(f"{script.stem}_quick*"))
     assert {p.suffix for p in written} >= {".csv", ".md", ".png"}, written
     table = pd.read_csv(next(p for p in written if p.suffix == ".csv"))
     assert len(table) > 0 and not table.isna().all().any()

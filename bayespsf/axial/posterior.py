@@ -40,10 +40,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import arviz_stats
 import numpy as np
 import pandas as pd
 
-from bayespsf._checks import as_generator
+from bayespsf._checks import as_generator, scalar_in_range
 from bayespsf.axial.bounds import THETA_NAMES
 from bayespsf.axial.calibrate import CURVES, TERMS, Calibration
 from bayespsf.axial.defocus import Defocus, widths_of_terms
@@ -80,6 +81,35 @@ class ZPosterior:
         q.columns = ["q2.5", "q16", "median", "q84", "q97.5"]
         return pd.concat([self.draws.mean().rename("mean"), self.draws.std().rename("sd"), q],
                          axis=1)  # fmt: skip
+
+    def hdi(self, prob: float = 0.95) -> pd.DataFrame:
+        """The highest-density region of z holding ``prob`` of its posterior: one row per
+        interval (``lower``, ``upper``, nm, as ``Posterior.interval`` names them), from a
+        kernel density estimate of the draws (``arviz_stats.hdi``, ``method="multimodal"``),
+        so that two modes give two intervals.
+
+        Where the curves are even about a plane (``info["plane"]``) the posterior is exactly
+        symmetric about it, so the draws are taken with their mirror images: the region is then
+        symmetric too, and where the density peaks at the plane (in focus on the paper's
+        symmetric curve) it is one interval across it. A region of |z - plane| read from the
+        shortest interval of folded draws would start at the smallest draw, never at the plane
+        itself, and so never cover an emitter exactly in focus."""
+        if not (isinstance(prob, int | float) and 0 < prob < 1):
+            raise BayespsfInputError(f"prob must be in (0, 1), got {prob!r}")
+        z = self.draws["z"].to_numpy(dtype=np.float64)
+        if "plane" in self.info:
+            z = np.concatenate([z, 2.0 * self.info["plane"] - z])
+        if np.ptp(z) == 0:
+            return pd.DataFrame({"lower": [z[0]], "upper": [z[0]]})
+        region = np.atleast_2d(np.asarray(arviz_stats.hdi(z, prob=prob, method="multimodal")))
+        region = region[np.all(np.isfinite(region), axis=1)]
+        return pd.DataFrame(region[np.argsort(region[:, 0])], columns=["lower", "upper"])
+
+    def covers(self, z, prob: float = 0.95) -> bool:
+        """Whether ``z`` (nm) lies in the ``prob`` highest-density region (``hdi``)."""
+        region = self.hdi(prob)
+        z = scalar_in_range("z", z, -np.inf)
+        return bool(np.any((region["lower"] <= z) & (z <= region["upper"])))
 
 
 class _Problem:
