@@ -1,5 +1,5 @@
-"""Axial position z: the posterior against the Cramér-Rao bound and a first-order error, by
-coverage of the truth (issue 16, "done when").
+"""Axial position z: the posterior against the Cramér-Rao bound, a first-order error and the
+unified interval, by coverage of the truth (issue 16, "done when").
 
 Scenes: the shipped ``astigmatic`` scene (EMCCD gain 200, readout 50 e-, 100 nm pixels,
 s0 = 130 nm, Huang curves in focus at -200 nm for x and +200 nm for y, depth 400 nm) with the
@@ -23,10 +23,15 @@ Per point, ``MOLECULES`` ROIs, each analysed three ways:
 - **pushed Laplace**: 400 draws of the widths from the MLE's Laplace approximation pushed
   through the curves (``bayespsf.axial.push.z_draws``), their 68% and 95% central intervals.
 
-For the symmetric curve, z and -z give the same image: every method is scored on |z| (the
-posterior's draws folded), which is what the image can tell, with the shortest interval
-holding 68% or 95% of the folded draws (the highest-density region of z, folded: a central
-interval of |z| could never cover z = 0, its edge).
+For the symmetric curve, z and -z give the same image: every method is scored on |z|, which
+is what the image can tell. The posterior by its highest-density region
+(``ZPosterior.covers``: a kernel density of the draws and their mirror images, so that in
+focus the region is one interval across z = 0); the pushed draws by the shortest interval
+holding 68% or 95% of them folded (a central interval of |z| could never cover z = 0, its
+edge). And a fourth method there:
+
+- **unified**: Feldman & Cousins' interval of |z| from the MLE widths
+  (``bayespsf.axial.unified.distance_from_focus``), built to cover at every fixed z.
 
 Reported per point and method: coverage of the true z (binomial SE), mean SD over
 sqrt(CRLB_z) (``bayespsf.axial.bounds.crlb_z`` at the truth), the share of ROIs whose SD is
@@ -53,6 +58,7 @@ from bayespsf.axial.bounds import crlb_z, first_order_z_sd
 from bayespsf.axial.defocus import Defocus
 from bayespsf.axial.posterior import z_posterior
 from bayespsf.axial.push import nearest_z, z_draws
+from bayespsf.axial.unified import distance_from_focus
 from bayespsf.estimators import covariance, fit_mle
 from bayespsf.model import Model
 
@@ -65,7 +71,7 @@ Z_SYMMETRIC = (0.0, 50.0, 100.0, 200.0)
 PHOTONS_SYMMETRIC = (1000.0, 10_000.0)
 MOLECULES = 100
 PUSHED_DRAWS = 400
-METHODS = ("posterior", "first order", "pushed Laplace")
+METHODS = ("posterior", "first order", "pushed Laplace", "unified")
 RANGE = {"astigmatic": (-800.0, 800.0), "symmetric": (-600.0, 600.0)}
 
 
@@ -132,8 +138,11 @@ def one_point(task) -> list[dict]:
         }
         post = z_posterior(counts[k], model, defocus, z_range=z_range, seed=seed * 1000 + k)
         z = post.draws["z"].to_numpy()
-        z = np.abs(z) if folded else z
-        in68, in95 = _interval_hits(*_intervals(z, folded), target)
+        if folded:
+            z = np.abs(z)
+            in68, in95 = post.covers(true_z[k], 0.68), post.covers(true_z[k], 0.95)
+        else:
+            in68, in95 = _interval_hits(*_intervals(z, False), target)
         rows.append({**base, "method": "posterior", "estimate": float(np.mean(z)),
                      "sd": float(np.std(z)), "in68": in68, "in95": in95,
                      "passed": bool(post.info["converged"])})  # fmt: skip
@@ -162,7 +171,23 @@ def one_point(task) -> list[dict]:
         rows.append({**base, "method": "pushed Laplace", "estimate": float(np.mean(pushed)),
                      "sd": float(np.std(pushed)), "in68": in68, "in95": in95,
                      "passed": ok})  # fmt: skip
+        if folded:
+            rows.append({**base, **_unified(defocus, fit, widths, ok, target)})
     return rows
+
+
+def _unified(defocus, fit, widths, ok: bool, target: float) -> dict:
+    """The unified interval's row: its 68% and 95% intervals of |z| from the MLE widths; as
+    estimate the root of tau's estimate (0 below focus), and no SD (it is not a posterior
+    or a first-order error)."""
+    row = {"method": "unified", "sd": np.nan, "passed": ok}
+    if not ok:
+        return {**row, "estimate": np.nan, "in68": False, "in95": False}
+    i68, i95 = (distance_from_focus(defocus, fit["s_x"], fit["s_y"], widths, level).iloc[0]
+                for level in (0.68, 0.95))  # fmt: skip
+    hits = _interval_hits(i68["lower"], i68["upper"], i95["lower"], i95["upper"], target)
+    return {**row, "estimate": float(np.sqrt(max(i95["tau_hat"], 0.0))), "in68": hits[0],
+            "in95": hits[1]}  # fmt: skip
 
 
 def _median(values: pd.Series) -> float:
@@ -183,12 +208,14 @@ def summarise(per_roi: pd.DataFrame) -> pd.DataFrame:
             "curve": curve, "z": z0, "N": photons, "method": method, "ROIs": n,
             "coverage 68%": g["in68"].mean(), "coverage 95%": g["in95"].mean(),
             "SE 68%": np.sqrt(0.68 * 0.32 / n), "SE 95%": np.sqrt(0.95 * 0.05 / n),
-            "sqrt CRLB (nm)": _median(g["sqrt CRLB_z"]), "median SD (nm)": g["sd"].median(),
+            "sqrt CRLB (nm)": _median(g["sqrt CRLB_z"]), "median SD (nm)": g["sd"].median() if g["sd"].notna().any() else np.nan,
             "mean SD / sqrt CRLB": (g["sd"][finite] / g["sqrt CRLB_z"][finite]).mean(),
             "RMSE / sqrt CRLB": float(np.sqrt(np.mean(
                 ((g["estimate"] - target) / g["sqrt CRLB_z"]) ** 2
             ))) if g["sqrt CRLB_z"].notna().all() else np.nan,
-            "SD unusable": float(np.mean(~(g["sd"] < RANGE[curve][1] - RANGE[curve][0]))),
+            "SD unusable": np.nan if method == "unified" else float(
+                np.mean(~(g["sd"] < RANGE[curve][1] - RANGE[curve][0]))
+            ),
             "passed": g["passed"].mean(),
         })  # fmt: skip
     table = pd.DataFrame(rows)
@@ -228,11 +255,11 @@ def main(argv=None):
     table = summarise(per_roi)
     figure(table, args.out / f"{stem}.png")
     fmt = {"index": False, "floatfmt": ".3g"}
-    verdict = "The posterior's 68% and 95% coverage within 2 binomial SE of nominal: " + verdicts(
+    verdict = "68% and 95% coverage within 2 binomial SE of nominal, the posterior's: " + verdicts(
         table
     )
     text = (
-        f"# Axial z: posterior, first-order and pushed-Laplace errors\n\n{verdict}\n\n"
+        f"# Axial z: posterior, first-order, pushed-Laplace and unified intervals\n\n{verdict}\n\n"
         f"{table.to_markdown(**fmt)}\n\nFigure: [{stem}.png]({stem}.png)."
     )
     summary = (
@@ -244,12 +271,14 @@ def main(argv=None):
 def verdicts(table: pd.DataFrame) -> str:
     """How many points of each kind (curve; z fixed or drawn from the prior) the posterior's
     coverage met, in words."""
-    posterior = table[table["method"] == "posterior"]
     parts = []
-    for (curve, drawn), g in posterior.groupby(["curve", posterior["z"].isna()], sort=False):
-        met = int((g["within 2 SE 68%"] & g["within 2 SE 95%"]).sum())
-        kind = "z drawn from the prior" if drawn else "fixed z"
-        parts.append(f"{curve} curve, {kind}: {met} of {len(g)} points")
+    for method in ("posterior", "unified"):
+        rows = table[table["method"] == method]
+        for (curve, drawn), g in rows.groupby(["curve", rows["z"].isna()], sort=False):
+            met = int((g["within 2 SE 68%"] & g["within 2 SE 95%"]).sum())
+            kind = "z drawn from the prior" if drawn else "fixed z"
+            name = "" if method == "posterior" else "the unified interval, "
+            parts.append(f"{name}{curve} curve, {kind}: {met} of {len(g)} points")
     return "; ".join(parts) + "."
 
 
@@ -257,13 +286,14 @@ def compact(table: pd.DataFrame) -> pd.DataFrame:
     """One row per point: each method's 68% and 95% coverage, and the posterior's SD over
     sqrt(CRLB_z) and the share of its importance weights that passed (the README's table)."""
     keys = ["curve", "z", "N"]
-    out = table[table["method"] == "posterior"][keys].reset_index(drop=True)
-    short = {"posterior": "post", "first order": "1st order", "pushed Laplace": "pushed"}
-    for method, name in short.items():
-        rows = table[table["method"] == method].reset_index(drop=True)
-        out[f"{name} 68%"] = rows["coverage 68%"]
-        out[f"{name} 95%"] = rows["coverage 95%"]
     posterior = table[table["method"] == "posterior"].reset_index(drop=True)
+    out = posterior[keys].copy()
+    short = {"posterior": "post", "first order": "1st order", "pushed Laplace": "pushed",
+             "unified": "unified"}  # fmt: skip
+    for method, name in short.items():
+        rows = table[table["method"] == method][[*keys, "coverage 68%", "coverage 95%"]]
+        rows = rows.rename(columns={"coverage 68%": f"{name} 68%", "coverage 95%": f"{name} 95%"})
+        out = out.merge(rows, on=keys, how="left")  # unified: symmetric points only
     out["post SD / sqrt CRLB"] = posterior["mean SD / sqrt CRLB"]
     out["1st order SD unusable"] = table[table["method"] == "first order"]["SD unusable"].to_numpy()
     out["post passed"] = posterior["passed"]
@@ -278,7 +308,7 @@ def figure(table: pd.DataFrame, path: Path) -> None:
     if astigmatic.empty:
         astigmatic = table
     with saved_figure(path, (11, 4), columns=2) as (left, right):
-        markers = dict(zip(METHODS, ("o-", "s--", "^:"), strict=True))
+        markers = dict(zip(METHODS, ("o-", "s--", "^:", "d-."), strict=True))
         for (method, photons), g in astigmatic.groupby(["method", "N"], sort=False):
             label = f"{method}, N = {photons:g}"
             left.plot(g["z"], g["mean SD / sqrt CRLB"], markers[method], label=label)
