@@ -39,7 +39,7 @@ unusable (infinite, or wider than the z range: the first order's where both curv
 vanish at the estimate), and the share of posteriors whose importance weights passed
 (k-hat <= 0.7; for the other methods: the MLE converged).
 
-    python validation/axial.py            # 100 molecules per point (22 minutes on 2 cores)
+    python validation/axial.py            # 100 molecules per point (25 minutes on 2 cores)
     python validation/axial.py --quick    # 12 molecules at 4 points
 """
 
