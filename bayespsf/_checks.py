@@ -3,6 +3,8 @@ error naming the argument."""
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 
 from bayespsf.errors import BayespsfInputError
@@ -62,6 +64,13 @@ def scalar_in_range(
         bracket = "[" if low_inclusive else "("
         raise BayespsfInputError(f"{name} must be in {bracket}{low:g}, {high:g}], got {value!r}")
     return v
+
+
+def probability(name: str, value) -> float:
+    """``value`` as a float strictly between 0 and 1 (a credible or confidence level)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < value < 1:
+        raise BayespsfInputError(f"{name} must be in (0, 1), got {value!r}")
+    return float(value)
 
 
 def broadcast_pair(name_a: str, a: np.ndarray, name_b: str, b: np.ndarray):

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from bayespsf._checks import real_array
+from bayespsf._checks import probability, real_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 
@@ -128,8 +128,7 @@ class Posterior:
 
     def interval(self, prob: float = 0.68, kind: str = "central") -> pd.DataFrame:
         """Per parameter, the ``prob`` credible interval: 'central' (equal tails) or 'hdi'."""
-        if not 0 < prob < 1:
-            raise ValueError(f"prob must be in (0, 1), got {prob!r}")
+        prob = probability("prob", prob)
         d = self.draws()
         if kind == "central":
             q = d.quantile([(1 - prob) / 2, (1 + prob) / 2]).T

@@ -44,7 +44,7 @@ import arviz_stats
 import numpy as np
 import pandas as pd
 
-from bayespsf._checks import as_generator, scalar_in_range
+from bayespsf._checks import as_generator, probability, scalar_in_range
 from bayespsf.axial.bounds import THETA_NAMES
 from bayespsf.axial.calibrate import CURVES, TERMS, Calibration
 from bayespsf.axial.defocus import Defocus, widths_of_terms
@@ -94,8 +94,7 @@ class ZPosterior:
         symmetric curve) it is one interval across it. A region of |z - plane| read from the
         shortest interval of folded draws would start at the smallest draw, never at the plane
         itself, and so never cover an emitter exactly in focus."""
-        if not (isinstance(prob, int | float) and 0 < prob < 1):
-            raise BayespsfInputError(f"prob must be in (0, 1), got {prob!r}")
+        prob = probability("prob", prob)
         z = self.draws["z"].to_numpy(dtype=np.float64)
         if "plane" in self.info:
             z = np.concatenate([z, 2.0 * self.info["plane"] - z])

@@ -5,8 +5,9 @@ Where both axes' widths are even about a plane ``c`` (the paper's symmetric defo
 DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), Discussion), the image tells only the
 distance ``t = |z - c|``, and t = 0 is the edge of its range. There no credible interval can
 promise its nominal coverage at every fixed t: near the edge, z's posterior (uniform prior)
-over-covers at some t and under-covers at others (``validation/axial.py``; the same
-happens exactly for a Gaussian mean bounded at 0, Mandelkern, Statist. Sci. 17 (2002)). The
+over-covers at some t and under-covers at others (``validation/axial.py``; in the Gaussian
+limit, where z^2's estimate is a Gaussian mean bounded at 0 (Mandelkern, Statist. Sci. 17
+(2002)), by quadrature in ``validation/axial_edge.py``). The
 unified interval of Feldman & Cousins, Phys. Rev. D 57, 3873 (1998) is built to have it: a
 Neyman belt ordered by the likelihood ratio to the best allowed value, which turns from an
 upper limit into a two-sided interval as the data move away from the edge, with no choice
@@ -29,19 +30,13 @@ import numpy as np
 import pandas as pd
 from scipy.special import ndtr, ndtri
 
-from bayespsf._checks import finite_array
+from bayespsf._checks import finite_array, probability
 from bayespsf.axial.defocus import Defocus, PolynomialCurve
 from bayespsf.axial.push import _widths, symmetry_plane
 from bayespsf.errors import BayespsfInputError
 
 BELT_POINTS = 4000  # means on the belt's grid, geometric from 1e-6 to 1, then linear
 BISECTIONS = 80
-
-
-def _check_prob(prob) -> float:
-    if not (isinstance(prob, int | float) and 0 < prob < 1):
-        raise BayespsfInputError(f"prob must be in (0, 1), got {prob!r}")
-    return float(prob)
 
 
 @lru_cache(maxsize=8)
@@ -75,7 +70,7 @@ def bounded_mean_interval(x, prob: float = 0.95) -> tuple[np.ndarray, np.ndarray
     holds ``x``. Its coverage is ``prob`` at every ``mu``, 0 included (by construction; the
     tests check it by simulation). At ``x = 0`` it is ``[0, ndtri((1 + prob) / 2)]``."""
     x = finite_array("x", x)
-    prob = _check_prob(prob)
+    prob = probability("prob", prob)
     mu, x1, x2, c = _belt(prob)
     lower = np.where(x <= x2[0], 0.0, np.interp(x, x2, mu))
     lower = np.where(x > x2[-1], x - c, lower)
