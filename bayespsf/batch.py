@@ -31,6 +31,7 @@ import os
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -185,6 +186,18 @@ def _executor(executor, workers):
         "executor must be None, a concurrent.futures.Executor, a dask.distributed Client or "
         f"a scheduler address; got {type(executor).__name__}"
     )
+
+
+@contextmanager
+def task_runner(executor, workers):
+    """What runs a function's tasks (``_executor``: None for this process, local processes, or
+    a Dask executor), shut down on leaving when it was made here, whatever went wrong."""
+    runner, owned = _executor(executor, workers)
+    try:
+        yield runner
+    finally:
+        if owned:
+            runner.shutdown(wait=True, cancel_futures=True)
 
 
 class _AddressExecutor:
@@ -421,9 +434,8 @@ def sample_many(
             if problem is not None:
                 rows[i] = _outcome_row(i, molecule_seed(seed, i), "refused", problem)
         todo = [i for i in range(n) if i not in rows]
-        bar = progress_bar(n, progress, initial=len(rows), unit="molecule")
-        runner, owned = _executor(executor, workers)
-        try:
+        with (progress_bar(n, progress, initial=len(rows), unit="molecule") as bar,
+              task_runner(executor, workers) as runner):  # fmt: skip
             if settings.method != "mcmc":  # the batched methods; the chain where they fail
                 parts = chunk_count(len(todo), _parallelism(runner), settings.ess)
                 chunks = (
@@ -444,10 +456,6 @@ def sample_many(
                 for i in todo
             )  # fmt: skip
             _run(tasks, runner, saver, rows, bar)
-        finally:
-            bar.close()
-            if owned:
-                runner.shutdown(wait=True, cancel_futures=True)
         table = pd.DataFrame([rows[i] for i in sorted(rows)])
         table["photon_unit"] = model.photon_unit_label
         if saver is not None:

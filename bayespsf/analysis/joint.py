@@ -371,7 +371,7 @@ def joint_posteriors(counts, frames: pd.DataFrame, model, *, seed: int = 0,
     ``"none"``, one whose frames its model refuses ``"failed"``, with the reason in
     ``joint_why``.
     """
-    from bayespsf.batch import _executor, _results, molecule_seed
+    from bayespsf.batch import _results, molecule_seed, task_runner
 
     ess = check_settings(seed=seed, ess=ess).ess  # named here, not in a worker
     counts = np.asarray(counts, dtype=np.float64)
@@ -400,17 +400,12 @@ def joint_posteriors(counts, frames: pd.DataFrame, model, *, seed: int = 0,
         starts = frames[names].to_numpy(float)[use]
         tasks.append((molecule, counts[use], model, starts, molecule_seed(seed, molecule), ess,
                       shared))  # fmt: skip
-    runner, owned = _executor(executor, workers)
-    bar = progress_bar(len(tasks), progress, unit="molecule", desc="joint posteriors")
     made = {}
-    try:
+    with (progress_bar(len(tasks), progress, unit="molecule", desc="joint posteriors") as bar,
+          task_runner(executor, workers) as runner):  # fmt: skip
         for row in _results(_molecule_task, tasks, runner):
             made[row["molecule"]] = row
             bar.update(1)
-    finally:
-        bar.close()
-        if owned:
-            runner.shutdown(wait=True, cancel_futures=True)
     table = pd.DataFrame([{**row, **made.get(row["molecule"], {})} for row in rows])
     return table.sort_values("molecule", ignore_index=True)
 

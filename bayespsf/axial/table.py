@@ -43,7 +43,7 @@ def z_posteriors(counts, model, calibration, *, seed: int = 0, ess: float = 400.
     ``COLUMNS`` (nm; ``z_above_plane`` where the curves are symmetric) and ``z_why`` where
     the posterior did not pass. ROI ``i`` is sampled with ``molecule_seed(seed, i)``; tasks
     run on ``workers`` local processes or ``executor`` as in ``sample_many``."""
-    from bayespsf.batch import _executor, _results, molecule_seed
+    from bayespsf.batch import _results, molecule_seed, task_runner
 
     counts = model.check_counts(counts)
     z_range = check_z_range(z_range)  # named here, not once per ROI in the workers
@@ -57,17 +57,12 @@ def z_posteriors(counts, model, calibration, *, seed: int = 0, ess: float = 400.
     tasks = [(first, counts[first : first + CHUNK], model, calibration,
               seeds[first : first + CHUNK], ess, z_range)
              for first in range(0, len(counts), CHUNK)]  # fmt: skip
-    runner, owned = _executor(executor, workers)
     rows = []
-    bar = progress_bar(len(counts), progress, unit="ROI", desc="z posteriors")
-    try:
+    with (progress_bar(len(counts), progress, unit="ROI", desc="z posteriors") as bar,
+          task_runner(executor, workers) as runner):  # fmt: skip
         for chunk in _results(_z_chunk, tasks, runner):
             rows += chunk
             bar.update(len(chunk))
-    finally:
-        bar.close()
-        if owned:
-            runner.shutdown(wait=True, cancel_futures=True)
     table = pd.DataFrame(rows, columns=["index", *COLUMNS, "z_why"] + (
         ["z_above_plane"] if any("z_above_plane" in r for r in rows) else []
     ))  # fmt: skip
