@@ -8,7 +8,7 @@ from bayespsf import scenes, simulate
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_mle
 from bayespsf.model import Model
-from bayespsf.model_check import bootstrap_check
+from bayespsf.model_check import bootstrap_check, pearson
 
 SCENE = scenes.load("emccd-typical").replace(emitter={"position": "pixel", "photons": 1000.0})
 MODEL = Model.from_scene(SCENE)
@@ -66,6 +66,34 @@ def test_per_roi_seeds_make_a_rois_check_independent_of_its_stack():
         bootstrap_check(counts, MODEL, seed=-1)  # numpy's own ValueError before
 
 
+def test_pearson_is_the_sum_of_squared_standardised_residuals():
+    # the photon-counting camera: counts ~ Poisson(lam), so E y = var y = lam per pixel
+    scene = SCENE.replace(camera={"kind": "photon", "likelihood": "exact"})
+    model = Model.from_scene(scene)
+    counts, truth = simulate(scene, 3, seed=5)
+    theta = truth[["x0", "y0", "s_x", "s_y", "N", "b"]].to_numpy(float)
+    lam = model.expected(theta)
+    expected = np.sum((counts - lam) ** 2 / lam, axis=(1, 2))
+    np.testing.assert_allclose(pearson(model, counts, theta), expected, rtol=1e-12)
+
+
+def test_pearson_discrepancy_is_calibrated_at_a_low_background_and_flags_a_hot_pixel():
+    # 400 ROIs with 2.75 background photons per pixel (the paper-movie's mean), 19 replicates:
+    # P(p <= 0.1) = 0.1 if the p-value is uniform (binomial SE 0.015; 3.5 SE). The likelihood
+    # discrepancy's plug-in p-value is conservative here (validation/model_check.py)
+    low = SCENE.replace(background={"kind": "poisson", "mean": 2.75})
+    counts, _ = simulate(low, 400, seed=13)
+    check = bootstrap_check(counts, MODEL, replicates=19, seed=4, discrepancy="pearson")
+    p = check["gof_p"].to_numpy()
+    assert np.isfinite(p).all()
+    assert abs(np.mean(p <= 0.1) - 0.1) < 3.5 * np.sqrt(0.1 * 0.9 / 400)
+    hot, _ = simulate(SCENE, 20, seed=12)
+    per_adu, _ = MODEL.camera.photons_per_adu()
+    hot[:, 1, 1] += 100.0 / per_adu
+    check = bootstrap_check(hot, MODEL, replicates=19, seed=3, discrepancy="pearson")
+    assert np.mean(check["gof_p"] <= 0.1) >= 0.9, check["gof_p"].describe()
+
+
 def test_bad_replicates_are_named():
     counts, _ = simulate(SCENE, 2, seed=1)
     with pytest.raises(BayespsfInputError, match="replicates must be"):
@@ -74,6 +102,8 @@ def test_bad_replicates_are_named():
         bootstrap_check(counts[0], MODEL)
     with pytest.raises(BayespsfInputError, match="fits must be fit_mle's table"):
         bootstrap_check(counts, MODEL, fits=fit_mle(counts[:1], MODEL))
+    with pytest.raises(BayespsfInputError, match="discrepancy must be one of"):
+        bootstrap_check(counts, MODEL, discrepancy="chi2")
 
 
 def test_flag_excess_p_is_the_binomial_tail_of_the_flags():
