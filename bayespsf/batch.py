@@ -105,20 +105,34 @@ def _sample_one(task):
         return index, None, _outcome_row(index, seed, "failed", str(error))
     info = dict(post.info, **verdict, seconds=time.perf_counter() - started)  # the posterior's
     if check and checked is None:
-        checked = _model_checks(counts[None], model, [seed])[0]
+        checked = _model_checks(counts[None], model, [seed], check)[0]
     post.tree.attrs["sampler"] = json.dumps(info)
     row = molecule_row(post, index, seed) | (checked or {})
     post.tree.attrs["summary_row"] = json.dumps(row)
     return index, post, row
 
 
-def _model_checks(stack, model, seeds, fits=None) -> list[dict]:
+def _check_kind(check) -> str | bool:
+    """``sample_many``'s ``check`` as False or the name of the discrepancy to test with."""
+    from bayespsf.model_check import DISCREPANCIES
+
+    if isinstance(check, bool | np.bool_):
+        return "likelihood" if check else False
+    if isinstance(check, str) and check in DISCREPANCIES:
+        return check
+    raise BayespsfInputError(
+        f"check must be True, False or one of {', '.join(DISCREPANCIES)}; got {check!r}"
+    )
+
+
+def _model_checks(stack, model, seeds, discrepancy: str, fits=None) -> list[dict]:
     """The parametric-bootstrap goodness-of-fit test of each ROI (``bayespsf.model_check``),
     its replicates drawn from the ROI's own seed: ``gof_p``, ``gof_discrepancy``,
     ``gof_replicates`` per ROI."""
     from bayespsf.model_check import bootstrap_check
 
-    table = bootstrap_check(stack, model, seed=[int(s) for s in seeds], fits=fits)
+    table = bootstrap_check(stack, model, seed=[int(s) for s in seeds], fits=fits,
+                            discrepancy=discrepancy)  # fmt: skip
     return [{"gof_p": float(p), "gof_discrepancy": float(t), "gof_replicates": int(k)}
             for p, t, k in table[["gof_p", "gof_discrepancy", "gof_replicates"]].itertuples(
                 index=False)]  # fmt: skip
@@ -317,7 +331,7 @@ def _resolved_sampler_settings(options: dict) -> dict:
     return {**resolved, "chunk": Settings.chunk, "min_taus": Settings.min_taus}
 
 
-def _manifest(counts, model, seed, options, truths, check: bool) -> dict:
+def _manifest(counts, model, seed, options, truths, check: str | bool) -> dict:
     digest = hashlib.sha256(np.ascontiguousarray(counts, dtype=np.float64).tobytes())
     if truths is not None:
         digest.update(np.ascontiguousarray(truths, dtype=np.float64).tobytes())
@@ -330,7 +344,9 @@ def _manifest(counts, model, seed, options, truths, check: bool) -> dict:
         "prior": model.prior,
         "clock-induced charge": model.clock_induced_charge,
         "data sha256": digest.hexdigest(),
-    } | ({"model check": "parametric bootstrap (bayespsf.model_check)"} if check else {})
+    } | ({"model check": "parametric bootstrap (bayespsf.model_check)"
+           + ("" if check == "likelihood" else f", discrepancy {check}")}
+          if check else {})  # fmt: skip
 
 
 # ------------------------------------------------------------------------------- the run
@@ -346,7 +362,7 @@ def sample_many(
     truths=None,
     scene=None,
     progress: bool | None = None,
-    check: bool = False,
+    check: bool | str = False,
     **options,
 ) -> pd.DataFrame:
     """Sample the posterior of every ROI in ``counts``; return the summary table.
@@ -373,12 +389,14 @@ def sample_many(
         Kept in each result file.
     progress : bool, optional
         A progress bar on stderr (default: when stderr is a terminal).
-    check : bool
+    check : bool or str
         Also test whether the model can have made each ROI: the parametric-bootstrap
         goodness-of-fit test of ``bayespsf.model_check`` at the ROI's maximum-likelihood fit
         (49 refitted replicates drawn from the ROI's own seed; it costs about as much again as
         the batched posteriors). Adds ``gof_p``, ``gof_discrepancy`` and ``gof_replicates`` to
-        each row, stored with the posterior in its file.
+        each row, stored with the posterior in its file. True uses the default discrepancy
+        (``"likelihood"``); a name of ``bayespsf.model_check.DISCREPANCIES`` chooses one
+        (``"pearson"`` is calibrated at a low background, where the default is conservative).
     **options
         ``ess``, ``walkers``, ``max_steps``, ``moves``, ``method``, ``max_seconds`` of
         ``sample_posterior``. ``method`` defaults to ``"auto"`` here (``sample_posterior``'s
@@ -406,8 +424,7 @@ def sample_many(
         )
     from bayespsf.sampler_settings import check_settings
 
-    if not isinstance(check, bool | np.bool_):
-        raise BayespsfInputError(f"check must be True or False, got {check!r}")
+    check = _check_kind(check)
     options.setdefault("method", "auto")
     settings = check_settings(seed=seed, **options)  # a bad setting fails here, not in workers
     stack = model._check_shape(counts)
@@ -512,7 +529,7 @@ def _posteriors_of_chunk(task):
     fits = fit_mle(stack, model)
     outcomes = cheap_posteriors(stack, model, fits, seeds, settings)
     seconds = (time.perf_counter() - started) / len(indices)
-    checks = _model_checks(stack, model, seeds, fits) if check else [{}] * len(indices)
+    checks = _model_checks(stack, model, seeds, check, fits) if check else [{}] * len(indices)
     results = []
     for k, (index, outcome) in enumerate(zip(indices, outcomes, strict=True)):
         if outcome["draws"] is None:

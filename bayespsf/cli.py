@@ -303,7 +303,7 @@ def _analyze(args) -> int:
         workers=None if args.scheduler else args.workers, executor=args.scheduler,
         provenance={"command": command, "camera file": camera_path.read_text()},
         z_calibration=z_calibration, z_range=tuple(args.z_range),
-        files={"camera.toml": camera_path},
+        files={"camera.toml": camera_path}, gof_discrepancy=args.gof_discrepancy,
     )  # fmt: skip
     check = result.consistency.set_index("parameter")
     print(
@@ -569,6 +569,11 @@ def build_parser() -> argparse.ArgumentParser:
     analyze.add_argument(
         "--z-range", type=float, nargs=2, default=(-800.0, 800.0), metavar=("LOW", "HIGH"),
         help="support of z's uniform prior in nm (default -800 800)",
+    )  # fmt: skip
+    analyze.add_argument(
+        "--gof-discrepancy", choices=("likelihood", "pearson"), default="likelihood",
+        help="the goodness-of-fit test's discrepancy (default likelihood; pearson is calibrated "
+        "at a background of a few photons per pixel, where likelihood is conservative)",
     )  # fmt: skip
     analyze.add_argument("--out", default="bayespsf-analyze", help="output folder")
     analyze.set_defaults(run=_analyze)

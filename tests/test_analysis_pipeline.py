@@ -111,6 +111,25 @@ def test_a_rerun_continues_from_the_store(run, capsys):
     assert [f.stat().st_mtime_ns for f in files] == stamps  # no posterior made again
 
 
+def test_the_goodness_of_fit_discrepancy_is_checked_and_kept_with_the_store(run, tmp_path):
+    # a bad name is refused before any work; a rerun into the same folder with the other
+    # discrepancy is refused by the posterior store (its gof_p were made with the default)
+    from bayespsf.analysis.pipeline import analyze
+    from bayespsf.cameras import EMCCD
+    from bayespsf.errors import BayespsfInputError
+
+    out, made = run
+    model = Model(15, 79.0, EMCCD(200.0, 50.0, 100.0, 12.0))
+    with pytest.raises(BayespsfInputError, match="gof_discrepancy must be one of"):
+        analyze(made.files["movie"], model, s0=120.0, out=tmp_path / "x", gof_discrepancy="x2")
+    assert not (tmp_path / "x").exists()
+    command = ["analyze", str(made.files["movie"]), "--camera", str(out.parent / "camera.toml"),
+               "--psf-sd", "120", "--min-valid-frames", "25", "--method", "laplace",
+               "--gof-discrepancy", "pearson", "--out", str(out)]  # fmt: skip
+    with pytest.raises(SystemExit, match="model check"):
+        cli.main(command)
+
+
 def test_nothing_selected_is_named_after_the_selection_files(run, tmp_path):
     from bayespsf.analysis.pipeline import analyze
     from bayespsf.cameras import EMCCD

@@ -168,8 +168,16 @@ def test_the_model_check_is_stored_with_each_posterior(stack, tmp_path):
     with pytest.raises(BayespsfInputError, match="model check"):  # a store made with it
         sample_many(counts, model, seed=5, workers=1, store=tmp_path / "s", method="laplace")
     assert "gof_p" not in sample_many(counts[:1], model, seed=5, workers=1, method="laplace")
-    with pytest.raises(BayespsfInputError, match="check must be True or False"):
+    with pytest.raises(BayespsfInputError, match="check must be True, False or one of"):
         sample_many(counts[:1], model, workers=1, method="laplace", check="no")
+    # check="pearson": the same test with Pearson's discrepancy; a store made with the
+    # default refuses it
+    pearson = sample_many(counts, model, seed=5, workers=1, method="laplace", check="pearson")
+    expected = bootstrap_check(counts, model, seed=seeds, discrepancy="pearson")["gof_p"]
+    assert np.array_equal(pearson["gof_p"].to_numpy(), expected.to_numpy())
+    with pytest.raises(BayespsfInputError, match="model check"):
+        sample_many(counts, model, seed=5, workers=1, store=tmp_path / "s", method="laplace",
+                    check="pearson")  # fmt: skip
 
 
 def test_bad_input_is_named(stack):

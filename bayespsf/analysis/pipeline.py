@@ -38,7 +38,7 @@ from bayespsf.batch import sample_many
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_lsq, fit_mle
 from bayespsf.model import Model
-from bayespsf.model_check import flag_excess_p
+from bayespsf.model_check import DISCREPANCIES, flag_excess_p
 from bayespsf.movie.extract import iter_rois, open_movie
 from bayespsf.movie.pipeline import FoundMolecules, find_molecules
 from bayespsf.movie.pipeline import write as write_selection
@@ -104,6 +104,7 @@ def analyze(
     method: str = "auto", ess: float | None = None, seed: int = 0, workers: int | None = None,
     executor=None, progress: bool | None = None, provenance: dict | None = None,
     z_calibration=None, z_range=(-800.0, 800.0), files: dict | None = None,
+    gof_discrepancy: str = "likelihood",
 ) -> Analysis:  # fmt: skip
     """The module docstring's stages on ``movie`` with ``model`` (a camera file's model, its
     ROI size unused); every file goes into the folder ``out``. ``provenance`` (the camera
@@ -112,7 +113,15 @@ def analyze(
     z posterior (``bayespsf.axial.table.z_posteriors``, z uniform on ``z_range`` nm), whose
     summary goes into the localisation tables and whose calibration into ``locs.yaml``.
     ``files`` (name: path) are files the caller put into ``out`` (the camera file), listed in
-    the report beside the run's own."""
+    the report beside the run's own. ``gof_discrepancy``: the goodness-of-fit test's
+    discrepancy (``bayespsf.model_check.DISCREPANCIES``; ``"pearson"`` is calibrated at a
+    background of a few photons per pixel, where the default is conservative)."""
+    if gof_discrepancy not in DISCREPANCIES:
+        raise BayespsfInputError(
+            f"gof_discrepancy must be one of {', '.join(DISCREPANCIES)}; got {gof_discrepancy!r}"
+        )
+    if gof_discrepancy != "likelihood":
+        provenance = {**(provenance or {}), "goodness-of-fit discrepancy": gof_discrepancy}
     movie = open_movie(movie)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -127,7 +136,8 @@ def analyze(
     fitting = model.for_roi(fit)
     effective = {} if ess is None else {"ess": ess}  # else each sampler's default
     posteriors = sample_many(counts, fitting, seed=seed, executor=executor, workers=workers,
-                             store=out / "posteriors", progress=progress, check=True,
+                             store=out / "posteriors", progress=progress,
+                             check=gof_discrepancy,
                              method=method, **effective)  # fmt: skip
     frames = pd.concat(
         [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1
@@ -221,6 +231,11 @@ def _joint_table(molecules: pd.DataFrame) -> pd.DataFrame:
 def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
     """The run's report: selection, the calibration check, Delta s against N, the files."""
     fmt = {"index": False, "floatfmt": ".4g"}
+    discrepancy = (
+        "Pearson's statistic at the MLE"
+        if (provenance or {}).get("goodness-of-fit discrepancy") == "pearson"
+        else "the MLE's negative log-likelihood"
+    )
     check = result.consistency[["parameter", "frames", "molecules", "z_sd", "z_sd_se",
                                 "p_value", "p_two_sided", "coverage", "coverage_se",
                                 "expected_coverage"]]  # fmt: skip
@@ -262,7 +277,7 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "## Can the model have made each image?",
         "",
         "A parametric-bootstrap goodness-of-fit test of every frame's ROI "
-        "(`bayespsf.model_check`: the MLE's negative log-likelihood against 49 "
+        f"(`bayespsf.model_check`: {discrepancy} against 49 "
         "refitted replicates; column `gof_p`). Where the model holds, a fraction alpha of the "
         "frames has `gof_p <= alpha`; more flags mean ROIs it does not describe (two "
         "molecules, a hot pixel, a spot that is not Gaussian). `p (this many flags or more)` "
