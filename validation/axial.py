@@ -208,7 +208,8 @@ def summarise(per_roi: pd.DataFrame) -> pd.DataFrame:
             "curve": curve, "z": z0, "N": photons, "method": method, "ROIs": n,
             "coverage 68%": g["in68"].mean(), "coverage 95%": g["in95"].mean(),
             "SE 68%": np.sqrt(0.68 * 0.32 / n), "SE 95%": np.sqrt(0.95 * 0.05 / n),
-            "sqrt CRLB (nm)": _median(g["sqrt CRLB_z"]), "median SD (nm)": g["sd"].median() if g["sd"].notna().any() else np.nan,
+            "sqrt CRLB (nm)": _median(g["sqrt CRLB_z"]),
+            "median SD (nm)": g["sd"].median() if g["sd"].notna().any() else np.nan,
             "mean SD / sqrt CRLB": (g["sd"][finite] / g["sqrt CRLB_z"][finite]).mean(),
             "RMSE / sqrt CRLB": float(np.sqrt(np.mean(
                 ((g["estimate"] - target) / g["sqrt CRLB_z"]) ** 2

@@ -26,7 +26,7 @@ scene, from their MLE widths and Laplace covariance, 2 000 per point (binomial S
 68%, 0.005 at 95%).
 
     python validation/axial_edge.py           # 20 means, 5 201 x; 12 simulated points
-    python validation/axial_edge.py --quick   # 5 means, 1 301 x; 2 points of 100 ROIs
+    python validation/axial_edge.py --quick   # 5 means, 1 301 x; 2 points of 40 ROIs
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ UNIFIED_POINTS = [
     (n, z) for n in (1000.0, 10_000.0) for z in (0.0, 25.0, 50.0, 100.0, 200.0, 400.0)
 ]
 UNIFIED_MOLECULES = 2000
-QUICK_UNIFIED = ([(1000.0, 0.0), (10_000.0, 100.0)], 100)
+QUICK_UNIFIED = ([(1000.0, 0.0), (10_000.0, 100.0)], 40)
 
 
 def _level_set(log_density: np.ndarray, mass: np.ndarray, prob: float) -> float:
