@@ -25,7 +25,7 @@ and 10 000 photons:
 Each case is checked with both of ``bootstrap_check``'s discrepancies, on the same ROIs and
 replicates: the MLE's negative log-likelihood (the default) and Pearson's statistic.
 
-    python validation/model_check.py            # 200 ROIs per case and N (about 4 minutes)
+    python validation/model_check.py            # 200 ROIs per case and N (104 s on 2 cores)
     python validation/model_check.py --quick    # 20 ROIs per case at N = 1000 and 10 000
 """
 
