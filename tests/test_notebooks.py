@@ -11,7 +11,7 @@ from nbclient import NotebookClient
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("[0-9]*.py"))
 # budgets the tests use (set in each notebook's first cell)
-SMALL = {"ESS": "100", "MOLECULES": "8", "IMAGES": "60"}
+SMALL = {"ESS": "100", "MOLECULES": "6", "IMAGES": "60"}
 
 
 def shrink(source: str) -> str:

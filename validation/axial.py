@@ -40,7 +40,7 @@ vanish at the estimate), and the share of posteriors whose importance weights pa
 (k-hat <= 0.7; for the other methods: the MLE converged).
 
     python validation/axial.py            # 100 molecules per point (25 minutes on 2 cores)
-    python validation/axial.py --quick    # 12 molecules at 4 points
+    python validation/axial.py --quick    # 6 molecules at 4 points
 """
 
 from __future__ import annotations
@@ -232,7 +232,7 @@ def tasks(quick: bool) -> list[tuple]:
     if quick:
         points = [("astigmatic", 0.0, 1000.0), ("astigmatic", np.nan, 3000.0),
                   ("symmetric", 0.0, 1000.0), ("symmetric", 200.0, 10_000.0)]  # fmt: skip
-        molecules = 12
+        molecules = 6
     else:
         points = [("astigmatic", z, n) for n in PHOTONS for z in Z_ASTIGMATIC]
         points += [("symmetric", z, n) for n in PHOTONS_SYMMETRIC for z in Z_SYMMETRIC]
