@@ -97,6 +97,10 @@ def test_distance_interval_names_what_it_cannot_take():
         distance_from_focus(SYMMETRIC, 130.0, 130.0, np.full((2, 2), np.nan))
     with pytest.raises(BayespsfInputError, match="s_x"):
         distance_from_focus(SYMMETRIC, -1.0, 130.0, np.eye(2))
+    with pytest.raises(BayespsfInputError, match=r"covariance must be 2 x 2 or one"):
+        distance_from_focus(SYMMETRIC, 130.0, 130.0, np.eye(3))
+    with pytest.raises(BayespsfInputError, match=r"\(2, 2, 2\); got \(3, 2, 2\)"):
+        distance_from_focus(SYMMETRIC, [130.0, 131.0], [130.0, 131.0], np.stack([np.eye(2)] * 3))
 
 
 def _posterior(z, plane=None):

@@ -115,7 +115,12 @@ def distance_from_focus(defocus: Defocus, s_x, s_y, covariance,
         )
     s_x, s_y = _widths(s_x, s_y)
     s = np.stack([np.ravel(s_x), np.ravel(s_y)], axis=-1)
-    cov = np.broadcast_to(np.asarray(covariance, dtype=np.float64), (len(s), 2, 2))
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape not in ((2, 2), (len(s), 2, 2)):
+        raise BayespsfInputError(
+            f"covariance must be 2 x 2 or one 2 x 2 per ROI ({len(s)}, 2, 2); got {cov.shape}"
+        )
+    cov = np.broadcast_to(cov, (len(s), 2, 2))
     if not np.all(np.isfinite(cov)):
         raise BayespsfInputError("covariance must be finite")
     try:
