@@ -114,15 +114,11 @@ def _sample_one(task):
 
 def _check_kind(check) -> str | bool:
     """``sample_many``'s ``check`` as False or the name of the discrepancy to test with."""
-    from bayespsf.model_check import DISCREPANCIES
+    from bayespsf.model_check import check_discrepancy
 
     if isinstance(check, bool | np.bool_):
         return "likelihood" if check else False
-    if isinstance(check, str) and check in DISCREPANCIES:
-        return check
-    raise BayespsfInputError(
-        f"check must be True, False or one of {', '.join(DISCREPANCIES)}; got {check!r}"
-    )
+    return check_discrepancy("check (True, False or a discrepancy)", check)
 
 
 def _model_checks(stack, model, seeds, discrepancy: str, fits=None) -> list[dict]:

@@ -46,13 +46,25 @@ CHUNK = 256  # ROIs whose replicates are drawn and refitted together (memory ~ C
 DISCREPANCIES = ("likelihood", "pearson")
 
 
+def check_discrepancy(name: str, value) -> str:
+    """``value`` if it names one of ``DISCREPANCIES``, else an error naming ``name``."""
+    if not (isinstance(value, str) and value in DISCREPANCIES):
+        raise BayespsfInputError(f"{name} must be one of {', '.join(DISCREPANCIES)}; got {value!r}")
+    return value
+
+
 def pearson(model: Model, counts: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Pearson's statistic of each ROI at ``theta`` (n, 6): ``sum (y - E y)^2 / var y`` over its
-    pixels, with the camera law's mean (``offset + lam / photons_per_adu``) and variance."""
+    pixels, with the camera law's mean (``offset + lam / photons_per_adu``) and variance. A
+    pixel the model gives no variance (a photon counter where ``lam`` is 0) adds 0 where it
+    matches its mean and infinity where it does not."""
     lam = model.expected(theta)
     per_adu, offset = model.camera.photons_per_adu()
     residual = counts - (offset + lam / per_adu)
-    return np.sum(residual * residual / model.camera.variance(lam), axis=(-2, -1))
+    square, variance = np.broadcast_arrays(residual * residual, model.camera.variance(lam))
+    terms = np.divide(square, variance, out=np.where(square > 0, np.inf, 0.0),
+                      where=variance > 0)  # fmt: skip
+    return np.sum(terms, axis=(-2, -1))
 
 
 def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed=0,
@@ -78,10 +90,7 @@ def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed=0,
     ):
         raise BayespsfInputError(f"replicates must be an integer >= 1, got {replicates!r}")
     replicates = int(replicates)
-    if discrepancy not in DISCREPANCIES:
-        raise BayespsfInputError(
-            f"discrepancy must be one of {', '.join(DISCREPANCIES)}; got {discrepancy!r}"
-        )
+    discrepancy = check_discrepancy("discrepancy", discrepancy)
     stack = real_array("counts", counts)
     if stack.ndim != 3 or stack.shape[1:] != (model.roi, model.roi):
         raise BayespsfInputError(
@@ -99,7 +108,8 @@ def bootstrap_check(counts, model: Model, *, replicates: int = 49, seed=0,
     converged = fits["converged"].to_numpy(bool)
 
     def measure(images, fitted):
-        """The discrepancy of each image at its fit (NaN where the fit did not converge)."""
+        """The discrepancy of each image at its fit: the fit's own negative log-likelihood,
+        or Pearson's statistic (NaN where the fit did not converge)."""
         if discrepancy == "likelihood":
             return -fitted["log_likelihood"].to_numpy()
         thetas = fitted[list(PARAMETER_NAMES)].to_numpy(float)
@@ -166,4 +176,4 @@ def flag_excess_p(gof_p: pd.Series, alpha: float) -> float:
     return float(stats.binom.sf(int((p <= alpha).sum()) - 1, len(p), alpha))
 
 
-__all__ = ["DISCREPANCIES", "bootstrap_check", "flag_excess_p", "pearson"]
+__all__ = ["DISCREPANCIES", "bootstrap_check", "check_discrepancy", "flag_excess_p", "pearson"]

@@ -75,6 +75,13 @@ def test_pearson_is_the_sum_of_squared_standardised_residuals():
     lam = model.expected(theta)
     expected = np.sum((counts - lam) ** 2 / lam, axis=(1, 2))
     np.testing.assert_allclose(pearson(model, counts, theta), expected, rtol=1e-12)
+    # no photons expected anywhere (N = b = 0): no variance; 0 where the counts are 0 too,
+    # infinite where a count is not (that image cannot come from the model), and no warning
+    empty = np.array([[0.0, 0.0, 130.0, 130.0, 0.0, 0.0]])
+    quiet = np.zeros((1, model.roi, model.roi))
+    assert pearson(model, quiet, empty)[0] == 0.0
+    quiet[0, 1, 1] = 1.0
+    assert pearson(model, quiet, empty)[0] == np.inf
 
 
 def test_pearson_discrepancy_is_calibrated_at_a_low_background_and_flags_a_hot_pixel():

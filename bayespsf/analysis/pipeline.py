@@ -38,7 +38,7 @@ from bayespsf.batch import sample_many
 from bayespsf.errors import BayespsfInputError
 from bayespsf.estimators import fit_lsq, fit_mle
 from bayespsf.model import Model
-from bayespsf.model_check import DISCREPANCIES, flag_excess_p
+from bayespsf.model_check import check_discrepancy, flag_excess_p
 from bayespsf.movie.extract import iter_rois, open_movie
 from bayespsf.movie.pipeline import FoundMolecules, find_molecules
 from bayespsf.movie.pipeline import write as write_selection
@@ -116,10 +116,7 @@ def analyze(
     the report beside the run's own. ``gof_discrepancy``: the goodness-of-fit test's
     discrepancy (``bayespsf.model_check.DISCREPANCIES``; ``"pearson"`` is calibrated at a
     background of a few photons per pixel, where the default is conservative)."""
-    if gof_discrepancy not in DISCREPANCIES:
-        raise BayespsfInputError(
-            f"gof_discrepancy must be one of {', '.join(DISCREPANCIES)}; got {gof_discrepancy!r}"
-        )
+    check_discrepancy("gof_discrepancy", gof_discrepancy)
     if gof_discrepancy != "likelihood":
         provenance = {**(provenance or {}), "goodness-of-fit discrepancy": gof_discrepancy}
     movie = open_movie(movie)
