@@ -1,41 +1,12 @@
 """bayespsf: Bayesian analysis of single fluorescent molecule images.
 
-The public names below are imported on first use (PEP 562), so that ``bayespsf --help`` and
-``import bayespsf.cli`` do not load NumPy, SciPy, ArviZ and numba (seconds) before they are
-needed.
+The public names are declared in ``__init__.pyi`` (grouped by stage, as type checkers and IDEs
+read them) and imported on first use, so that ``bayespsf --help`` and ``import bayespsf.cli`` do
+not load NumPy, SciPy, ArviZ and numba (seconds) before they are needed.
 """
 
-import importlib
+import lazy_loader as _lazy
 
-_NAMES = {
-    "PARAMETER_NAMES": "bayespsf.psf",
-    "Model": "bayespsf.model",
-    "Posterior": "bayespsf.posterior",
-    "Scene": "bayespsf.scene",
-    "SceneError": "bayespsf.scene",
-    "analyze": "bayespsf.analysis.pipeline",
-    "fit_lsq": "bayespsf.estimators",
-    "fit_mle": "bayespsf.estimators",
-    "sample_many": "bayespsf.batch",
-    "sample_posterior": "bayespsf.sampling",
-    "simulate": "bayespsf.simulator",
-}
-_MODULES = ("cameras", "psf", "scenes", "simulator", "theory")
-
-__all__ = sorted([*_NAMES, *_MODULES])
 __version__ = "0.1.0"
 
-
-def __getattr__(name: str):
-    if name in _NAMES:
-        value = getattr(importlib.import_module(_NAMES[name]), name)
-    elif name in _MODULES:
-        value = importlib.import_module(f"bayespsf.{name}")
-    else:
-        raise AttributeError(f"module 'bayespsf' has no attribute {name!r}")
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted([*globals(), *__all__])
+__getattr__, __dir__, __all__ = _lazy.attach_stub(__name__, __file__)

@@ -14,13 +14,15 @@ expected photoelectrons, which is exact for the Poisson-Gamma law.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from bayespsf import photon_units, psf
-from bayespsf._checks import finite_array, real_array
+from bayespsf import psf
+from bayespsf._validate import finite_array, real_array
 from bayespsf.cameras import EMCCD, SCMOS, Camera, Photon
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.scene import Scene
+from bayespsf.scene import units as photon_units
 
 DEFAULT_TIER = {"emccd": "table", "scmos": "exact"}
 MIN_ROI = 5  # six parameters need the spot and a border of background pixels
@@ -30,7 +32,7 @@ PLATEAU_SPREAD = 1000  # a plateau counts where the ROI spans this many count qu
 LOG_PARAMETERS = [2, 3, 4]  # s_x, s_y, N are sampled in log space
 
 
-class _PriorTerms:
+class PriorTerms:
     """The prior table as arrays, so that the log prior of many walkers is a few array passes.
 
     Up to a constant: uniform 0, log-uniform ``-log x``, normal ``-(x - mean)^2 / (2 sd^2)``,
@@ -88,7 +90,7 @@ def saturation_plateau(roi: np.ndarray) -> int:
 
 
 def _sample_prior_1d(spec: dict, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` independent draws from one parameter's prior (the law of ``_PriorTerms``)."""
+    """``n`` independent draws from one parameter's prior (the law of ``PriorTerms``)."""
     kind = spec["kind"]
     if kind == "uniform":
         return rng.uniform(spec["low"], spec["high"], n)
@@ -118,8 +120,9 @@ def _inference_tier(camera: Camera) -> Camera:
     """``camera``, or for an EMCCD whose likelihood tier was not chosen, the same camera with
     the inference default (``DEFAULT_TIER``), as a scene gives it."""
     if isinstance(camera, EMCCD) and not camera.tier_chosen:
-        return EMCCD(camera.gain, camera.readout_sd, camera.offset, camera.e_per_adu,
-                     DEFAULT_TIER["emccd"])  # fmt: skip
+        return EMCCD(
+            camera.gain, camera.readout_sd, camera.offset, camera.e_per_adu, DEFAULT_TIER["emccd"]
+        )
     return camera
 
 
@@ -128,27 +131,34 @@ class Model:
 
     Parameters
     ----------
-    roi, pixel_size
-        Odd ROI side in pixels; pixel size in nm.
-    camera
+    roi : int
+        Odd ROI side in pixels, >= ``MIN_ROI`` (5).
+    pixel_size : float
+        Pixel side in nm.
+    camera : Camera
         A ``bayespsf.cameras.Camera``; its ``likelihood`` tier is the model's. An EMCCD built
         without choosing a tier gets the ``table`` tier, as scenes give it.
-    prior
+    prior : dict, optional
         The ``[prior]`` table of a scene (kind and parameters per parameter); ``None`` takes
         the scene defaults for this geometry.
-    clock_induced_charge
+    clock_induced_charge : float, optional
         Mean spurious electrons per pixel (EMCCD), added to the expected photoelectrons.
-    saturation
+    saturation : float, optional
         The ADC's full scale in ADU (0: none); ROIs with saturated pixels are rejected.
-    quantum_efficiency, photon_unit
-        The camera's quantum efficiency (in (0, 1], default 1) and the unit of N and b:
-        ``"incident"`` photons (default; the expected photoelectrons are QE times the spot and
-        the background) or ``"detected"`` photoelectrons (``bayespsf.photon_units``).
-    pixel_model
+    pixel_model : {"integrated", "sampled"}, optional
         ``"integrated"`` (default): the spot integrated over each pixel, as the camera records
         it. ``"sampled"``: the Gaussian density at pixel centres times the pixel area, the
         paper's Eq. A3.1 and the model of many fitters; it is biased (its width tends to
         ``sqrt(s0**2 + a**2 / 12)``, Eq. tophat) and is offered to measure that bias.
+    quantum_efficiency, photon_unit : float, {"incident", "detected"}, optional
+        The camera's quantum efficiency (in (0, 1], default 1) and the unit of N and b:
+        ``"incident"`` photons (default; the expected photoelectrons are QE times the spot and
+        the background) or ``"detected"`` photoelectrons (``bayespsf.scene.units``).
+
+    Raises
+    ------
+    BayespsfInputError
+        If the geometry, camera, prior, quantum efficiency, photon unit or pixel model is bad.
     """
 
     def __init__(
@@ -170,7 +180,7 @@ class Model:
                 "need the spot and a border of background pixels (scenes of smaller ROIs can "
                 "be simulated, not fitted)"
             )
-        self.pixel_model = psf._check_pixel_model(pixel_model)
+        self.pixel_model = psf.check_pixel_model(pixel_model)
         if not isinstance(camera, Camera):
             raise BayespsfInputError(f"camera must be a bayespsf camera, got {camera!r}")
         self.roi = int(roi)
@@ -188,14 +198,38 @@ class Model:
         self.photoelectrons_per_photon = photon_units.photoelectrons_per_photon(
             self.quantum_efficiency, self.photon_unit
         )
-        self._prior_terms = _PriorTerms(self.prior)
+        self._prior_terms = PriorTerms(self.prior)
 
     @classmethod
     def from_scene(
         cls, scene: Scene, likelihood: str | None = None, pixel_model: str = "integrated"
     ) -> Model:
         """The model of a scene: its geometry, camera (tier ``likelihood``), prior, CIC,
-        saturation, quantum efficiency and photon unit."""
+        saturation, quantum efficiency and photon unit.
+
+        Parameters
+        ----------
+        scene : Scene
+        likelihood : str, optional
+            The camera's tier; default the scene's ``camera.likelihood``, else ``DEFAULT_TIER``.
+        pixel_model : {"integrated", "sampled"}, optional
+            See ``Model``.
+
+        Returns
+        -------
+        Model
+
+        Examples
+        --------
+        >>> from bayespsf import Model, load_scene, simulate
+        >>> scene = load_scene("paper-fig3")
+        >>> model = Model.from_scene(scene)
+        >>> model.roi, model.pixel_size, model.camera.likelihood
+        (19, 79.0, 'table')
+        >>> counts, truth = simulate(scene, n=2, seed=1)
+        >>> model.log_likelihood(counts, truth.to_numpy()).shape
+        (2,)
+        """
         cam = scene.camera
         return cls(
             scene.geometry["roi"],
@@ -214,18 +248,27 @@ class Model:
         pixel model, quantum efficiency and photon unit (N and b in detected photoelectrons
         when ``detected``), with the prior's defaults for the new geometry."""
         unit = "detected" if detected else self.photon_unit
-        return Model(roi, self.pixel_size, self.camera, None, self.clock_induced_charge,
-                     self.saturation, self.pixel_model, self.quantum_efficiency,
-                     unit)  # fmt: skip
+        return Model(
+            roi,
+            self.pixel_size,
+            self.camera,
+            None,
+            self.clock_induced_charge,
+            self.saturation,
+            self.pixel_model,
+            self.quantum_efficiency,
+            unit,
+        )
 
     @property
     def photon_unit_label(self) -> str:
-        """The unit of N and b in words (``bayespsf.photon_units.label``)."""
+        """The unit of N and b in words (``bayespsf.scene.units.label``)."""
         return photon_units.label(self.quantum_efficiency, self.photon_unit)
 
-    def expected(self, params) -> np.ndarray:
-        """Expected photoelectrons per pixel ``(..., roi, roi)``: the spot and the background
-        times ``photoelectrons_per_photon``, plus the CIC."""
+    def expected(self, params: ArrayLike) -> np.ndarray:
+        """Expected photoelectrons per pixel ``(..., roi, roi)`` of ``params`` ``(..., 6)``
+        (``x0 y0 s_x s_y N b``): the spot and the background times
+        ``photoelectrons_per_photon``, plus the CIC. Raises like ``psf.expected_counts``."""
         spot = psf.sampled_gaussian if self.pixel_model == "sampled" else psf.expected_counts
         photons = spot(params, self.roi, self.pixel_size)
         return self._detected(photons)
@@ -237,8 +280,9 @@ class Model:
             photons = photons * self.photoelectrons_per_photon
         return photons + self.clock_induced_charge
 
-    def expected_and_jacobian(self, params):
-        """Expected photoelectrons and their derivatives ``(..., 6, roi, roi)``."""
+    def expected_and_jacobian(self, params: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """Expected photoelectrons ``(..., roi, roi)`` and their derivatives by the six
+        parameters ``(..., 6, roi, roi)`` (``psf.expected_counts_and_jacobian``)."""
         mu, jac = psf.expected_counts_and_jacobian(
             params, self.roi, self.pixel_size, self.pixel_model
         )
@@ -246,12 +290,12 @@ class Model:
             jac = jac * self.photoelectrons_per_photon
         return self._detected(mu), jac
 
-    def check_counts(self, counts) -> np.ndarray:
+    def check_counts(self, counts: ArrayLike) -> np.ndarray:
         """ROI counts as a float array of shape ``(..., roi, roi)``, validated once.
 
         Raises ``BayespsfInputError`` for the first ROI with a problem (``roi_problems``).
         """
-        c = self._check_shape(counts)
+        c = self.check_shape(counts)
         problems = self.roi_problems(c)
         bad = [(i, why) for i, why in enumerate(problems) if why is not None]
         if bad:
@@ -261,7 +305,7 @@ class Model:
             raise BayespsfInputError(f"counts: {where}: {why}{more}")
         return c
 
-    def _check_shape(self, counts) -> np.ndarray:
+    def check_shape(self, counts: ArrayLike) -> np.ndarray:
         """Counts as a float array of shape (..., roi, roi); values are judged per ROI."""
         c = real_array("counts", counts)
         if c.ndim < 2 or c.shape[-2:] != (self.roi, self.roi):
@@ -271,7 +315,7 @@ class Model:
             )
         return c
 
-    def roi_problems(self, counts) -> list[str | None]:
+    def roi_problems(self, counts: ArrayLike) -> list[str | None]:
         """Why each ROI of ``counts`` (..., roi, roi) cannot be analysed by this model, or
         ``None`` where it can: one entry per ROI, in C order of the leading dimensions.
 
@@ -283,7 +327,7 @@ class Model:
         or above a declared ``saturation``; and, where no saturation is declared, a plateau of
         equal maximal counts (``saturation_plateau``) that marks an undeclared one.
         """
-        c = self._check_shape(counts)
+        c = self.check_shape(counts)
         flat = c.reshape(-1, self.roi * self.roi)
         _, offset = self.camera.photons_per_adu()
         offset = np.broadcast_to(np.asarray(offset, dtype=np.float64), c.shape[-2:]).ravel()
@@ -337,13 +381,31 @@ class Model:
             )
         return None
 
-    def log_likelihood(self, counts, params) -> np.ndarray:
-        """Sum over pixels of log p(counts | params), broadcasting batch dimensions."""
+    def log_likelihood(self, counts: ArrayLike, params: ArrayLike) -> np.ndarray:
+        """Sum over pixels of log p(counts | params), broadcasting batch dimensions.
+
+        Parameters
+        ----------
+        counts : array_like, shape (..., roi, roi)
+            Counts in ADU (checked: ``check_counts``).
+        params : array_like, shape (..., 6)
+            ``x0 y0 s_x s_y N b`` (nm; N and b in ``photon_unit``).
+
+        Returns
+        -------
+        ndarray
+            One log-likelihood per ROI, the broadcast batch shape.
+
+        Raises
+        ------
+        BayespsfInputError
+            If a ROI has a problem (``roi_problems``) or ``params`` is invalid.
+        """
         c = self.check_counts(counts)
         lam = self.expected(finite_array("params", params))
         return self.camera._log_likelihood(c, lam).sum(axis=(-2, -1))
 
-    def log_likelihood_unchecked(self, counts, params) -> np.ndarray:
+    def log_likelihood_unchecked(self, counts: np.ndarray, params: np.ndarray) -> np.ndarray:
         """``log_likelihood`` without checking its inputs: ``counts`` already validated
         (``check_counts``) and ``params`` (..., 6) finite and inside the PSF's domain (the
         samplers' hot path)."""
@@ -352,7 +414,7 @@ class Model:
         )
         return self.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
 
-    def to_photons(self, counts) -> np.ndarray:
+    def to_photons(self, counts: ArrayLike) -> np.ndarray:
         """Counts converted to N's unit with the camera's mean conversion (offset removed,
         times photoelectrons per ADU, over ``photoelectrons_per_photon``): what the paper fits
         by least squares."""
@@ -360,15 +422,15 @@ class Model:
         per_adu = np.asarray(per_adu) / self.photoelectrons_per_photon
         return (np.asarray(counts, dtype=np.float64) - offset) * per_adu
 
-    def photon_variance(self, lam) -> np.ndarray:
+    def photon_variance(self, lam: ArrayLike) -> np.ndarray:
         """Variance of ``to_photons`` of a pixel with ``lam`` expected photoelectrons."""
         per_adu, _ = self.camera.photons_per_adu()
         per_adu = np.asarray(per_adu) / self.photoelectrons_per_photon
         return self.camera.variance(lam) * per_adu**2
 
-    # ------------------------------------------------------------------ posterior (issue 5)
+    # ------------------------------------------------------------------ posterior
 
-    def to_unconstrained(self, params) -> np.ndarray:
+    def to_unconstrained(self, params: ArrayLike) -> np.ndarray:
         """Sampling coordinates: ``x0, y0, log s_x, log s_y, log N, b`` (positions and the
         background stay in their own units; proposals outside their prior support are
         rejected)."""
@@ -376,12 +438,13 @@ class Model:
         z[..., LOG_PARAMETERS] = np.log(z[..., LOG_PARAMETERS])
         return z
 
-    def from_unconstrained(self, z) -> np.ndarray:
+    def from_unconstrained(self, z: ArrayLike) -> np.ndarray:
+        """The parameters ``x0 y0 s_x s_y N b`` of sampling coordinates ``z`` (..., 6)."""
         p = np.array(z, dtype=np.float64)
         p[..., LOG_PARAMETERS] = np.exp(p[..., LOG_PARAMETERS])
         return p
 
-    def log_prior(self, params) -> np.ndarray:
+    def log_prior(self, params: ArrayLike) -> np.ndarray:
         """Log prior density of ``params`` (..., 6) up to a constant; -inf outside its support
         (and for NaN)."""
         return self._prior_terms(np.asarray(params, dtype=np.float64))
@@ -390,7 +453,7 @@ class Model:
         """Lower and upper ends of each parameter's prior support (infinite where unbounded)."""
         return self._prior_terms.low.copy(), self._prior_terms.high.copy()
 
-    def sample_prior(self, n: int, rng) -> np.ndarray:
+    def sample_prior(self, n: int, rng: np.random.Generator | int) -> np.ndarray:
         """``n`` parameter vectors ``(n, 6)`` drawn from the prior (simulation-based
         calibration draws its truths so); ``rng`` is a Generator or an integer seed."""
         if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
@@ -400,7 +463,9 @@ class Model:
             [_sample_prior_1d(self.prior[name], int(n), rng) for name in PARAMETER_NAMES]
         )
 
-    def log_posterior(self, z, counts, which=None) -> np.ndarray:
+    def log_posterior(
+        self, z: ArrayLike, counts: np.ndarray, which: ArrayLike | None = None
+    ) -> np.ndarray:
         """Log posterior in sampling coordinates ``z`` (..., 6), up to a constant: log prior +
         log |Jacobian| (the log of s_x, s_y, N) + log-likelihood. Vectorised over walkers; the
         likelihood is evaluated only where the prior is finite. ``counts`` must already be

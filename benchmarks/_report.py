@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-from bayespsf._report import machine
-from bayespsf._report import write_section as _write_section
+from bayespsf._runtime import machine
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+from report import write_section as _write_section
 
 README = Path(__file__).with_name("README.md")
 

@@ -3,7 +3,7 @@ the chain against the photon count, with the Laplace pilot's weight SD and the t
 
 ``sample_many`` (default ``method="auto"``, ESS 400, one process) on emccd-typical ROIs at
 several N. The Laplace is taken where the pilot's weight SD is <= 0.05
-(``bayespsf.stack_posterior``), which bounds its error for every posterior summary.
+(``bayespsf.inference.batched``), which bounds its error for every posterior summary.
 
     python benchmarks/auto.py            # full run, rewrites its section of README.md
     python benchmarks/auto.py --quick    # a small run that prints only (the tests)
@@ -24,9 +24,9 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from _report import publish_table, quick_run  # noqa: E402
 
-from bayespsf import scenes, simulate  # noqa: E402
-from bayespsf.batch import sample_many  # noqa: E402
+from bayespsf import load_scene, simulate  # noqa: E402
 from bayespsf.model import Model  # noqa: E402
+from bayespsf.parallel import sample_many  # noqa: E402
 
 WEIGHT_SD = re.compile(r"pilot weight SD ([0-9.e+-]+|inf)")
 
@@ -34,7 +34,7 @@ WEIGHT_SD = re.compile(r"pilot weight SD ([0-9.e+-]+|inf)")
 def choices(photons, rois: int) -> pd.DataFrame:
     rows = []
     for n_photons in photons:
-        scene = scenes.load("emccd-typical").replace(emitter={"photons": float(n_photons)})
+        scene = load_scene("emccd-typical").replace(emitter={"photons": float(n_photons)})
         model = Model.from_scene(scene)
         counts, _ = simulate(scene, rois, seed=1)
         sample_many(counts[:2], model, seed=1, workers=1)  # warm-up
@@ -43,14 +43,19 @@ def choices(photons, rois: int) -> pd.DataFrame:
         seconds = time.perf_counter() - started
         sds = [float(m.group(1)) for m in map(WEIGHT_SD.search, table["why"]) if m]
         share = table["method"].value_counts(normalize=True)
-        rows.append({
-            "N": n_photons, "ROIs": rois,
-            **{f"{m} (share)": float(share.get(m, 0.0)) for m in ("laplace", "importance",
-                                                                   "mcmc")},
-            "pilot weight SD (median)": float(np.median(sds)) if sds else np.nan,
-            "converged": float((table["status"] == "converged").mean()),
-            "ms per ROI": 1e3 * seconds / rois,
-        })  # fmt: skip
+        rows.append(
+            {
+                "N": n_photons,
+                "ROIs": rois,
+                **{
+                    f"{m} (share)": float(share.get(m, 0.0))
+                    for m in ("laplace", "importance", "mcmc")
+                },
+                "pilot weight SD (median)": float(np.median(sds)) if sds else np.nan,
+                "converged": float((table["status"] == "converged").mean()),
+                "ms per ROI": 1e3 * seconds / rois,
+            }
+        )
     return pd.DataFrame(rows)
 
 

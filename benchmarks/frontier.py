@@ -1,4 +1,4 @@
-"""The accuracy-time frontier (see :mod:`bayespsf.bench`): every EMCCD likelihood tier at ESS
+"""The accuracy-time frontier (see :mod:`bayespsf.cli.bench`): every EMCCD likelihood tier at ESS
 targets 100 / 400 / 1000 / 4000 and the MLE + CRLB and Laplace ends, for 12 molecules of the
 `emccd-typical` scene at N = 200, 1000 and 5000 (the `exact` tier: 2 molecules per N, ESS 100 and
 400). Writes benchmarks/results/frontier.{md,csv,png} and frontier-summary.csv, and its section of
@@ -15,7 +15,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from bayespsf import bench
+from bayespsf.cli import bench
 
 RESULTS = Path(__file__).with_name("results")
 
@@ -43,8 +43,12 @@ def main(argv=None) -> str:
     if not args.quick:
         from _report import write_section
 
-        write_section("frontier", text.replace("frontier.png", "results/frontier.png")
-                      .replace("frontier.csv", "results/frontier.csv"))  # fmt: skip
+        write_section(
+            "frontier",
+            text.replace("frontier.png", "results/frontier.png").replace(
+                "frontier.csv", "results/frontier.csv"
+            ),
+        )
     return text
 
 

@@ -1,5 +1,5 @@
 """Where a posterior's time goes, what is arithmetic and what is overhead, and what the
-alternatives would give (the hot-path part of the accuracy-time issue).
+alternatives would give.
 
 1. `cProfile` of `sample_posterior` on molecules of `emccd-typical` (table tier, N = 1000):
    cumulative time of each stage (MLE start; log-posterior split into PSF, likelihood, prior
@@ -30,16 +30,16 @@ import numba
 import numpy as np
 import pandas as pd
 
-from bayespsf import psf, scenes, simulate
-from bayespsf._timing import best_time
+from bayespsf import load_scene, psf, simulate
+from bayespsf._runtime import best_time
 from bayespsf.cameras import _emccd_table
-from bayespsf.estimators import fit_mle
+from bayespsf.inference import fit_mle, sample_posterior
+from bayespsf.inference.sampling import IndependenceMove, _moves
 from bayespsf.model import Model
-from bayespsf.sampling import IndependenceMove, _moves, sample_posterior
 
 
 def _setup(molecules: int):
-    scene = scenes.load("emccd-typical").replace(emitter={"photons": 1000.0})
+    scene = load_scene("emccd-typical").replace(emitter={"photons": 1000.0})
     model = Model.from_scene(scene)
     counts, _ = simulate(scene, molecules, seed=21)
     rois = [model.check_counts(c) for c in counts]
@@ -54,12 +54,18 @@ def stages(model, rois) -> pd.DataFrame:
     """Seconds per stage of sample_posterior over ``rois``: wall-clock timers around each
     stage's entry point (a profiler's per-call overhead would inflate emcee's many small
     Python calls), the rest being emcee's own bookkeeping."""
-    import bayespsf.sampling as sampling
+    import bayespsf.inference.sampling as sampling
 
-    spent = dict.fromkeys(["MLE start (fit_mle + Laplace)", "log-posterior calls",
-                           "proposals (independence t, DE, snooker)",
-                           "convergence checks (tau by FFT)",
-                           "result object (Posterior: xarray DataTree)"], 0.0)  # fmt: skip
+    spent = dict.fromkeys(
+        [
+            "MLE start (fit_mle + Laplace)",
+            "log-posterior calls",
+            "proposals (independence t, DE, snooker)",
+            "convergence checks (tau by FFT)",
+            "result object (Posterior: xarray DataTree)",
+        ],
+        0.0,
+    )
 
     inside = []  # the stages being timed, innermost last
 
@@ -121,9 +127,20 @@ def log_posterior_parts(model, c, repeat: int) -> pd.DataFrame:
     out = np.empty(tt.size)
 
     def kernel():
-        _emccd_table._interpolate(tt, ll, table.coef, table.xi[0], table.xi.size,
-                                  table.eta[0], table.eta.size, table.tau[0], table.tau.size,
-                                  table.near_offset, table.r, out)  # fmt: skip
+        _emccd_table._interpolate(
+            tt,
+            ll,
+            table.coef,
+            table.xi[0],
+            table.xi.size,
+            table.eta[0],
+            table.eta.size,
+            table.tau[0],
+            table.tau.size,
+            table.near_offset,
+            table.r,
+            out,
+        )
 
     timings = {
         "whole log_posterior (32 walkers)": lambda: model.log_posterior(z, c),
@@ -136,7 +153,7 @@ def log_posterior_parts(model, c, repeat: int) -> pd.DataFrame:
         "likelihood: camera._log_likelihood": lambda: model.camera._log_likelihood(c, lam),
         "likelihood: the numba interpolation alone": kernel,
         "prior": lambda: model.log_prior(p),
-    }  # fmt: skip
+    }
     _psf_numba(p, model.roi, model.pixel_size)  # compile
     rows = [{"part": k, "microseconds": 1e6 * best_time(f, repeat)} for k, f in timings.items()]
     numpy_psf = psf.expected_counts_unchecked(p, model.roi, model.pixel_size)
@@ -158,10 +175,14 @@ def _psf_numba(p, roi, a):
         for k in range(roi):
             lo = (k - roi / 2.0) * a
             hi = lo + a
-            px[k] = 0.5 * (math.erf((hi - x0) / (sx * math.sqrt(2.0)))
-                           - math.erf((lo - x0) / (sx * math.sqrt(2.0))))  # fmt: skip
-            py[k] = 0.5 * (math.erf((hi - y0) / (sy * math.sqrt(2.0)))
-                           - math.erf((lo - y0) / (sy * math.sqrt(2.0))))  # fmt: skip
+            px[k] = 0.5 * (
+                math.erf((hi - x0) / (sx * math.sqrt(2.0)))
+                - math.erf((lo - x0) / (sx * math.sqrt(2.0)))
+            )
+            py[k] = 0.5 * (
+                math.erf((hi - y0) / (sy * math.sqrt(2.0)))
+                - math.erf((lo - y0) / (sy * math.sqrt(2.0)))
+            )
         for i in range(roi):
             for j in range(roi):
                 out[w, i, j] = photons * py[i] * px[j] + b
@@ -174,15 +195,23 @@ def emcee_floor(steps: int) -> pd.DataFrame:
     for name in ("laplace-de", "de-snooker"):
         proposal = IndependenceMove(np.zeros(6), np.eye(6)) if name == "laplace-de" else None
         sampler = emcee.EnsembleSampler(
-            32, 6, lambda z: -0.5 * np.sum(z * z, axis=1), vectorize=True,
+            32,
+            6,
+            lambda z: -0.5 * np.sum(z * z, axis=1),
+            vectorize=True,
             moves=_moves(name, proposal),
-        )  # fmt: skip
+        )
         sampler.random_state = np.random.RandomState(0).get_state()
         start = time.perf_counter()
         sampler.run_mcmc(np.random.default_rng(0).standard_normal((32, 6)), steps)
         seconds = time.perf_counter() - start
-        rows.append({"moves": name, "steps/s with a free log-probability": steps / seconds,
-                     "microseconds per step": 1e6 * seconds / steps})  # fmt: skip
+        rows.append(
+            {
+                "moves": name,
+                "steps/s with a free log-probability": steps / seconds,
+                "microseconds per step": 1e6 * seconds / steps,
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -225,13 +254,17 @@ def main(argv=None):
         f"**Stages of sample_posterior** ({molecules} molecules, table tier, N = 1000):\n\n"
         + parts.to_markdown(index=False, floatfmt=".3g")
         + "\n\n**One log-posterior call** (32 walkers x 225 pixels; best of "
-        f"{repeat}):\n\n" + call.to_markdown(index=False, floatfmt=".3g")
+        f"{repeat}):\n\n"
+        + call.to_markdown(index=False, floatfmt=".3g")
         + f"\n\n**emcee's own cost per step** ({steps} steps, 32 walkers, free "
-        "log-probability):\n\n" + floor.to_markdown(index=False, floatfmt=".3g")
+        "log-probability):\n\n"
+        + floor.to_markdown(index=False, floatfmt=".3g")
         + "\n\n**Importance sampling instead of MCMC** (method='importance', ESS 400):\n\n"
-        + psis.describe().loc[["mean", "min", "50%", "max"]].drop(columns="molecule")
+        + psis.describe()
+        .loc[["mean", "min", "50%", "max"]]
+        .drop(columns="molecule")
         .to_markdown(floatfmt=".3g")
-    )  # fmt: skip
+    )
     from _report import publish
 
     publish("hot_path", text, args.quick)

@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from bayespsf._timing import best_time
+from bayespsf._runtime import best_time
 from bayespsf.cameras import EMCCD, _emccd_table
 from bayespsf.cameras.emccd import TIERS
 from bayespsf.psf import expected_counts

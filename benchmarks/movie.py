@@ -73,14 +73,16 @@ def _step(rows: list, name: str, n_frames: int, run):
     run()
     traced = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
-    rows.append({
-        "step": name,
-        "frames": n_frames,
-        "seconds": seconds,
-        "ms per frame": 1e3 * seconds / n_frames,
-        "tracemalloc peak (MB)": traced / 1e6,
-        "peak RSS growth (MB)": grown,
-    })  # fmt: skip
+    rows.append(
+        {
+            "step": name,
+            "frames": n_frames,
+            "seconds": seconds,
+            "ms per frame": 1e3 * seconds / n_frames,
+            "tracemalloc peak (MB)": traced / 1e6,
+            "peak RSS growth (MB)": grown,
+        }
+    )
     return result
 
 
@@ -91,18 +93,25 @@ def run(quick: bool = False) -> tuple[pd.DataFrame, dict]:
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "movie.tif"
         start = time.perf_counter()
-        subprocess.run([sys.executable, "-c", WRITE, str(path), str(n), str(h), str(w)],
-                       check=True)  # fmt: skip
+        subprocess.run([sys.executable, "-c", WRITE, str(path), str(n), str(h), str(w)], check=True)
         written = time.perf_counter() - start
         baseline = _peak_rss_mb()
         movie = _step(rows, "read_movie (open, check every page)", n, lambda: read_movie(path))
-        _step(rows, "read every frame (blocks of 64)", n,
-              lambda: sum(len(b) for _, b in movie.blocks(64)))  # fmt: skip
+        _step(
+            rows,
+            "read every frame (blocks of 64)",
+            n,
+            lambda: sum(len(b) for _, b in movie.blocks(64)),
+        )
         for kind in ("mean", "median"):
             _step(rows, f"project {kind}", n, lambda kind=kind: project(movie, kind))
         model = Model(MIN_ROI, 100.0, Photon())
-        found = _step(rows, "detect_movie (mean projection, then detection)", n,
-                      lambda: detect_movie(movie, psf_sd=130.0, camera=model))  # fmt: skip
+        found = _step(
+            rows,
+            "detect_movie (mean projection, then detection)",
+            n,
+            lambda: detect_movie(movie, psf_sd=130.0, camera=model),
+        )
         movie.close()
         info = {
             "movie": f"{n} frames of {h} x {w} uint16, {path.stat().st_size / 2**30:.3g} GiB",

@@ -6,7 +6,7 @@ camera law of two likelihood tiers, 'poisson' (photon camera, or EMCCD counts co
 photons) and 'gaussian' (the EMCCD chi-square model). NUTS samples the same coordinates as
 emcee, ``x0, y0, log s_x, log s_y, log N, b``, with the log-Jacobian added, so its potential
 energy is minus :meth:`bayespsf.model.Model.log_posterior` up to a constant (tested in
-tests/peer_checks.py) and both samplers face the same geometry.
+tests/repository/peer_checks.py) and both samplers face the same geometry.
 
 For molecules of the `ideal` scene (Poisson likelihood) and of `emccd-typical` (gaussian tier),
 spot fixed at the centre: the wall time of `sample_posterior` (ESS 400; its MLE start, burn-in
@@ -49,13 +49,12 @@ from numpyro.distributions import constraints
 from numpyro.infer import NUTS, init_to_value
 from numpyro.infer.util import potential_energy
 
-from bayespsf import scenes, simulate
+from bayespsf import load_scene, simulate
 from bayespsf.cameras import EMCCD, Photon
 from bayespsf.errors import BayespsfInputError
-from bayespsf.estimators import fit_mle
+from bayespsf.inference import fit_mle, sample_posterior
 from bayespsf.model import LOG_PARAMETERS, Model
 from bayespsf.psf import PARAMETER_NAMES
-from bayespsf.sampling import sample_posterior
 
 jax.config.update("jax_enable_x64", True)  # float64, as bayespsf; before any array is made
 
@@ -153,7 +152,7 @@ def expected(p, spec: PeerSpec):
 
 
 def log_prior_and_jacobian(z, p, spec: PeerSpec):
-    """Log prior of ``p`` (the law of bayespsf's ``_PriorTerms``) plus log |dp/dz|; -inf
+    """Log prior of ``p`` (the law of bayespsf's ``PriorTerms``) plus log |dp/dz|; -inf
     outside the prior's support. Also returns ``p`` clipped into the support, where the
     likelihood is evaluated (so that it and its gradient stay finite outside)."""
     inside = jnp.all((p >= spec.low) & (p <= spec.high))
@@ -259,7 +258,7 @@ def run(quick: bool, chains: int = 1, cases=CASES) -> pd.DataFrame:
     num_samples = (1000 if quick else 2000) // chains
     rows = []
     for name, likelihood in cases:
-        scene = scenes.load(name).replace(emitter={"position": "fixed"})
+        scene = load_scene(name).replace(emitter={"position": "fixed"})
         model = Model.from_scene(scene, likelihood=likelihood)
         spec = PeerSpec.from_model(model)
         counts, _ = simulate(scene, molecules, seed=7)

@@ -23,11 +23,10 @@ import time
 import numpy as np
 import pandas as pd
 
-from bayespsf import scenes, simulate
-from bayespsf._timing import best_time
-from bayespsf.estimators import fit_mle
+from bayespsf import load_scene, simulate
+from bayespsf._runtime import best_time
+from bayespsf.inference import fit_mle, sample_posterior
 from bayespsf.model import Model
-from bayespsf.sampling import sample_posterior
 
 S0 = 130.0
 RATIOS = (0.3, 0.5, 0.77, 1.0, 1.5, 2.0, 2.5)
@@ -36,7 +35,7 @@ RATIOS = (0.3, 0.5, 0.77, 1.0, 1.5, 2.0, 2.5)
 def scene_for(ratio: float, photons: float = 1000.0, background: float = 10.0):
     a = ratio * S0
     roi = max(7, 2 * int(np.ceil(4 * S0 / a)) + 1)
-    return scenes.load("ideal").replace(
+    return load_scene("ideal").replace(
         geometry={"pixel_size": a, "roi": roi},
         emitter={"photons": photons, "s0x": S0, "s0y": S0},
         background={"mean": background},
@@ -60,8 +59,11 @@ def run(quick: bool) -> pd.DataFrame:
         counts, _ = simulate(scene, images, seed=100 + k)
         z = Model.from_scene(scene).to_unconstrained([0.0, 0.0, S0, S0, 1000.0, 10.0])
         walkers = z + 1e-3 * np.random.default_rng(k).standard_normal((32, 6))
-        row = {"a/s0": ratio, "roi": scene.geometry["roi"],
-               "Eq. tophat sqrt(1 + (a/s0)^2/12)": np.sqrt(1 + ratio**2 / 12)}  # fmt: skip
+        row = {
+            "a/s0": ratio,
+            "roi": scene.geometry["roi"],
+            "Eq. tophat sqrt(1 + (a/s0)^2/12)": np.sqrt(1 + ratio**2 / 12),
+        }
         seconds = {}
         for pixel_model in ("integrated", "sampled"):
             model = Model.from_scene(scene, pixel_model=pixel_model)

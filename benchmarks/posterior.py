@@ -21,16 +21,15 @@ import time
 import numpy as np
 import pandas as pd
 
-from bayespsf import scenes, simulate
-from bayespsf._timing import best_time
-from bayespsf.estimators import fit_mle
+from bayespsf import load_scene, simulate
+from bayespsf._runtime import best_time
+from bayespsf.inference import fit_mle, sample_posterior
 from bayespsf.model import Model
-from bayespsf.sampling import sample_posterior
 from bayespsf.theory import scene_params
 
 
 def run(quick: bool) -> tuple[pd.DataFrame, pd.DataFrame]:
-    scene = scenes.load("emccd-typical").replace(emitter={"position": "fixed"})
+    scene = load_scene("emccd-typical").replace(emitter={"position": "fixed"})
     molecules = 1 if quick else 3
     counts, _ = simulate(scene, molecules, seed=7)
     tiers = ["table"] if quick else ["table", "high-gain", "gaussian", "exact"]
@@ -70,8 +69,9 @@ def run(quick: bool) -> tuple[pd.DataFrame, pd.DataFrame]:
     moves = []
     for name in ["laplace-de", "de-snooker", "stretch"]:
         for k in range(molecules):
-            post = sample_posterior(counts[k], model, seed=k, ess=100 if quick else 400,
-                                    moves=name, progress=False)  # fmt: skip
+            post = sample_posterior(
+                counts[k], model, seed=k, ess=100 if quick else 400, moves=name, progress=False
+            )
             moves.append(
                 {
                     "moves": name,

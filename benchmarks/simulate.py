@@ -16,8 +16,8 @@ import tracemalloc
 
 import pandas as pd
 
-from bayespsf import scenes, simulate
-from bayespsf._timing import best_time
+from bayespsf import load_scene, shipped_scenes, simulate
+from bayespsf._runtime import best_time
 
 SIZES = (15, 19)
 
@@ -27,8 +27,8 @@ def run(quick: bool) -> pd.DataFrame:
     repeat = 1 if quick else 3
     rows = []
     for roi in SIZES:
-        for name in scenes.names():
-            scene = scenes.load(name).replace(geometry={"roi": roi})
+        for name in shipped_scenes():
+            scene = load_scene(name).replace(geometry={"roi": roi})
             images = max(n // 20, 200) if name == "paper-fig2" else n  # photon by photon: slower
             seconds = best_time(lambda s=scene, m=images: simulate(s, m, seed=1), repeat)
             tracemalloc.start()

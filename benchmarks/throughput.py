@@ -44,11 +44,10 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from _report import machine, publish  # noqa: E402
 
-from bayespsf import scenes, simulate  # noqa: E402
-from bayespsf.batch import sample_many  # noqa: E402
-from bayespsf.estimators import fit_mle  # noqa: E402
+from bayespsf import load_scene, simulate  # noqa: E402
+from bayespsf.inference import fit_mle, sample_posterior  # noqa: E402
 from bayespsf.model import Model  # noqa: E402
-from bayespsf.sampling import sample_posterior  # noqa: E402
+from bayespsf.parallel import sample_many  # noqa: E402
 
 
 def picasso_fitters():
@@ -88,7 +87,7 @@ def _timed(function, *args):
 
 def peers(scene_name: str, n: int, posteriors: int, chains: int) -> pd.DataFrame:
     """Every method on the same ``n`` ROIs of a scene (posteriors on the first few)."""
-    scene = scenes.load(scene_name)
+    scene = load_scene(scene_name)
     model = Model.from_scene(scene)
     counts, truth = simulate(scene, n, seed=1)
     spots = model.to_photons(counts).astype(np.float32)
@@ -100,10 +99,17 @@ def peers(scene_name: str, n: int, posteriors: int, chains: int) -> pd.DataFrame
         error = np.asarray(sx, dtype=float) - true_sx[:count]
         error = error[np.isfinite(error)]
         se = error.std(ddof=1) / np.sqrt(len(error)) if len(error) > 1 else np.nan
-        rows.append({
-            "scene": scene_name, "method": method, "ROIs": count, "seconds": seconds,
-            "ROIs/s": count / seconds, "s_x - truth (nm)": error.mean(), "SE (nm)": se,
-        })  # fmt: skip
+        rows.append(
+            {
+                "scene": scene_name,
+                "method": method,
+                "ROIs": count,
+                "seconds": seconds,
+                "ROIs/s": count / seconds,
+                "s_x - truth (nm)": error.mean(),
+                "SE (nm)": se,
+            }
+        )
 
     for name, fit in picasso_fitters().items():
         fit(spots[:4])  # numba compilation
@@ -119,16 +125,19 @@ def peers(scene_name: str, n: int, posteriors: int, chains: int) -> pd.DataFrame
     row("bayespsf fit_mle (scipy, one ROI at a time)", seconds, few, fits["s_x"])
     started = time.perf_counter()
     sx = [fit_mle(counts[i : i + 1], model)["s_x"].iloc[0] for i in range(few)]
-    row("bayespsf fit_mle (stack engine, one ROI per call)", time.perf_counter() - started,
-        few, sx)  # fmt: skip
+    row("bayespsf fit_mle (stack engine, one ROI per call)", time.perf_counter() - started, few, sx)
     for method, ess in (("laplace", 400), ("importance", 400), ("auto", 400), ("auto", 100)):
         sample_many(counts[:4], model, workers=1, method=method, ess=ess)  # warm-up
         table, seconds = _timed(
             lambda m=method, e=ess: sample_many(counts, model, workers=1, method=m, ess=e)
         )
         used = ", ".join(f"{k} {v}" for k, v in table["method"].value_counts().items())
-        row(f"bayespsf sample_many {method}, ESS {ess} (batched; {used})", seconds, n,
-            table["s_x_mean"])  # fmt: skip
+        row(
+            f"bayespsf sample_many {method}, ESS {ess} (batched; {used})",
+            seconds,
+            n,
+            table["s_x_mean"],
+        )
     for method, count in (("importance", posteriors), ("mcmc", chains)):
         sample_posterior(counts[-1], model, seed=0, method=method)  # imports arviz once
         started = time.perf_counter()
@@ -146,7 +155,7 @@ def peers(scene_name: str, n: int, posteriors: int, chains: int) -> pd.DataFrame
 
 def scaling(quick: bool) -> pd.DataFrame:
     """The stack engine's time per ROI and peak memory against ROI size, N and stack size."""
-    base = scenes.load("emccd-typical")
+    base = load_scene("emccd-typical")
     plans = [("roi", v) for v in ((7,) if quick else (7, 11, 15, 25))]
     plans += [("N", v) for v in ((1e4,) if quick else (100.0, 1e3, 1e4, 1e5))]
     plans += [("stack", v) for v in ((1, 50) if quick else (1, 10, 100, 1000, 10_000, 100_000))]
@@ -166,20 +175,26 @@ def scaling(quick: bool) -> pd.DataFrame:
         fits, seconds = _timed(fit_mle, counts, model)
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-        rows.append({
-            "varied": kind, "value": value, "ROIs": n, "ms per ROI": 1e3 * seconds / n,
-            "ROIs/s": n / seconds, "peak MB": peak / 2**20,
-            "converged": float(fits["converged"].mean()),
-        })  # fmt: skip
+        rows.append(
+            {
+                "varied": kind,
+                "value": value,
+                "ROIs": n,
+                "ms per ROI": 1e3 * seconds / n,
+                "ROIs/s": n / seconds,
+                "peak MB": peak / 2**20,
+                "converged": float(fits["converged"].mean()),
+            }
+        )
     return pd.DataFrame(rows)
 
 
 COLD = """
 import time
 started = time.perf_counter()
-from bayespsf import Model, fit_mle, scenes, simulate
+from bayespsf import Model, fit_mle, load_scene, simulate
 imported = time.perf_counter()
-scene = scenes.load("emccd-typical")
+scene = load_scene("emccd-typical")
 counts, _ = simulate(scene, 1, seed=0)
 model = Model.from_scene(scene)
 began = time.perf_counter()
@@ -202,15 +217,21 @@ def cold_start(quick: bool = False) -> pd.DataFrame:
         env = {**os.environ} if quick else {**os.environ, "BAYESPSF_CACHE": cache}
         processes = ("first process on the machine", "a later process")
         for when in processes[1:] if quick else processes:
-            out = subprocess.run([sys.executable, "-c", COLD], env=env, capture_output=True,
-                                 text=True, check=True).stdout.split()  # fmt: skip
-            rows.append({"process": when, "imports (s)": float(out[0]),
-                         "first fit (s)": float(out[1])})  # fmt: skip
+            out = subprocess.run(
+                [sys.executable, "-c", COLD], env=env, capture_output=True, text=True, check=True
+            ).stdout.split()
+            rows.append(
+                {"process": when, "imports (s)": float(out[0]), "first fit (s)": float(out[1])}
+            )
     return pd.DataFrame(rows)
 
 
-def markdown(peer_table: pd.DataFrame, scale_table: pd.DataFrame, command: str,
-             cold: pd.DataFrame | None = None) -> str:  # fmt: skip
+def markdown(
+    peer_table: pd.DataFrame,
+    scale_table: pd.DataFrame,
+    command: str,
+    cold: pd.DataFrame | None = None,
+) -> str:
     fmt = {"floatfmt": ".3g", "index": False}
     return (
         "Same ROIs, one thread each; `ROIs/s / gaussmle` is the ratio to picasso's `gaussmle` in "
@@ -235,8 +256,9 @@ def main(argv=None):
     args = parser.parse_args(argv)
     n, posteriors, chains = (40, 3, 2) if args.quick else (2000, 40, 5)
     names = ("emccd-typical",) if args.quick else ("emccd-typical", "ideal")
-    peer_table = pd.concat([peers(name, n, posteriors, chains) for name in names],
-                           ignore_index=True)  # fmt: skip
+    peer_table = pd.concat(
+        [peers(name, n, posteriors, chains) for name in names], ignore_index=True
+    )
     scale_table = scaling(args.quick)
     cold = cold_start(args.quick)
     command = "python benchmarks/throughput.py" + (" --quick" if args.quick else "")

@@ -33,9 +33,9 @@ from bayespsf import theory
 
 S0, DEPTH, Z = 130.0, 400.0, 300.0  # in-focus width, imaging depth D, height above focus (nm)
 s_z = float(theory.axial_width(Z, S0, DEPTH))  # the Discussion's s(z) = s0 sqrt(1 + z²/D²)
-scene = bayespsf.scenes.load("emccd-typical").replace(emitter={"s0x": s_z, "s0y": s_z})
+scene = bayespsf.load_scene("emccd-typical").replace(emitter={"s0x": s_z, "s0y": s_z})
 print(f"width at z = {Z:g} nm: {s_z:.1f} nm")
-print(bayespsf.simulator.describe(scene))  # exactly the effects the scene declares
+print(bayespsf.simulation.pipeline.describe(scene))  # exactly the effects the scene declares
 
 # %% [markdown]
 # ## Simulate, then sample

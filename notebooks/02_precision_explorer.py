@@ -32,7 +32,7 @@ import bayespsf
 from bayespsf import theory
 
 S0 = 120.0
-base = bayespsf.scenes.load("paper-fig3").replace(background={"kind": "poisson", "mean": 4.0})
+base = bayespsf.load_scene("paper-fig3").replace(background={"kind": "poisson", "mean": 4.0})
 
 
 def at(N=500.0, a=79.0, b=4.0):

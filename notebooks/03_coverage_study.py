@@ -33,10 +33,10 @@ import pandas as pd
 from scipy import stats
 
 import bayespsf
-from bayespsf.batch import RANK_DRAWS, coverage
+from bayespsf.inference.summary import RANK_DRAWS, coverage
 from bayespsf.model import camera_from_scene
 
-scene = bayespsf.scenes.load("emccd-typical").replace(camera={"readout_sd": 0.0})
+scene = bayespsf.load_scene("emccd-typical").replace(camera={"readout_sd": 0.0})
 scene = scene.replace(
     prior={
         "x0": {"kind": "uniform", "low": -50.0, "high": 50.0},

@@ -38,12 +38,12 @@ import numpy as np
 import pandas as pd
 
 import bayespsf
-from bayespsf.movie.select import Rules
-from bayespsf.movie.simulate import match_truth, simulate_movie
+from bayespsf.movie import Rules
+from bayespsf.simulation import match_truth, simulate_movie
 
 OUT = Path("movie-analysis")  # beside the notebook; holds the movie and every result file
 shutil.rmtree(OUT, ignore_errors=True)  # made afresh: a rerun with other budgets is another run
-scene = bayespsf.scenes.load("paper-movie").replace(
+scene = bayespsf.load_scene("paper-movie").replace(
     movie={"frames": IMAGES, "molecules": MOLECULES, "dark_frames": 0}
 )
 made = simulate_movie(scene, seed=SEED, out=OUT / "paper")
@@ -58,8 +58,17 @@ print(made.files["movie"], f"{IMAGES} frames, {MOLECULES} molecules")
 # %%
 model = bayespsf.Model.from_scene(scene)
 rules = Rules(min_valid_frames=min(75, IMAGES // 3))
-result = bayespsf.analyze(made.files["movie"], model, s0=120.0, out=OUT / "analysis", rules=rules,
-                          ess=ESS, seed=SEED, workers=2, progress=False)  # fmt: skip
+result = bayespsf.analyze(
+    made.files["movie"],
+    model,
+    s0=120.0,
+    out=OUT / "analysis",
+    rules=rules,
+    ess=ESS,
+    seed=SEED,
+    workers=2,
+    progress=False,
+)
 chosen = result.molecules[result.molecules["selected"]]
 print(f"{len(chosen)} molecules selected, {len(result.frames)} frames analysed")
 print(sorted(p.name for p in result.paths.values()))
@@ -82,8 +91,9 @@ print(result.found.report_markdown())
 # posteriors are a little wide, and the widths' z-score SDs read a little under 1.)
 
 # %%
-result.consistency[["parameter", "frames", "molecules", "z_sd", "z_sd_se", "coverage",
-                    "expected_coverage"]]  # fmt: skip
+result.consistency[
+    ["parameter", "frames", "molecules", "z_sd", "z_sd_se", "coverage", "expected_coverage"]
+]
 
 # %% [markdown]
 # ## The joint posterior over frames, against the truth
@@ -97,16 +107,28 @@ result.consistency[["parameter", "frames", "molecules", "z_sd", "z_sd_se", "cove
 row = match_truth(chosen, made.molecules)  # -1: a selected molecule that matches none
 truth = made.molecules.iloc[np.maximum(row, 0)]
 one_fluorophore = (truth["fluorophores"] == 1) & ~truth["moving"].astype(bool)
-joint = chosen.assign(s_x_truth=truth["s_x"].where((row >= 0) & one_fluorophore.to_numpy())
-                      .to_numpy())  # fmt: skip
+joint = chosen.assign(
+    s_x_truth=truth["s_x"].where((row >= 0) & one_fluorophore.to_numpy()).to_numpy()
+)
 joint["covers s_x"] = joint["s_x_joint_q2.5"].le(joint["s_x_truth"]) & joint["s_x_truth"].le(
     joint["s_x_joint_q97.5"]
 )
 joint["sd x sqrt(K) / frame sd"] = (
     joint["s_x_joint_sd"] * np.sqrt(joint["joint_frames"]) / joint["s_x_frame_sd"]
 )
-joint[["molecule", "joint_frames", "s_x_joint_mean", "s_x_joint_sd", "s_x_frame_sd",
-       "sd x sqrt(K) / frame sd", "s_x_truth", "covers s_x", "joint_method"]]  # fmt: skip
+joint[
+    [
+        "molecule",
+        "joint_frames",
+        "s_x_joint_mean",
+        "s_x_joint_sd",
+        "s_x_frame_sd",
+        "sd x sqrt(K) / frame sd",
+        "s_x_truth",
+        "covers s_x",
+        "joint_method",
+    ]
+]
 
 # %% [markdown]
 # ## The paper's experimental Δs against N
@@ -118,8 +140,13 @@ joint[["molecule", "joint_frames", "s_x_joint_mean", "s_x_joint_sd", "s_x_frame_
 # %%
 spread = result.width_spread
 fig, ax = plt.subplots(figsize=(6, 4))
-for column, marker in (("delta_s_lsq", "o"), ("delta_s_mle", "s"), ("delta_s_mean", "^"),
-                       ("posterior_sd", "x"), ("eq_sigma2dp3", "+")):  # fmt: skip
+for column, marker in (
+    ("delta_s_lsq", "o"),
+    ("delta_s_mle", "s"),
+    ("delta_s_mean", "^"),
+    ("posterior_sd", "x"),
+    ("eq_sigma2dp3", "+"),
+):
     ax.loglog(spread["N"], spread[column], marker, label=column)
 ax.set_xlabel("mean N per frame (photons)")
 ax.set_ylabel("s_x error (nm)")

@@ -43,13 +43,11 @@ import numpy as np
 import pandas as pd
 
 import bayespsf
-from bayespsf import Model, scenes, theory
-from bayespsf.axial.bounds import crlb_z, first_order_z_sd
-from bayespsf.axial.calibrate import calibrate, simulate_zstack, step_widths, zstack_positions
-from bayespsf.axial.calibration_file import load_calibration, save_calibration
-from bayespsf.axial.defocus import Defocus
-from bayespsf.axial.posterior import z_posterior
-from bayespsf.axial.push import z_draws
+from bayespsf import Model, load_scene, theory
+from bayespsf.axial import calibrate, crlb_z, first_order_z_sd, step_widths, z_draws, z_posterior
+from bayespsf.io import read_z_calibration, write_z_calibration
+from bayespsf.psf import Defocus
+from bayespsf.simulation import simulate_zstack, zstack_positions
 
 # %% [markdown]
 # ## The astigmatic scene
@@ -61,7 +59,7 @@ from bayespsf.axial.push import z_draws
 # 2000 photons.
 
 # %%
-scene = scenes.load("astigmatic")
+scene = load_scene("astigmatic")
 model = Model.from_scene(scene)
 truth_defocus = Defocus.from_table(scene.axial, 130.0, 130.0)
 Z_RANGE = (scene.axial["z_low"], scene.axial["z_high"])  # the scene's z law: the prior of z
@@ -95,9 +93,18 @@ bead = scene.replace(emitter={"photons": 20000.0, "position": "fixed"})
 z_stack = zstack_positions(-700.0, 50.0, STEPS, FRAMES_PER_STEP)
 stack, stack_truth = simulate_zstack(bead, z_stack, SEED)
 steps = step_widths(stack, z_stack, Model.from_scene(bead), seed=SEED, ess=ESS, workers=1)
-cal = calibrate(steps, "huang", higher_order=False,
-                source={"stack": "simulated", "scene": "astigmatic", "bead_photons": 20000.0,
-                        "frames_per_step": FRAMES_PER_STEP, "seed": SEED})  # fmt: skip
+cal = calibrate(
+    steps,
+    "huang",
+    higher_order=False,
+    source={
+        "stack": "simulated",
+        "scene": "astigmatic",
+        "bead_photons": 20000.0,
+        "frames_per_step": FRAMES_PER_STEP,
+        "seed": SEED,
+    },
+)
 print(f"{len(z_stack)} frames, {STEPS} steps of {FRAMES_PER_STEP}")
 steps.head()
 
@@ -115,8 +122,15 @@ fig, (ax, res) = plt.subplots(2, 1, figsize=(6, 5.5), sharex=True, height_ratios
 z_fit = np.linspace(-750.0, 750.0, 301)
 for axis, color in (("x", "C0"), ("y", "C1")):
     curve = getattr(cal.defocus, axis)
-    ax.errorbar(steps["z"], steps[f"s_{axis}"], steps[f"s_{axis}_sd"], fmt="o", ms=3,
-                color=color, label=f"step s_{axis}")  # fmt: skip
+    ax.errorbar(
+        steps["z"],
+        steps[f"s_{axis}"],
+        steps[f"s_{axis}_sd"],
+        fmt="o",
+        ms=3,
+        color=color,
+        label=f"step s_{axis}",
+    )
     ax.plot(z_fit, curve.width(z_fit), color=color, label=f"fitted s_{axis}(z)")
     ax.plot(z_fit, getattr(truth_defocus, axis).width(z_fit), ":", color="k", lw=0.8)
     normalised = (steps[f"s_{axis}"] - curve.width(steps["z"])) / steps[f"s_{axis}_sd"]
@@ -129,16 +143,16 @@ res.set_ylabel("residual / SD")
 fig.tight_layout()
 
 # %% [markdown]
-# A calibration is a TOML file (`save_calibration`, `load_calibration`): the curve, each
+# A calibration is a TOML file (`write_z_calibration`, `read_z_calibration`): the curve, each
 # axis's terms, covariance and fit, the steps it was fitted to, and the source. Here it goes
 # to a temporary folder; the loaded calibration has the same curves and adds the file it came
 # from to its source.
 
 # %%
 with tempfile.TemporaryDirectory() as folder:
-    path = save_calibration(cal, Path(folder) / "astigmatic-z.toml")
+    path = write_z_calibration(cal, Path(folder) / "astigmatic-z.toml")
     print("\n".join(path.read_text().splitlines()[:12]), "\n...")
-    loaded = load_calibration(path)
+    loaded = read_z_calibration(path)
 print("same curves:", loaded.defocus == cal.defocus)
 pd.Series(loaded.source, name="source")
 
@@ -153,8 +167,9 @@ pd.Series(loaded.source, name="source")
 
 # %%
 counts, truth = bayespsf.simulate(scene, MOLECULES, SEED)
-posts = [z_posterior(counts[k], model, cal, z_range=Z_RANGE, seed=k, ess=ESS)
-         for k in range(MOLECULES)]  # fmt: skip
+posts = [
+    z_posterior(counts[k], model, cal, z_range=Z_RANGE, seed=k, ess=ESS) for k in range(MOLECULES)
+]
 print(f"true z of molecule 0: {truth['z'].iloc[0]:.1f} nm")
 posts[0].summary()
 
@@ -173,19 +188,35 @@ posts[0].info["calibration"]
 rows = []
 for k, post in enumerate(posts):
     z = post.draws["z"]
-    rows.append({"true z": truth["z"].iloc[k], "mean": z.mean(), "sd": z.std(),
-                 "q2.5": z.quantile(0.025), "q97.5": z.quantile(0.975),
-                 "khat": post.info["khat"], "converged": post.info["converged"]})  # fmt: skip
+    rows.append(
+        {
+            "true z": truth["z"].iloc[k],
+            "mean": z.mean(),
+            "sd": z.std(),
+            "q2.5": z.quantile(0.025),
+            "q97.5": z.quantile(0.975),
+            "khat": post.info["khat"],
+            "converged": post.info["converged"],
+        }
+    )
 zs = pd.DataFrame(rows)
 zs["covers"] = zs["q2.5"].le(zs["true z"]) & zs["true z"].le(zs["q97.5"])
 expected, spread = 0.95 * MOLECULES, np.sqrt(0.95 * 0.05 * MOLECULES)
-print(f"{zs['covers'].sum()} of {MOLECULES} 95% intervals hold the true z "
-      f"(expected {expected:.1f} ± {spread:.1f}); {zs['converged'].sum()} posteriors passed "
-      "their k-hat and ESS checks")  # fmt: skip
+print(
+    f"{zs['covers'].sum()} of {MOLECULES} 95% intervals hold the true z "
+    f"(expected {expected:.1f} ± {spread:.1f}); {zs['converged'].sum()} posteriors passed "
+    "their k-hat and ESS checks"
+)
 
 fig, ax = plt.subplots(figsize=(5, 5))
-ax.errorbar(zs["true z"], zs["mean"], [zs["mean"] - zs["q2.5"], zs["q97.5"] - zs["mean"]],
-            fmt="o", ms=3, label="posterior mean, 95% interval")  # fmt: skip
+ax.errorbar(
+    zs["true z"],
+    zs["mean"],
+    [zs["mean"] - zs["q2.5"], zs["q97.5"] - zs["mean"]],
+    fmt="o",
+    ms=3,
+    label="posterior mean, 95% interval",
+)
 missed = zs[~zs["covers"]]
 ax.plot(missed["true z"], missed["mean"], "rx", ms=8, label="interval misses the truth")
 ax.plot(Z_RANGE, Z_RANGE, "k:", lw=0.8)
@@ -201,8 +232,9 @@ zs.head(10)
 # by little more than their Monte Carlo noise.
 
 # %%
-wider = z_posterior(counts[0], model, cal, z_range=Z_RANGE, seed=0, ess=ESS,
-                    calibration_uncertainty=True)  # fmt: skip
+wider = z_posterior(
+    counts[0], model, cal, z_range=Z_RANGE, seed=0, ess=ESS, calibration_uncertainty=True
+)
 both_ways = {"fitted curves": posts[0], "curves' uncertainty marginalised": wider}
 pd.DataFrame({name: post.summary().loc["z"] for name, post in both_ways.items()}).transpose()
 
@@ -232,9 +264,16 @@ def first_order_at_crlb(defocus, z):
     return float(first_order_z_sd(defocus, z, widths_cov))
 
 
-pd.DataFrame([{"z": z, "sqrt CRLB_z": sqrt_crlb_z(truth_defocus, z),
-               "first order, S = widths' CRLB": first_order_at_crlb(truth_defocus, z)}
-              for z in (-600.0, -200.0, 0.0, 300.0)])  # fmt: skip
+pd.DataFrame(
+    [
+        {
+            "z": z,
+            "sqrt CRLB_z": sqrt_crlb_z(truth_defocus, z),
+            "first order, S = widths' CRLB": first_order_at_crlb(truth_defocus, z),
+        }
+        for z in (-600.0, -200.0, 0.0, 300.0)
+    ]
+)
 
 # %% [markdown]
 # The bound against z (at the ROI's centre, the scene's N and background), beside each
@@ -253,8 +292,10 @@ zs["sqrt CRLB_z"] = [
     for k in range(MOLECULES)
 ]
 ratio = zs["sd"] / zs["sqrt CRLB_z"]
-print(f"posterior SD / sqrt CRLB_z: mean {ratio.mean():.2f}, "
-      f"from {ratio.min():.2f} to {ratio.max():.2f}")  # fmt: skip
+print(
+    f"posterior SD / sqrt CRLB_z: mean {ratio.mean():.2f}, "
+    f"from {ratio.min():.2f} to {ratio.max():.2f}"
+)
 
 fig, ax = plt.subplots(figsize=(6, 3.8))
 ax.plot(z_grid, bound, "k-", label="sqrt CRLB_z")
@@ -278,7 +319,7 @@ fig.tight_layout()
 
 # %%
 symmetric = Defocus.symmetric(130.0, 400.0)
-flat = scenes.load("emccd-typical").replace(axial={"z": "fixed", "z0": 250.0})
+flat = load_scene("emccd-typical").replace(axial={"z": "fixed", "z0": 250.0})
 flat_model = Model.from_scene(flat)
 print(
     "same curves as the scene's:",
@@ -287,10 +328,13 @@ print(
 mirrored = {}
 for z0 in (250.0, 0.0):
     roi, _ = bayespsf.simulate(flat.replace(axial={"z0": z0}), 1, SEED)
-    mirrored[z0] = z_posterior(roi[0], flat_model, symmetric, z_range=(-600.0, 600.0),
-                               seed=SEED, ess=ESS)  # fmt: skip
-    print(f"true z = {z0:g} nm: P(z > 0) = {mirrored[z0].info['above_plane']:.2f}, "
-          f"k-hat {mirrored[z0].info['khat']:.2f}")  # fmt: skip
+    mirrored[z0] = z_posterior(
+        roi[0], flat_model, symmetric, z_range=(-600.0, 600.0), seed=SEED, ess=ESS
+    )
+    print(
+        f"true z = {z0:g} nm: P(z > 0) = {mirrored[z0].info['above_plane']:.2f}, "
+        f"k-hat {mirrored[z0].info['khat']:.2f}"
+    )
 
 fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), sharey=True)
 for ax, (z0, post) in zip(axes, mirrored.items(), strict=True):
@@ -354,12 +398,19 @@ fig.tight_layout()
 k = 0
 six = bayespsf.sample_posterior(counts[k], model, seed=SEED, ess=ESS, method="auto")
 widths = six.draws()  # a method here; ZPosterior.draws is a DataFrame attribute
-pushed = z_draws(cal.defocus, widths["s_x"].to_numpy(), widths["s_y"].to_numpy(),
-                 np.random.default_rng(SEED), Z_RANGE)  # fmt: skip
+pushed = z_draws(
+    cal.defocus,
+    widths["s_x"].to_numpy(),
+    widths["s_y"].to_numpy(),
+    np.random.default_rng(SEED),
+    Z_RANGE,
+)
 cov = np.cov(widths[["s_x", "s_y"]].to_numpy().T)
-print(f"six-parameter posterior: {six.method}, {len(widths)} draws; true z "
-      f"{truth['z'].iloc[k]:.1f} nm; first-order SD at the pushed median "
-      f"{float(first_order_z_sd(cal.defocus, np.median(pushed), cov)):.1f} nm")  # fmt: skip
+print(
+    f"six-parameter posterior: {six.method}, {len(widths)} draws; true z "
+    f"{truth['z'].iloc[k]:.1f} nm; first-order SD at the pushed median "
+    f"{float(first_order_z_sd(cal.defocus, np.median(pushed), cov)):.1f} nm"
+)
 
 fig, ax = plt.subplots(figsize=(6, 3.5))
 both = np.concatenate([pushed, posts[k].draws["z"]])
@@ -371,5 +422,9 @@ ax.set_xlabel("z (nm)")
 ax.legend(fontsize=8)
 fig.tight_layout()
 quantiles = [0.025, 0.16, 0.5, 0.84, 0.975]
-pd.DataFrame({"z_posterior": posts[k].draws["z"].describe(percentiles=quantiles),
-              "pushed": pd.Series(pushed).describe(percentiles=quantiles)}).transpose()  # fmt: skip
+pd.DataFrame(
+    {
+        "z_posterior": posts[k].draws["z"].describe(percentiles=quantiles),
+        "pushed": pd.Series(pushed).describe(percentiles=quantiles),
+    }
+).transpose()

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from bayespsf._report import machine, write_section
+from bayespsf._runtime import machine
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+from report import write_section
 
 RESULTS = Path(__file__).with_name("results")
 
@@ -21,8 +25,9 @@ def parser(doc: str) -> argparse.ArgumentParser:
     return p
 
 
-def write(out: Path, stem: str, table, text: str, command: str, started: float,
-          summary: str | None = None) -> None:  # fmt: skip
+def write(
+    out: Path, stem: str, table, text: str, command: str, started: float, summary: str | None = None
+) -> None:
     """Write ``stem.csv`` and ``stem.md`` (the table, the command, the wall time, the machine);
     a full run into the default folder also puts ``summary`` into validation/README.md's
     section ``stem``."""
@@ -132,7 +137,7 @@ class Runner:
     """Runs sample_many for each point of a study on one pool of workers (or a Dask cluster)."""
 
     def __init__(self, args, study: str):
-        from bayespsf.batch import local_executor
+        from bayespsf.parallel.executors import local_executor
 
         self.args, self.study = args, study
         if args.scheduler is not None:
@@ -151,7 +156,7 @@ class Runner:
             self.pool.shutdown(cancel_futures=True)
 
     def posteriors(self, point: str, counts, model, truths, seed: int, scene=None, **options):
-        from bayespsf.batch import sample_many
+        from bayespsf.parallel import sample_many
 
         method = getattr(self.args, "method", "mcmc")
         study = self.study + _method_suffix(self.args)

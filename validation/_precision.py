@@ -14,8 +14,8 @@ import numpy as np
 from _common import mean_and_error, sd_and_error
 
 from bayespsf import simulate, theory
-from bayespsf.batch import coverage
-from bayespsf.estimators import fit_lsq, fit_mle
+from bayespsf.inference import fit_lsq, fit_mle
+from bayespsf.inference.summary import coverage
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
 
@@ -36,8 +36,9 @@ def theory_columns(scene) -> dict:
     }
 
 
-def point(scene, images: int, mle_images: int, posteriors: int, seed: int, runner, label: str,
-          **options) -> dict:  # fmt: skip
+def point(
+    scene, images: int, mle_images: int, posteriors: int, seed: int, runner, label: str, **options
+) -> dict:
     """All columns of one (scene) point; ``runner`` is a _common.Runner."""
     model = Model.from_scene(scene)
     row = theory_columns(scene)
@@ -79,8 +80,14 @@ def point(scene, images: int, mle_images: int, posteriors: int, seed: int, runne
     c = coverage(post, 0.68).set_index("parameter").loc["b"]
     row["b coverage 68%"], row["b coverage 68% err"] = c["coverage"], c["se"]
     closed = row["s_x closed (Eq. sigma2dp3)"]
-    for column in ("s_x pixel sum (Eq. pesum)", "s_x CRLB", "s_x LSQ SD", "s_x MLE SD",
-                   "s_x posterior SD (mean)", "s_x posterior-mean SD"):  # fmt: skip
+    for column in (
+        "s_x pixel sum (Eq. pesum)",
+        "s_x CRLB",
+        "s_x LSQ SD",
+        "s_x MLE SD",
+        "s_x posterior SD (mean)",
+        "s_x posterior-mean SD",
+    ):
         row[f"{column} / closed"] = row[column] / closed
     row["x0 LSQ SD / closed"] = row["x0 LSQ SD"] / row["x0 closed (Eq. centroiderror)"]
     row["x0 CRLB / closed"] = row["x0 CRLB"] / row["x0 closed (Eq. centroiderror)"]
@@ -117,12 +124,16 @@ def plot_panel(ax, table, x: str, q: str, title: str, logx: bool = True) -> None
     """Theory as lines, Monte Carlo as points with error bars, in the style of the paper."""
     xs = table[x].to_numpy(float)
     if q == "s_x":
-        lines = [("s_x closed (Eq. sigma2dp3)", "k--", "Eq. sigma2dp3"),
-                 ("s_x pixel sum (Eq. pesum)", "k:", "pixel sum (Eq. pesum)"),
-                 ("s_x CRLB", "k-", "CRLB")]  # fmt: skip
+        lines = [
+            ("s_x closed (Eq. sigma2dp3)", "k--", "Eq. sigma2dp3"),
+            ("s_x pixel sum (Eq. pesum)", "k:", "pixel sum (Eq. pesum)"),
+            ("s_x CRLB", "k-", "CRLB"),
+        ]
     else:
-        lines = [("x0 closed (Eq. centroiderror)", "k--", "Eq. centroiderror"),
-                 ("x0 CRLB", "k-", "CRLB")]  # fmt: skip
+        lines = [
+            ("x0 closed (Eq. centroiderror)", "k--", "Eq. centroiderror"),
+            ("x0 CRLB", "k-", "CRLB"),
+        ]
     for column, style, label in lines:
         ax.plot(xs, table[column], style, label=label)
     points = [

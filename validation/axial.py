@@ -1,5 +1,5 @@
 """Axial position z: the posterior against the Cramér-Rao bound, a first-order error and the
-unified interval, by coverage of the truth (issue 16, "done when").
+unified interval, by coverage of the truth.
 
 Scenes: the shipped ``astigmatic`` scene (EMCCD gain 200, readout 50 e-, 100 nm pixels,
 s0 = 130 nm, Huang curves in focus at -200 nm for x and +200 nm for y, depth 400 nm) with the
@@ -53,14 +53,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bayespsf import scenes, simulate
-from bayespsf.axial.bounds import crlb_z, first_order_z_sd
-from bayespsf.axial.defocus import Defocus
-from bayespsf.axial.posterior import z_posterior
-from bayespsf.axial.push import nearest_z, z_draws
-from bayespsf.axial.unified import distance_from_focus
-from bayespsf.estimators import covariance, fit_mle
+from bayespsf import load_scene, simulate
+from bayespsf.axial import (
+    crlb_z,
+    distance_from_focus,
+    first_order_z_sd,
+    nearest_z,
+    z_draws,
+    z_posterior,
+)
+from bayespsf.inference import covariance, fit_mle
 from bayespsf.model import Model
+from bayespsf.psf import Defocus
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import finish, saved_figure, study
@@ -78,7 +82,7 @@ RANGE = {"astigmatic": (-800.0, 800.0), "symmetric": (-600.0, 600.0)}
 def scene_at(curve: str, z0: float, photons: float):
     """The scene of one point: the emitter at ``z0``, or (``z0`` NaN) z drawn per ROI from the
     posterior's own uniform prior on ``RANGE[curve]``."""
-    base = scenes.load("astigmatic")
+    base = load_scene("astigmatic")
     low, high = RANGE[curve]
     axial = (
         {"z": "uniform", "z_low": low, "z_high": high} if np.isnan(z0) else {"z": "fixed", "z0": z0}
@@ -143,9 +147,17 @@ def one_point(task) -> list[dict]:
             in68, in95 = post.covers(true_z[k], 0.68), post.covers(true_z[k], 0.95)
         else:
             in68, in95 = _interval_hits(*_intervals(z, False), target)
-        rows.append({**base, "method": "posterior", "estimate": float(np.mean(z)),
-                     "sd": float(np.std(z)), "in68": in68, "in95": in95,
-                     "passed": bool(post.info["converged"])})  # fmt: skip
+        rows.append(
+            {
+                **base,
+                "method": "posterior",
+                "estimate": float(np.mean(z)),
+                "sd": float(np.std(z)),
+                "in68": in68,
+                "in95": in95,
+                "passed": bool(post.info["converged"]),
+            }
+        )
         fit = fits.iloc[k]
         widths = cov[k][2:4, 2:4]
         ok = bool(fit["converged"]) and np.all(np.isfinite(widths))
@@ -157,20 +169,37 @@ def one_point(task) -> list[dict]:
                 [fit["s_x"], fit["s_y"]], widths, PUSHED_DRAWS
             )
             positive = np.all(draws > 0, axis=1)
-            pushed = z_draws(defocus, draws[positive, 0], draws[positive, 1], rng, z_range,
-                             widths)  # fmt: skip
+            pushed = z_draws(defocus, draws[positive, 0], draws[positive, 1], rng, z_range, widths)
             pushed = np.abs(pushed) if folded else pushed
             p = _intervals(pushed, folded)
         else:
             z_hat, sd, pushed, p = np.nan, np.nan, np.array([np.nan]), [np.nan] * 4
-        in68, in95 = _interval_hits(z_hat - sd, z_hat + sd, z_hat - 1.96 * sd,
-                                    z_hat + 1.96 * sd, target)  # fmt: skip
-        rows.append({**base, "method": "first order", "estimate": z_hat, "sd": sd,
-                     "in68": in68, "in95": in95, "passed": ok})  # fmt: skip
+        in68, in95 = _interval_hits(
+            z_hat - sd, z_hat + sd, z_hat - 1.96 * sd, z_hat + 1.96 * sd, target
+        )
+        rows.append(
+            {
+                **base,
+                "method": "first order",
+                "estimate": z_hat,
+                "sd": sd,
+                "in68": in68,
+                "in95": in95,
+                "passed": ok,
+            }
+        )
         in68, in95 = _interval_hits(*p, target)
-        rows.append({**base, "method": "pushed Laplace", "estimate": float(np.mean(pushed)),
-                     "sd": float(np.std(pushed)), "in68": in68, "in95": in95,
-                     "passed": ok})  # fmt: skip
+        rows.append(
+            {
+                **base,
+                "method": "pushed Laplace",
+                "estimate": float(np.mean(pushed)),
+                "sd": float(np.std(pushed)),
+                "in68": in68,
+                "in95": in95,
+                "passed": ok,
+            }
+        )
         if folded:
             rows.append({**base, **_unified(defocus, fit, widths, ok, target)})
     return rows
@@ -183,11 +212,17 @@ def _unified(defocus, fit, widths, ok: bool, target: float) -> dict:
     row = {"method": "unified", "sd": np.nan, "passed": ok}
     if not ok:
         return {**row, "estimate": np.nan, "in68": False, "in95": False}
-    i68, i95 = (distance_from_focus(defocus, fit["s_x"], fit["s_y"], widths, level).iloc[0]
-                for level in (0.68, 0.95))  # fmt: skip
+    i68, i95 = (
+        distance_from_focus(defocus, fit["s_x"], fit["s_y"], widths, level).iloc[0]
+        for level in (0.68, 0.95)
+    )
     hits = _interval_hits(i68["lower"], i68["upper"], i95["lower"], i95["upper"], target)
-    return {**row, "estimate": float(np.sqrt(max(i95["tau_hat"], 0.0))), "in68": hits[0],
-            "in95": hits[1]}  # fmt: skip
+    return {
+        **row,
+        "estimate": float(np.sqrt(max(i95["tau_hat"], 0.0))),
+        "in68": hits[0],
+        "in95": hits[1],
+    }
 
 
 def _median(values: pd.Series) -> float:
@@ -204,21 +239,31 @@ def summarise(per_roi: pd.DataFrame) -> pd.DataFrame:
         n = len(g)
         finite = np.isfinite(g["sd"])
         target = g["true z"].abs() if curve == "symmetric" else g["true z"]
-        rows.append({
-            "curve": curve, "z": z0, "N": photons, "method": method, "ROIs": n,
-            "coverage 68%": g["in68"].mean(), "coverage 95%": g["in95"].mean(),
-            "SE 68%": np.sqrt(0.68 * 0.32 / n), "SE 95%": np.sqrt(0.95 * 0.05 / n),
-            "sqrt CRLB (nm)": _median(g["sqrt CRLB_z"]),
-            "median SD (nm)": g["sd"].median() if g["sd"].notna().any() else np.nan,
-            "mean SD / sqrt CRLB": (g["sd"][finite] / g["sqrt CRLB_z"][finite]).mean(),
-            "RMSE / sqrt CRLB": float(np.sqrt(np.mean(
-                ((g["estimate"] - target) / g["sqrt CRLB_z"]) ** 2
-            ))) if g["sqrt CRLB_z"].notna().all() else np.nan,
-            "SD unusable": np.nan if method == "unified" else float(
-                np.mean(~(g["sd"] < RANGE[curve][1] - RANGE[curve][0]))
-            ),
-            "passed": g["passed"].mean(),
-        })  # fmt: skip
+        rows.append(
+            {
+                "curve": curve,
+                "z": z0,
+                "N": photons,
+                "method": method,
+                "ROIs": n,
+                "coverage 68%": g["in68"].mean(),
+                "coverage 95%": g["in95"].mean(),
+                "SE 68%": np.sqrt(0.68 * 0.32 / n),
+                "SE 95%": np.sqrt(0.95 * 0.05 / n),
+                "sqrt CRLB (nm)": _median(g["sqrt CRLB_z"]),
+                "median SD (nm)": g["sd"].median() if g["sd"].notna().any() else np.nan,
+                "mean SD / sqrt CRLB": (g["sd"][finite] / g["sqrt CRLB_z"][finite]).mean(),
+                "RMSE / sqrt CRLB": float(
+                    np.sqrt(np.mean(((g["estimate"] - target) / g["sqrt CRLB_z"]) ** 2))
+                )
+                if g["sqrt CRLB_z"].notna().all()
+                else np.nan,
+                "SD unusable": np.nan
+                if method == "unified"
+                else float(np.mean(~(g["sd"] < RANGE[curve][1] - RANGE[curve][0]))),
+                "passed": g["passed"].mean(),
+            }
+        )
     table = pd.DataFrame(rows)
     for level in ("68%", "95%"):
         nominal = float(level[:-1]) / 100
@@ -230,8 +275,12 @@ def summarise(per_roi: pd.DataFrame) -> pd.DataFrame:
 
 def tasks(quick: bool) -> list[tuple]:
     if quick:
-        points = [("astigmatic", 0.0, 1000.0), ("astigmatic", np.nan, 3000.0),
-                  ("symmetric", 0.0, 1000.0), ("symmetric", 200.0, 10_000.0)]  # fmt: skip
+        points = [
+            ("astigmatic", 0.0, 1000.0),
+            ("astigmatic", np.nan, 3000.0),
+            ("symmetric", 0.0, 1000.0),
+            ("symmetric", 200.0, 10_000.0),
+        ]
         molecules = 6
     else:
         points = [("astigmatic", z, n) for n in PHOTONS for z in Z_ASTIGMATIC]
@@ -289,8 +338,12 @@ def compact(table: pd.DataFrame) -> pd.DataFrame:
     keys = ["curve", "z", "N"]
     posterior = table[table["method"] == "posterior"].reset_index(drop=True)
     out = posterior[keys].copy()
-    short = {"posterior": "post", "first order": "1st order", "pushed Laplace": "pushed",
-             "unified": "unified"}  # fmt: skip
+    short = {
+        "posterior": "post",
+        "first order": "1st order",
+        "pushed Laplace": "pushed",
+        "unified": "unified",
+    }
     for method, name in short.items():
         rows = table[table["method"] == method][[*keys, "coverage 68%", "coverage 95%"]]
         rows = rows.rename(columns={"coverage 68%": f"{name} 68%", "coverage 95%": f"{name} 95%"})
@@ -319,8 +372,7 @@ def figure(table: pd.DataFrame, path: Path) -> None:
         left.set_xlabel("z (nm)")
         left.set_ylabel("mean SD of z / sqrt(CRLB_z)")
         se = astigmatic["SE 95%"].max()
-        right.axhspan(0.95 - 2 * se, 0.95 + 2 * se, color="grey", alpha=0.3,
-                      label="0.95 +- 2 SE")  # fmt: skip
+        right.axhspan(0.95 - 2 * se, 0.95 + 2 * se, color="grey", alpha=0.3, label="0.95 +- 2 SE")
         right.set_xlabel("z (nm)")
         right.set_ylabel("95% coverage of the true z")
         right.legend(fontsize=5, ncol=2)

@@ -1,6 +1,5 @@
 """Coverage at the edge of |z|: credible intervals and the unified interval on the paper's
-symmetric curve near focus, in the Gaussian limit, by quadrature (issue 16, "calibrated near
-focus").
+symmetric curve near focus, in the Gaussian limit, by quadrature.
 
 On a curve even about focus the image tells only ``tau = z^2``; near focus the widths are
 linear in tau (``s^2 = s0^2 (1 + tau / D^2)``), so tau's estimate is Gaussian with an SD
@@ -38,8 +37,8 @@ import numpy as np
 import pandas as pd
 
 from bayespsf import simulate
-from bayespsf.axial.unified import bounded_mean_interval, distance_from_focus
-from bayespsf.estimators import covariance, fit_mle
+from bayespsf.axial import bounded_mean_interval, distance_from_focus
+from bayespsf.inference import covariance, fit_mle
 from bayespsf.model import Model
 from bayespsf.theory import fisher_matrix
 
@@ -48,8 +47,28 @@ from _common import finish, saved_figure, study
 from axial import defocus_of, scene_at
 
 LEVELS = (0.68, 0.95)
-MEANS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0,
-         6.0, 8.0, 10.0)  # fmt: skip
+MEANS = (
+    0.0,
+    0.05,
+    0.1,
+    0.2,
+    0.3,
+    0.4,
+    0.5,
+    0.6,
+    0.8,
+    1.0,
+    1.25,
+    1.5,
+    2.0,
+    2.5,
+    3.0,
+    4.0,
+    5.0,
+    6.0,
+    8.0,
+    10.0,
+)
 QUICK_MEANS = (0.0, 0.25, 1.0, 3.0, 10.0)
 SIMULATED = {1000.0: (0.0, 50.0, 100.0, 200.0), 10_000.0: (0.0, 50.0, 100.0, 200.0)}
 UNIFIED_POINTS = [
@@ -128,8 +147,9 @@ def simulated(points, molecules: int) -> pd.DataFrame:
         ok = fits["converged"].to_numpy() & np.all(np.isfinite(widths), axis=(1, 2))
         row = {"N": photons, "z (nm)": z, "ROIs": int(ok.sum()), "fits failed": int((~ok).sum())}
         for prob in LEVELS:
-            out = distance_from_focus(defocus_of(scene), fits["s_x"][ok], fits["s_y"][ok],
-                                      widths[ok], prob)  # fmt: skip
+            out = distance_from_focus(
+                defocus_of(scene), fits["s_x"][ok], fits["s_y"][ok], widths[ok], prob
+            )
             row[f"coverage {prob:.0%}"] = float(np.mean((out["lower"] <= z) & (z <= out["upper"])))
             row[f"SE {prob:.0%}"] = float(np.sqrt(prob * (1 - prob) / ok.sum()))
         score = (out["tau_hat"] - z * z) / out["tau_sd"]
@@ -143,8 +163,11 @@ def figure(wide: pd.DataFrame, points: pd.DataFrame, path: Path) -> None:
     level and the simulated points' mu marked."""
     with saved_figure(path, (10, 3.8), columns=2) as axes:
         for ax, level in zip(axes, ("68%", "95%"), strict=True):
-            for method, style in (("posterior, z uniform", "o-"), ("posterior, tau uniform", "s--"),
-                                  ("unified", "k-")):  # fmt: skip
+            for method, style in (
+                ("posterior, z uniform", "o-"),
+                ("posterior, tau uniform", "s--"),
+                ("unified", "k-"),
+            ):
                 ax.plot(wide["mu"], wide[f"{method} {level}"], style, ms=3, label=method)
             ax.axhline(float(level[:-1]) / 100, color="grey", lw=0.8)
             for mu in points["mu = z^2 / sigma"]:
@@ -166,10 +189,14 @@ def main(argv=None):
     )
     wide.columns = [f"{method} {level:.0%}" for method, level in wide.columns]
     wide = wide.reset_index()
-    points = pd.DataFrame([
-        {"N": n, "sigma (nm^2)": sd, "z (nm)": z, "mu = z^2 / sigma": z * z / sd}
-        for n in SIMULATED for sd in [tau_sd(n)] for z in SIMULATED[n]
-    ])  # fmt: skip
+    points = pd.DataFrame(
+        [
+            {"N": n, "sigma (nm^2)": sd, "z (nm)": z, "mu = z^2 / sigma": z * z / sd}
+            for n in SIMULATED
+            for sd in [tau_sd(n)]
+            for z in SIMULATED[n]
+        ]
+    )
     figure(wide, points, args.out / f"{stem}.png")
     unified = simulated(*(QUICK_UNIFIED if args.quick else (UNIFIED_POINTS, UNIFIED_MOLECULES)))
     fmt = {"index": False, "floatfmt": ".3g"}

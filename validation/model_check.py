@@ -1,6 +1,6 @@
 """The goodness-of-fit flag against N: how often it fires where the model holds, and where not.
 
-``bayespsf.model_check.bootstrap_check`` (the MLE's negative log-likelihood against
+``bayespsf.inference.gof.bootstrap_check`` (the MLE's negative log-likelihood against
 19 refitted parametric-bootstrap replicates; a ROI is flagged at ``p <= 0.1``) on ROIs of the
 ``emccd-typical`` scene (15 x 15 pixels of 100 nm, s0 = 130 nm, a Poisson background of 10
 photons, EMCCD gain 200), analysed with that scene's Gaussian model, at N = 300, 1 000, 3 000
@@ -8,8 +8,8 @@ and 10 000 photons:
 
 - ``right``: the model's own scene. With 19 replicates p is uniform on {1, ..., 20}/20, so the
   flag fires at exactly 0.1 (the false-alarm rate, within its binomial SE);
-- ``two molecules``: two spots of N photons each, 400 nm apart (the issue's case: the posterior
-  alone reports one converged wide spot);
+- ``two molecules``: two spots of N photons each, 400 nm apart (the case that motivates the check:
+  the posterior alone reports one converged wide spot);
 - ``Airy``: the in-focus Airy disk of 620 nm light at NA 1.0 (its best-fitting Gaussian SD is
   130 nm, the scene's s0), fitted with the Gaussian;
 - ``saturated``: an ADC that saturates at 1 500 ADU, undeclared to the model (a 1 000-photon
@@ -37,18 +37,25 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bayespsf import scenes, simulate
-from bayespsf.estimators import fit_mle
+from bayespsf import load_scene, simulate
+from bayespsf.inference import bootstrap_check, fit_mle
+from bayespsf.inference.gof import DISCREPANCIES
 from bayespsf.model import Model
-from bayespsf.model_check import DISCREPANCIES, bootstrap_check
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import finish, saved_figure, study
 
 PHOTONS = (300.0, 1000.0, 3000.0, 10000.0)
 QUICK_PHOTONS = (1000.0, 10000.0)
-CASES = ("right", "two molecules", "Airy", "saturated", "hot pixel", "right, background 2.75",
-         "paper-movie as declared")  # fmt: skip
+CASES = (
+    "right",
+    "two molecules",
+    "Airy",
+    "saturated",
+    "hot pixel",
+    "right, background 2.75",
+    "paper-movie as declared",
+)
 LOW_BACKGROUND = 2.75  # photons per pixel
 REPLICATES = 19
 ALPHA = 0.1
@@ -58,9 +65,9 @@ HOT = 100.0  # photoelectrons
 
 def scene_at(photons: float, case: str):
     if case == "paper-movie as declared":
-        base = scenes.load("paper-movie")
+        base = load_scene("paper-movie")
         return base.replace(emitter={**base.emitter, "photons": photons, "photon_jitter": 0.0})
-    scene = scenes.load("emccd-typical").replace(emitter={"photons": photons})
+    scene = load_scene("emccd-typical").replace(emitter={"photons": photons})
     if case == "saturated":
         return scene.replace(camera={"saturation": SATURATION})
     if case == "right, background 2.75":
@@ -103,16 +110,28 @@ def main(argv=None):
             counts = rois(case, photons, n, seed=100 * i + j, model=model)
             fits = fit_mle(counts, model, laplace=False, crlb=False)
             for discrepancy in DISCREPANCIES:
-                check = bootstrap_check(counts, model, replicates=REPLICATES, seed=i * 10 + j,
-                                        fits=fits, discrepancy=discrepancy)  # fmt: skip
+                check = bootstrap_check(
+                    counts,
+                    model,
+                    replicates=REPLICATES,
+                    seed=i * 10 + j,
+                    fits=fits,
+                    discrepancy=discrepancy,
+                )
                 p = check["gof_p"]
                 tested = int(p.notna().sum())
-                rows.append({
-                    "case": case, "N": photons, "discrepancy": discrepancy, "ROIs": n,
-                    "tested": tested, "flagged": float((p <= ALPHA).sum() / max(tested, 1)),
-                    "binomial SE at 0.1": float(np.sqrt(ALPHA * (1 - ALPHA) / max(tested, 1))),
-                    "mean p": float(p.mean()),
-                })  # fmt: skip
+                rows.append(
+                    {
+                        "case": case,
+                        "N": photons,
+                        "discrepancy": discrepancy,
+                        "ROIs": n,
+                        "tested": tested,
+                        "flagged": float((p <= ALPHA).sum() / max(tested, 1)),
+                        "binomial SE at 0.1": float(np.sqrt(ALPHA * (1 - ALPHA) / max(tested, 1))),
+                        "mean p": float(p.mean()),
+                    }
+                )
     table = pd.DataFrame(rows)
     figure(table, args.out / f"{stem}.png")
     fmt = {"index": False, "floatfmt": ".4g"}
@@ -132,8 +151,9 @@ def figure(table: pd.DataFrame, path: Path) -> None:
             for case, rows in part.groupby("case", sort=False):
                 ax.plot(rows["N"], rows["flagged"], "o-", label=case)
             se = part["binomial SE at 0.1"].max()  # of the null rate, where the model holds
-            ax.axhspan(ALPHA - 2 * se, ALPHA + 2 * se, color="grey", alpha=0.3,
-                       label="nominal 0.1 +- 2 SE")  # fmt: skip
+            ax.axhspan(
+                ALPHA - 2 * se, ALPHA + 2 * se, color="grey", alpha=0.3, label="nominal 0.1 +- 2 SE"
+            )
             ax.set_xscale("log")
             ax.set_xlabel("N (photons)")
             ax.set_ylabel("share flagged at p <= 0.1")

@@ -1,5 +1,5 @@
 """Per-molecule analysis against the truth: per-frame and joint posteriors, and the check
-without ground truth when the model is right and when it is not (issue 14, "done when").
+without ground truth when the model is right and when it is not.
 
 Part 1, movies. Simulated ``paper-movie`` movies (300 frames, 40 molecules of 500-5000
 photons per frame, s0 = 120 nm; with a Poisson background of 2.75 photons per pixel, the
@@ -8,7 +8,7 @@ path as ``bayespsf analyze`` takes them (``find_molecules`` with the scene's own
 central 15 x 15 ROI of every valid frame), then:
 
 - the joint posterior of every selected molecule over its valid frames
-  (``bayespsf.analysis.joint``, ``JOINT_ESS`` draws each): the 68% and 95% coverage of the
+  (``bayespsf.inference.joint``, ``JOINT_ESS`` draws each): the 68% and 95% coverage of the
   true x0 and s_x, the SD of the z-scores, and its SD against one frame's (expected
   ~1/sqrt(K): ``sd x sqrt(K) / frame sd``, near 1, with the frame's Laplace SD);
 - per-frame posteriors (``sample_many``, method ``auto``) of up to ``FRAMES_PER_MOLECULE``
@@ -19,7 +19,7 @@ two-fluorophore molecule that passed the rules is counted and left out (its trut
 position and width).
 
 Part 2, the check without ground truth (``bayespsf.analysis.consistency``) and the
-bootstrap goodness-of-fit test (``bayespsf.model_check``, ``gof_p <= 0.1``) on stacks
+bootstrap goodness-of-fit test (``bayespsf.inference.gof``, ``gof_p <= 0.1``) on stacks
 of immobile molecules shaped like the movie's (79 nm pixels, 1 600 photons +-20% per frame, the
 same Poisson background), each molecule at one fixed position in all its frames:
 
@@ -30,7 +30,7 @@ same Poisson background), each molecule at one fixed position in all its frames:
   Gaussian SD 120 nm), analysed with the Gaussian.
 
 A right model gives z-score SDs of 1 within their SE and a flag rate of 0.1 within its binomial
-SE; the issue asks the check to fail clearly for the other three.
+SE; the check should fail clearly for the other three.
 
     python validation/movie_analysis.py            # 30 movies and 4 x 1 200 ROIs (about 21 minutes)
     python validation/movie_analysis.py --quick    # 1 small movie and 4 x 30 ROIs
@@ -45,19 +45,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bayespsf import scenes, simulate
-from bayespsf.analysis.consistency import frame_consistency
-from bayespsf.analysis.joint import joint_posteriors
+from bayespsf import load_scene, simulate
+from bayespsf.analysis import frame_consistency
 from bayespsf.analysis.pipeline import valid_rois
-from bayespsf.batch import sample_many
-from bayespsf.estimators import fit_mle
+from bayespsf.inference import bootstrap_check, fit_mle
+from bayespsf.inference.gof import flag_excess_p
+from bayespsf.inference.summary import quantile_column
 from bayespsf.model import Model
-from bayespsf.model_check import bootstrap_check, flag_excess_p
-from bayespsf.movie.pipeline import find_molecules
-from bayespsf.movie.select import Rules
-from bayespsf.movie.simulate import match_truth, simulate_movie
-from bayespsf.posterior_rows import quantile_column
+from bayespsf.movie import Rules, find_molecules
+from bayespsf.parallel import joint_posteriors, sample_many
 from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.simulation import match_truth, simulate_movie
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import finish, saved_figure, study
@@ -65,7 +63,7 @@ from _common import finish, saved_figure, study
 FIT = 15
 FRAMES_PER_MOLECULE = 40
 JOINT_ESS = 400  # draws kept per joint posterior (analyze's default): with 200, the 68%
-# interval's quantiles moved 0.04 of the coverage away from the mean +- SD band (session 9)
+# interval's quantiles moved 0.04 of the coverage away from the mean +- SD band
 SCORED = ("x0", "s_x")
 # the model's own background law: paper-movie's truncated Gaussian is sub-Poisson, which makes
 # every posterior conservative (docs/cli.md measures it), so "right" would not be right
@@ -82,14 +80,16 @@ def _truths(found, place, made, a: float) -> pd.DataFrame:
     for k, molecule in enumerate(chosen["molecule"]):
         t = made.molecules.iloc[row[k]] if row[k] >= 0 else None
         r, c = centre.loc[molecule]
-        out.append({
-            "molecule": molecule,
-            "x0": np.nan if t is None else (t["x"] - c) * a,
-            "y0": np.nan if t is None else (t["y"] - r) * a,
-            "s_x": np.nan if t is None else t["s_x"],
-            "s_y": np.nan if t is None else t["s_y"],
-            "clean": t is not None and not bool(t["moving"]) and int(t["fluorophores"]) == 1,
-        })  # fmt: skip
+        out.append(
+            {
+                "molecule": molecule,
+                "x0": np.nan if t is None else (t["x"] - c) * a,
+                "y0": np.nan if t is None else (t["y"] - r) * a,
+                "s_x": np.nan if t is None else t["s_x"],
+                "s_y": np.nan if t is None else t["s_y"],
+                "clean": t is not None and not bool(t["moving"]) and int(t["fluorophores"]) == 1,
+            }
+        )
     return pd.DataFrame(out).set_index("molecule")
 
 
@@ -140,18 +140,29 @@ def part_movies(scene, movies: int, per_frame_movies: int, workers: int, rules=N
         in68 = ((scored[f"{p}_joint_q16"] <= t) & (t <= scored[f"{p}_joint_q84"])).mean()
         in95 = ((scored[f"{p}_joint_q2.5"] <= t) & (t <= scored[f"{p}_joint_q97.5"])).mean()
         n = len(scored)
-        rows.append({
-            "posterior": "joint over frames", "parameter": p, "molecules or frames": n,
-            "coverage 68%": in68, "SE 68%": np.sqrt(0.68 * 0.32 / n),
-            "coverage 95%": in95, "SE 95%": np.sqrt(0.95 * 0.05 / n),
-            "z-score SD": float(z.std(ddof=1)), "z-score mean": float(z.mean()),
-            "joint MLE z-score mean": float(
-                ((scored[f"{p}_joint_mle"] - t) / scored[f"{p}_joint_sd"]).mean()
-            ),
-            "sd x sqrt(K) / frame sd": float(np.median(
-                scored[f"{p}_joint_sd"] * np.sqrt(scored["joint_frames"]) / scored[f"{p}_frame_sd"]
-            )),
-        })  # fmt: skip
+        rows.append(
+            {
+                "posterior": "joint over frames",
+                "parameter": p,
+                "molecules or frames": n,
+                "coverage 68%": in68,
+                "SE 68%": np.sqrt(0.68 * 0.32 / n),
+                "coverage 95%": in95,
+                "SE 95%": np.sqrt(0.95 * 0.05 / n),
+                "z-score SD": float(z.std(ddof=1)),
+                "z-score mean": float(z.mean()),
+                "joint MLE z-score mean": float(
+                    ((scored[f"{p}_joint_mle"] - t) / scored[f"{p}_joint_sd"]).mean()
+                ),
+                "sd x sqrt(K) / frame sd": float(
+                    np.median(
+                        scored[f"{p}_joint_sd"]
+                        * np.sqrt(scored["joint_frames"])
+                        / scored[f"{p}_frame_sd"]
+                    )
+                ),
+            }
+        )
     facts = {
         "movies": movies,
         "molecules selected": len(joint),
@@ -169,18 +180,25 @@ def part_movies(scene, movies: int, per_frame_movies: int, workers: int, rules=N
             in68 = (per[quantile_column(p, 0.16)] <= t) & (t <= per[quantile_column(p, 0.84)])
             in95 = (per[quantile_column(p, 0.025)] <= t) & (t <= per[quantile_column(p, 0.975)])
             z = (per[f"{p}_mean"] - t) / per[f"{p}_sd"]
-            rows.append({
-                "posterior": "per frame", "parameter": p, "molecules or frames": n,
-                "coverage 68%": float(in68.mean()), "SE 68%": np.sqrt(0.68 * 0.32 / n),
-                "coverage 95%": float(in95.mean()), "SE 95%": np.sqrt(0.95 * 0.05 / n),
-                "z-score SD": float(z.std(ddof=1)), "z-score mean": float(z.mean()),
-            })  # fmt: skip
+            rows.append(
+                {
+                    "posterior": "per frame",
+                    "parameter": p,
+                    "molecules or frames": n,
+                    "coverage 68%": float(in68.mean()),
+                    "SE 68%": np.sqrt(0.68 * 0.32 / n),
+                    "coverage 95%": float(in95.mean()),
+                    "SE 95%": np.sqrt(0.95 * 0.05 / n),
+                    "z-score SD": float(z.std(ddof=1)),
+                    "z-score mean": float(z.mean()),
+                }
+            )
     return pd.DataFrame(rows), facts
 
 
 def stack_scene(airy: bool):
     """ROIs shaped like the movie's molecules, at one fixed position per molecule."""
-    scene = scenes.load("paper-movie")
+    scene = load_scene("paper-movie")
     table = scene.to_dict()
     table.pop("movie", None)
     table["emitter"].update(position="fixed")
@@ -226,22 +244,34 @@ def one_case(name: str, molecules: int, frames: int, workers: int) -> dict:
 
 def main(argv=None):
     args, started, stem = study(__doc__, argv, "movie_analysis", posteriors=False)
-    scene = scenes.load("paper-movie").replace(movie={"dark_frames": 0})
+    scene = load_scene("paper-movie").replace(movie={"dark_frames": 0})
     table = scene.to_dict()
     table["background"] = POISSON_BACKGROUND
     scene = type(scene).from_dict(table)
     workers = 2
     if args.quick:
-        scene = scene.replace(movie={"frames": 80, "height": 128, "width": 128, "molecules": 9,
-                                     "bleach_mean": 80.0, "two_fluorophores": 0.0,
-                                     "moving": 0.0})  # fmt: skip
+        scene = scene.replace(
+            movie={
+                "frames": 80,
+                "height": 128,
+                "width": 128,
+                "molecules": 9,
+                "bleach_mean": 80.0,
+                "two_fluorophores": 0.0,
+                "moving": 0.0,
+            }
+        )
         movies, per_frame, molecules, frames = 1, 1, 2, 15
     else:
         movies, per_frame, molecules, frames = 30, 1, 40, 30
     rules = Rules(min_valid_frames=25) if args.quick else None  # the quick movie is short
     coverage, facts = part_movies(scene, movies, per_frame, workers, rules)
-    cases = pd.DataFrame([one_case(name, molecules, frames, workers)
-                          for name in ("right", "gain +20%", "gain -20%", "Airy")])  # fmt: skip
+    cases = pd.DataFrame(
+        [
+            one_case(name, molecules, frames, workers)
+            for name in ("right", "gain +20%", "gain -20%", "Airy")
+        ]
+    )
     fmt = {"index": False, "floatfmt": ".4g"}
     facts_table = pd.DataFrame([facts])
     text = (
@@ -269,8 +299,10 @@ def figure(coverage: pd.DataFrame, cases: pd.DataFrame, path: Path) -> None:
 def _coverage_panel(left, coverage: pd.DataFrame) -> None:
     labels = [f"{r.posterior}\n{r.parameter}" for r in coverage.itertuples()]
     k = np.arange(len(coverage))
-    for shift, level, column, marker in ((-0.1, 0.68, "coverage 68%", "o"),
-                                         (0.1, 0.95, "coverage 95%", "s")):  # fmt: skip
+    for shift, level, column, marker in (
+        (-0.1, 0.68, "coverage 68%", "o"),
+        (0.1, 0.95, "coverage 95%", "s"),
+    ):
         se = coverage[f"SE {column.split()[-1]}"]
         left.errorbar(k + shift, coverage[column], yerr=2 * se, fmt=marker, label=column)
         left.axhline(level, lw=0.8, ls="--", color="grey")
@@ -282,8 +314,13 @@ def _coverage_panel(left, coverage: pd.DataFrame) -> None:
 def _check_panel(right, cases: pd.DataFrame) -> None:
     k = np.arange(len(cases))
     for shift, p in zip((-0.2, 0.0, 0.2), ("x0", "s_x", "s_y"), strict=True):
-        right.errorbar(k + shift, cases[f"{p} z-score SD"], yerr=2 * cases[f"{p} SE"], fmt="o",
-                       label=f"{p} z-score SD")  # fmt: skip
+        right.errorbar(
+            k + shift,
+            cases[f"{p} z-score SD"],
+            yerr=2 * cases[f"{p} SE"],
+            fmt="o",
+            label=f"{p} z-score SD",
+        )
     right.plot(k, cases["GOF flagged at 0.1"] * 10, "kx", label="GOF flag rate x 10")
     right.axhline(1.0, lw=0.8, ls="--", color="grey")
     right.set_xticks(k, cases["case"], fontsize=7)

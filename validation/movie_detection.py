@@ -5,7 +5,7 @@ N 500-5000 photons per frame, 10% with two fluorophores, 5% moving by 10 nm per 
 through ``find_molecules`` with the scene's own camera, as ``bayespsf detect`` does. Against the
 truth (``match_truth``: a candidate within 1.5 pixels of a molecule, 10 of a moving one):
 
-- found: the share of immobile molecules that are candidates (the issue asks >= 95%);
+- found: the share of immobile molecules that are candidates (target >= 95%);
 - false: the share of candidates that match no molecule (<= 1%);
 - bleach frame within +-1: the share of single-fluorophore immobile molecules that bleach and
   pass detection whose bleach frame is found within one frame (>= 90%);
@@ -31,10 +31,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bayespsf import scenes
+from bayespsf import load_scene
 from bayespsf.model import Model
-from bayespsf.movie.pipeline import find_molecules
-from bayespsf.movie.simulate import match_truth, simulate_movie
+from bayespsf.movie import find_molecules
+from bayespsf.simulation import match_truth, simulate_movie
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import finish, per_movie_figure, per_movie_report, study
@@ -88,38 +88,56 @@ def one_movie(scene, seed: int) -> dict:
 
 def main(argv=None):
     args, started, stem = study(__doc__, argv, "movie_detection", posteriors=False)
-    scene = scenes.load("paper-movie").replace(movie={"dark_frames": 0})
+    scene = load_scene("paper-movie").replace(movie={"dark_frames": 0})
     if args.quick:
-        scene = scene.replace(movie={"frames": 120, "height": 128, "width": 128,
-                                     "molecules": 9, "bleach_mean": 50.0})  # fmt: skip
+        scene = scene.replace(
+            movie={"frames": 120, "height": 128, "width": 128, "molecules": 9, "bleach_mean": 50.0}
+        )
     movies = pd.DataFrame([one_movie(scene, seed) for seed in range(2 if args.quick else 20)])
-    counts = ["two-fluorophore passing single_step",
-              "single bleaching immobile removed by single_step",
-              "immobile removed by no_drift", "moving selected"]  # fmt: skip
-    table = pd.DataFrame([{
-        "movies": len(movies), "molecules": int(movies["molecules"].sum()),
-        "found (immobile), mean": movies["found (immobile)"].mean(),
-        "found, worst movie": movies["found (immobile)"].min(),
-        "false candidates, mean": movies["false candidates"].mean(),
-        "bleach within 1 frame": np.average(movies["bleach within 1 frame"].fillna(0),
-                                            weights=movies["single-step judged"]),
-        "single-step judged": int(movies["single-step judged"].sum()),
-        **{name: int(movies[name].sum()) for name in counts},
-        "selected per movie": movies["selected"].mean(),
-    }])  # fmt: skip
+    counts = [
+        "two-fluorophore passing single_step",
+        "single bleaching immobile removed by single_step",
+        "immobile removed by no_drift",
+        "moving selected",
+    ]
+    table = pd.DataFrame(
+        [
+            {
+                "movies": len(movies),
+                "molecules": int(movies["molecules"].sum()),
+                "found (immobile), mean": movies["found (immobile)"].mean(),
+                "found, worst movie": movies["found (immobile)"].min(),
+                "false candidates, mean": movies["false candidates"].mean(),
+                "bleach within 1 frame": np.average(
+                    movies["bleach within 1 frame"].fillna(0), weights=movies["single-step judged"]
+                ),
+                "single-step judged": int(movies["single-step judged"].sum()),
+                **{name: int(movies[name].sum()) for name in counts},
+                "selected per movie": movies["selected"].mean(),
+            }
+        ]
+    )
     figure(movies, args.out / f"{stem}.png")
-    text, summary = per_movie_report("From movies to selected molecules, against the truth",
-                                     table, movies, stem, "detection per movie")  # fmt: skip
+    text, summary = per_movie_report(
+        "From movies to selected molecules, against the truth",
+        table,
+        movies,
+        stem,
+        "detection per movie",
+    )
     return finish(args, "movie_detection", table, text, started, summary)
 
 
 def figure(movies: pd.DataFrame, path: Path) -> None:
     with per_movie_figure(path, "share") as ax:
         k = np.arange(len(movies))
-        for column, marker in (("found (immobile)", "o"), ("bleach within 1 frame", "s"),
-                               ("false candidates", "x")):  # fmt: skip
+        for column, marker in (
+            ("found (immobile)", "o"),
+            ("bleach within 1 frame", "s"),
+            ("false candidates", "x"),
+        ):
             ax.plot(k, movies[column], marker, label=column)
-        for level, colour in ((0.95, "C0"), (0.9, "C1"), (0.01, "C2")):  # the issue's targets
+        for level, colour in ((0.95, "C0"), (0.9, "C1"), (0.01, "C2")):  # the targets
             ax.axhline(level, color=colour, lw=0.8, ls="--")
 
 

@@ -23,11 +23,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bayespsf import scenes
-from bayespsf.calibration import calibrate_gain
-from bayespsf.movie.camera_file import calibrate_camera
-from bayespsf.movie.extract import cut_rois
-from bayespsf.movie.simulate import simulate_movie
+from bayespsf import load_scene
+from bayespsf.calibration import calibrate_camera, calibrate_gain
+from bayespsf.movie import cut_rois
+from bayespsf.simulation import simulate_movie
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import finish, per_movie_figure, per_movie_report, study
@@ -43,18 +42,25 @@ def one_movie(scene, seed: int, folder: Path) -> dict:
     rois = cut_rois(files["movie"], kept, roi=25, fit=15)
     # the paper's Eq. photonConv per molecule, on the same frames (those before bleaching)
     plain_m = [
-        calibrate_gain(rois.counts[rois.table["molecule"].to_numpy() == m][:k].astype(float))
-        .adu_per_photon
+        calibrate_gain(
+            rois.counts[rois.table["molecule"].to_numpy() == m][:k].astype(float)
+        ).adu_per_photon
         for m, k in zip(kept["molecule"], kept["frames"], strict=True)
-    ]  # fmt: skip
+    ]
     low, high = gain.interval
     return {
-        "seed": seed, "molecules": len(kept), "outliers": int(gain.per_molecule["outlier"].sum()),
-        "M": gain.adu_per_photon, "SE": gain.se, "low": low, "high": high,
-        "covered": bool(low <= TRUE_M <= high), "z": (gain.adu_per_photon - TRUE_M) / gain.se,
+        "seed": seed,
+        "molecules": len(kept),
+        "outliers": int(gain.per_molecule["outlier"].sum()),
+        "M": gain.adu_per_photon,
+        "SE": gain.se,
+        "low": low,
+        "high": high,
+        "covered": bool(low <= TRUE_M <= high),
+        "z": (gain.adu_per_photon - TRUE_M) / gain.se,
         "provisional M": cal.provisional_adu_per_photon,
         "Eq. photonConv without fluctuation (mean over molecules)": float(np.mean(plain_m)),
-    }  # fmt: skip
+    }
 
 
 def run(movies: int, scene) -> pd.DataFrame:
@@ -64,32 +70,51 @@ def run(movies: int, scene) -> pd.DataFrame:
 
 def main(argv=None):
     args, started, stem = study(__doc__, argv, "movie_gain", posteriors=False)
-    scene = scenes.load("paper-movie")
+    scene = load_scene("paper-movie")
     if args.quick:
-        scene = scene.replace(movie={"frames": 150, "height": 128, "width": 128,
-                                     "molecules": 12, "bleach_mean": 100.0})  # fmt: skip
+        scene = scene.replace(
+            movie={
+                "frames": 150,
+                "height": 128,
+                "width": 128,
+                "molecules": 12,
+                "bleach_mean": 100.0,
+            }
+        )
     movies = run(2 if args.quick else 40, scene)
     n = len(movies)
     covered = movies["covered"].mean()
-    table = pd.DataFrame([{
-        "movies": n, "true M": TRUE_M, "mean M": movies["M"].mean(),
-        "bias %": 100 * (movies["M"].mean() / TRUE_M - 1),
-        "bias MC error %": 100 * movies["M"].std(ddof=1) / np.sqrt(n) / TRUE_M,
-        "mean SE %": 100 * movies["SE"].mean() / TRUE_M,
-        "SD of z": movies["z"].std(ddof=1),
-        "95% interval covers": covered,
-        "binomial SE": np.sqrt(0.95 * 0.05 / n),
-        "mean molecules": movies["molecules"].mean(),
-        "mean provisional M": movies["provisional M"].mean(),
-        "plain Eq. photonConv bias %": 100 * (
-            movies["Eq. photonConv without fluctuation (mean over molecules)"].mean() / TRUE_M - 1
-        ),
-    }])  # fmt: skip
+    table = pd.DataFrame(
+        [
+            {
+                "movies": n,
+                "true M": TRUE_M,
+                "mean M": movies["M"].mean(),
+                "bias %": 100 * (movies["M"].mean() / TRUE_M - 1),
+                "bias MC error %": 100 * movies["M"].std(ddof=1) / np.sqrt(n) / TRUE_M,
+                "mean SE %": 100 * movies["SE"].mean() / TRUE_M,
+                "SD of z": movies["z"].std(ddof=1),
+                "95% interval covers": covered,
+                "binomial SE": np.sqrt(0.95 * 0.05 / n),
+                "mean molecules": movies["molecules"].mean(),
+                "mean provisional M": movies["provisional M"].mean(),
+                "plain Eq. photonConv bias %": 100
+                * (
+                    movies["Eq. photonConv without fluctuation (mean over molecules)"].mean()
+                    / TRUE_M
+                    - 1
+                ),
+            }
+        ]
+    )
     figure(movies, args.out / f"{stem}.png")
     text, summary = per_movie_report(
-        f"ADU per photon from whole movies: true M = {TRUE_M:.4g}", table, movies, stem,
+        f"ADU per photon from whole movies: true M = {TRUE_M:.4g}",
+        table,
+        movies,
+        stem,
         "movie gain estimates",
-    )  # fmt: skip
+    )
     return finish(args, "movie_gain", table, text, started, summary)
 
 
@@ -97,10 +122,22 @@ def figure(movies: pd.DataFrame, path: Path) -> None:
     with per_movie_figure(path, "M (ADU per photon)") as ax:
         k = np.arange(len(movies))
         error = [movies["M"] - movies["low"], movies["high"] - movies["M"]]
-        ax.errorbar(k, movies["M"], yerr=error, fmt="o", ms=3, color="C0",
-                    label="bayespsf calibrate, 95% interval")  # fmt: skip
-        ax.plot(k, movies["Eq. photonConv without fluctuation (mean over molecules)"], "x",
-                color="C3", label="Eq. photonConv without the fluctuation term")  # fmt: skip
+        ax.errorbar(
+            k,
+            movies["M"],
+            yerr=error,
+            fmt="o",
+            ms=3,
+            color="C0",
+            label="bayespsf calibrate, 95% interval",
+        )
+        ax.plot(
+            k,
+            movies["Eq. photonConv without fluctuation (mean over molecules)"],
+            "x",
+            color="C3",
+            label="Eq. photonConv without the fluctuation term",
+        )
         ax.axhline(TRUE_M, color="k", lw=1)
 
 

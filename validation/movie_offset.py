@@ -31,22 +31,28 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bayespsf import Scene, scenes
+from bayespsf import Scene, load_scene
+from bayespsf.calibration import calibrate_camera
 from bayespsf.errors import BayespsfInputError
-from bayespsf.movie.camera_file import calibrate_camera
-from bayespsf.movie.simulate import simulate_movie
+from bayespsf.simulation import simulate_movie
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import finish, per_movie_figure, per_movie_report, study
 
 OFFSET = 100.0
-SCMOS = {"kind": "scmos", "gain": 2.17, "offset": OFFSET, "variance": 12.0, "quantize": True,
-         "saturation": 65535.0}  # fmt: skip
+SCMOS = {
+    "kind": "scmos",
+    "gain": 2.17,
+    "offset": OFFSET,
+    "variance": 12.0,
+    "quantize": True,
+    "saturation": 65535.0,
+}
 READOUT_ADU = {"emccd": 50.0 / 12.0, "scmos": np.sqrt(12.0 + 1 / 12)}  # + the ADC's rounding
 
 
 def case_scene(case: str, quick: bool) -> Scene:
-    table = scenes.load("paper-movie").to_dict()
+    table = load_scene("paper-movie").to_dict()
     if case != "paper background":
         table["background"] = {"kind": "poisson", "mean": 3.0}
     if case == "scmos":
@@ -63,14 +69,23 @@ def one_movie(case: str, scene: Scene, seed: int, folder: Path) -> dict:
     declared = None if kind == "scmos" else 50.0
     row = {"case": case, "seed": seed}
     try:
-        cal = calibrate_camera(files["movie"], kind=kind, s0=120.0, e_per_adu=12.0,
-                               readout_sd=declared)  # fmt: skip
+        cal = calibrate_camera(
+            files["movie"], kind=kind, s0=120.0, e_per_adu=12.0, readout_sd=declared
+        )
     except BayespsfInputError as exc:
         return {**row, "refused": True, "why": str(exc)[:80]}
     o = cal.offset
-    row.update(refused=False, why="", offset=o.offset, offset_se=o.offset_se,
-               offset_z=(o.offset - OFFSET) / o.offset_se, readout=o.readout_sd,
-               readout_se=o.readout_sd_se, photons=o.photons, pixels=o.pixels)  # fmt: skip
+    row.update(
+        refused=False,
+        why="",
+        offset=o.offset,
+        offset_se=o.offset_se,
+        offset_z=(o.offset - OFFSET) / o.offset_se,
+        readout=o.readout_sd,
+        readout_se=o.readout_sd_se,
+        photons=o.photons,
+        pixels=o.pixels,
+    )
     if declared is None:
         row["readout_z"] = (o.readout_sd - READOUT_ADU[kind]) / o.readout_sd_se
     return row
@@ -83,12 +98,14 @@ def summary_row(case: str, movies: pd.DataFrame) -> dict:
         return row
     n = len(measured)
     z = measured["offset_z"]
-    row.update({
-        "offset bias (ADU)": measured["offset"].mean() - OFFSET,
-        "mean offset SE": measured["offset_se"].mean(),
-        "offset 95% covers": float((z.abs() <= 1.96).mean()),
-        "binomial SE": np.sqrt(0.95 * 0.05 / n),
-    })  # fmt: skip
+    row.update(
+        {
+            "offset bias (ADU)": measured["offset"].mean() - OFFSET,
+            "mean offset SE": measured["offset_se"].mean(),
+            "offset 95% covers": float((z.abs() <= 1.96).mean()),
+            "binomial SE": np.sqrt(0.95 * 0.05 / n),
+        }
+    )
     if n > 1:  # spreads need two movies (a quick run has one)
         row["bias MC error"] = measured["offset"].std(ddof=1) / np.sqrt(n)
         row["SD of offset z"] = z.std(ddof=1)
@@ -120,17 +137,27 @@ def main(argv=None):
     table = pd.DataFrame(summaries)
     figure(movies, args.out / f"{stem}.png")
     text, summary = per_movie_report(
-        f"Offset and readout without dark frames: true offset {OFFSET:g} ADU", table, movies,
-        stem, "offsets without dark frames",
-    )  # fmt: skip
+        f"Offset and readout without dark frames: true offset {OFFSET:g} ADU",
+        table,
+        movies,
+        stem,
+        "offsets without dark frames",
+    )
     return finish(args, "movie_offset", table, text, started, summary)
 
 
 def figure(movies: pd.DataFrame, path: Path) -> None:
     with per_movie_figure(path, "offset (ADU)") as ax:
         for k, (case, part) in enumerate(movies[~movies["refused"]].groupby("case")):
-            ax.errorbar(np.arange(len(part)), part["offset"], yerr=1.96 * part["offset_se"],
-                        fmt="o", ms=3, color=f"C{k}", label=f"{case}, 95% interval")  # fmt: skip
+            ax.errorbar(
+                np.arange(len(part)),
+                part["offset"],
+                yerr=1.96 * part["offset_se"],
+                fmt="o",
+                ms=3,
+                color=f"C{k}",
+                label=f"{case}, 95% interval",
+            )
         ax.axhline(OFFSET, color="k", lw=1)
 
 

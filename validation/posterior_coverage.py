@@ -34,8 +34,8 @@ from scipy import stats
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import RESULTS, Runner, finish, study
 
-from bayespsf import scenes, simulate
-from bayespsf.batch import RANK_DRAWS, coverage
+from bayespsf import load_scene, simulate
+from bayespsf.inference.summary import RANK_DRAWS, coverage
 from bayespsf.model import Model, camera_from_scene
 from bayespsf.psf import PARAMETER_NAMES
 
@@ -98,7 +98,7 @@ def run(args, configurations, molecules: int, options) -> tuple[pd.DataFrame, di
     with Runner(args, "posterior_coverage") as runner:
         for k, (label, name, camera, tier, *optics) in enumerate(configurations):
             print(label, flush=True)
-            base = scenes.load(name)
+            base = load_scene(name)
             scene = base.replace(camera=camera) if camera else base
             scene = scene.replace(optics=optics[0]) if optics else scene
             scene = scene.replace(prior=prior(scene))
@@ -127,8 +127,9 @@ def run(args, configurations, molecules: int, options) -> tuple[pd.DataFrame, di
 
 def rank_figure(ranks: dict, path: Path) -> None:
     labels = list(ranks)
-    fig, axes = plt.subplots(len(labels), 6, figsize=(13, 1.5 * len(labels) + 0.6),
-                             sharex=True, squeeze=False)  # fmt: skip
+    fig, axes = plt.subplots(
+        len(labels), 6, figsize=(13, 1.5 * len(labels) + 0.6), sharex=True, squeeze=False
+    )
     for i, label in enumerate(labels):
         table = ranks[label]
         n = len(table)
@@ -156,8 +157,14 @@ def interval_figure(table: pd.DataFrame, path: Path) -> None:
         for k, (_, row) in enumerate(part.iterrows()):
             actual = np.array([row[f"coverage {p:.0%}"] for p in LEVELS])
             err = np.array([row[f"coverage {p:.0%} err"] for p in LEVELS])
-            ax.errorbar(nominal + 0.004 * k, actual - nominal, yerr=err, fmt="o-", ms=3,
-                        label=row["configuration"])  # fmt: skip
+            ax.errorbar(
+                nominal + 0.004 * k,
+                actual - nominal,
+                yerr=err,
+                fmt="o-",
+                ms=3,
+                label=row["configuration"],
+            )
         ax.axhline(0, color="k", lw=0.8)
         ax.set_title(name)
         ax.set_xlabel("nominal")
@@ -193,8 +200,12 @@ def main(argv=None):
     interval_figure(table, args.out / f"{stem}_intervals.png")
     # z-scores against each level's binomial SE under calibration, sqrt(p (1 - p) / n)
     z = np.max(
-        [np.abs(table[f"coverage {p:.0%}"] - p) / np.sqrt(p * (1 - p) / table["molecules"])
-         for p in LEVELS], axis=0)  # fmt: skip
+        [
+            np.abs(table[f"coverage {p:.0%}"] - p) / np.sqrt(p * (1 - p) / table["molecules"])
+            for p in LEVELS
+        ],
+        axis=0,
+    )
     worst = table.assign(z=z)
     verdict = worst.groupby("configuration", sort=False).agg(
         **{

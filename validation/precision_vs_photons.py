@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _common import Runner, finish, study
 from _precision import plot_panel, point, summary_columns
 
-from bayespsf import scenes
+from bayespsf import load_scene
 
 PHOTONS = (100, 200, 500, 1000, 2000, 5000)
 SCENES = ("paper-fig2", "paper-fig3")
@@ -40,13 +40,12 @@ def run(args, photons, sizes, options) -> pd.DataFrame:
     rows = []
     with Runner(args, "precision_vs_photons") as runner:
         for s, name in enumerate(SCENES):
-            base = scenes.load(name)
+            base = load_scene(name)
             for k, n_photons in enumerate(photons):
                 print(f"{name}, N = {n_photons}", flush=True)
                 scene = base.replace(emitter={"photons": float(n_photons)})
                 label = f"{name}-N{n_photons}"
-                row = point(scene, seed=100 * s + k, runner=runner, label=label, **sizes,
-                            **options)  # fmt: skip
+                row = point(scene, seed=100 * s + k, runner=runner, label=label, **sizes, **options)
                 rows.append({"scene": name, "N": n_photons, **row})
     return pd.DataFrame(rows)
 
@@ -74,10 +73,13 @@ def main(argv=None):
     figure(table, args.out / f"{stem}.png")
     sections = []
     for q, paper in (
-        ("s_x", "the pixel sum is ~15% above Eq. sigma2dp3; least-squares simulations ~57% "
-                "above, for all N"),
+        (
+            "s_x",
+            "the pixel sum is ~15% above Eq. sigma2dp3; least-squares simulations ~57% "
+            "above, for all N",
+        ),
         ("x0", "(no numerical claim for x0 in the paper)"),
-    ):  # fmt: skip
+    ):
         short = table[["scene", "N", *summary_columns(q)]]
         sections.append(
             f"## {q}\n\nThe paper (DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010)): {paper}."
@@ -95,10 +97,18 @@ def main(argv=None):
         "posterior_coverage.md for calibration on well-specified data."
     )
     summary = table[
-        ["scene", "N", "s_x pixel sum (Eq. pesum) / closed", "s_x CRLB / closed",
-         "s_x LSQ SD / closed", "s_x MLE SD / closed", "s_x posterior SD (mean) / closed",
-         "s_x coverage 68%", "s_x coverage 95%"]
-    ].to_markdown(index=False, floatfmt=".3g")  # fmt: skip
+        [
+            "scene",
+            "N",
+            "s_x pixel sum (Eq. pesum) / closed",
+            "s_x CRLB / closed",
+            "s_x LSQ SD / closed",
+            "s_x MLE SD / closed",
+            "s_x posterior SD (mean) / closed",
+            "s_x coverage 68%",
+            "s_x coverage 95%",
+        ]
+    ].to_markdown(index=False, floatfmt=".3g")
     summary += (
         f"\n\n![precision against N]({'results/' + stem}.png)\n\nPosterior CPU time: "
         f"{table['posterior CPU s'].sum() / 3600:.2f} core-hours for {table['posteriors'].sum()} "

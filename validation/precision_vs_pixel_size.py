@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _common import Runner, finish, study
 from _precision import plot_panel, point, summary_columns
 
-from bayespsf import scenes, theory
+from bayespsf import load_scene, theory
 
 RATIOS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.73, 0.8, 0.9, 1.0, 1.18, 1.5, 2.0, 2.5)
 S0 = 120.0
@@ -37,14 +37,15 @@ QUICK = {"images": 40, "mle_images": 10, "posteriors": 3}
 
 
 def run(args, ratios, sizes, options) -> pd.DataFrame:
-    base = scenes.load("paper-fig3")
+    base = load_scene("paper-fig3")
     rows = []
     with Runner(args, "precision_vs_pixel_size") as runner:
         for k, ratio in enumerate(ratios):
             print(f"a/s0 = {ratio}", flush=True)
             scene = base.replace(geometry={"pixel_size": ratio * S0})
-            row = point(scene, seed=500 + k, runner=runner, label=f"ratio{ratio:g}", **sizes,
-                        **options)  # fmt: skip
+            row = point(
+                scene, seed=500 + k, runner=runner, label=f"ratio{ratio:g}", **sizes, **options
+            )
             rows.append({"a/s0": ratio, "a (nm)": ratio * S0, **row})
     table = pd.DataFrame(rows)
     closed = table["s_x closed (Eq. sigma2dp3)"]
@@ -102,20 +103,38 @@ def main(argv=None):
     chi2 = float(np.sum(((law - 1) / law_err) ** 2))
     claims = pd.DataFrame(
         [
-            {"claim": "theoretical optimum a/s0 (Eq. sigma2dp3)", "paper": 1.18,
-             "ours": round(float(ours), 3)},
-            {"claim": "simulated (least-squares) local optimum a/s0 < 1.18", "paper": 0.73,
-             "ours": optimum(table, "s_x LSQ SD")},
-            {"claim": "MLE local optimum a/s0 < 1.18", "paper": None,
-             "ours": optimum(table, "s_x MLE SD")},
-            {"claim": "CRLB optimum a/s0 < 1.18", "paper": None,
-             "ours": optimum(table, "s_x CRLB")},
-            {"claim": "LSQ SD / closed x (1.23 + 0.42 a/s0), a/s0 < 1.18: range", "paper": 1.0,
-             "ours": f"{law.min():.3f} to {law.max():.3f}"},
-            {"claim": f"  chi^2 of that ratio against 1 ({len(law)} points)",
-             "paper": None, "ours": round(chi2, 1)},
+            {
+                "claim": "theoretical optimum a/s0 (Eq. sigma2dp3)",
+                "paper": 1.18,
+                "ours": round(float(ours), 3),
+            },
+            {
+                "claim": "simulated (least-squares) local optimum a/s0 < 1.18",
+                "paper": 0.73,
+                "ours": optimum(table, "s_x LSQ SD"),
+            },
+            {
+                "claim": "MLE local optimum a/s0 < 1.18",
+                "paper": None,
+                "ours": optimum(table, "s_x MLE SD"),
+            },
+            {
+                "claim": "CRLB optimum a/s0 < 1.18",
+                "paper": None,
+                "ours": optimum(table, "s_x CRLB"),
+            },
+            {
+                "claim": "LSQ SD / closed x (1.23 + 0.42 a/s0), a/s0 < 1.18: range",
+                "paper": 1.0,
+                "ours": f"{law.min():.3f} to {law.max():.3f}",
+            },
+            {
+                "claim": f"  chi^2 of that ratio against 1 ({len(law)} points)",
+                "paper": None,
+                "ours": round(chi2, 1),
+            },
         ]
-    )  # fmt: skip
+    )
     text = (
         f"# Precision against pixel size ({sizes['images']} images per point for least squares, "
         f"{sizes['mle_images']} for the MLE, {sizes['posteriors']} posteriors)\n\n"

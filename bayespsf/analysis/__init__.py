@@ -1,22 +1,21 @@
-"""Per-molecule analysis of a movie (issue 14): posteriors of selected molecules and the files
-and tables that come out of them.
-
-``localizations`` turns posterior summary rows into picasso's columns and bayespsf's;
-``write_all`` writes them as picasso's ``locs.hdf5`` + ``locs.yaml``, a ThunderSTORM
-``locs.csv`` and ``locs.parquet``. ``frame_consistency`` checks, without ground truth, that an
-immobile molecule's per-frame posteriors agree within their stated widths;
-``width_spread`` gives the paper's experimental Delta s per molecule beside its predictions.
-"""
+"""Per-molecule results from per-frame posteriors: ``analyze`` runs a movie end to end;
+``localizations`` gives the localisation table; ``frame_consistency`` checks, without ground
+truth, that an immobile molecule's per-frame posteriors agree within their stated widths;
+``width_spread`` gives the paper's experimental Delta s per molecule beside its predictions;
+``mean_residuals`` and ``width_by_window`` look for model misfit."""
 
 from bayespsf.analysis.consistency import frame_consistency
-from bayespsf.analysis.locs import localizations, thunderstorm_table, write_all, write_picasso
+from bayespsf.analysis.localizations import localizations
+from bayespsf.analysis.misfit import mean_residuals, width_by_window
+from bayespsf.analysis.pipeline import Analysis, analyze
 from bayespsf.analysis.width_spread import width_spread
 
 __all__ = [
+    "Analysis",
+    "analyze",
     "frame_consistency",
     "localizations",
-    "thunderstorm_table",
+    "mean_residuals",
+    "width_by_window",
     "width_spread",
-    "write_all",
-    "write_picasso",
 ]

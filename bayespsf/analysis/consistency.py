@@ -1,4 +1,4 @@
-"""A calibration check on real data, without ground truth (issue 14, item 3).
+"""A calibration check on real data, without ground truth.
 
 An immobile molecule's true position and width are the same in every frame, so its per-frame
 posteriors must agree with one another within their stated widths. Per molecule and
@@ -23,6 +23,8 @@ photon count.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import pandas as pd
 from scipy import stats
@@ -33,7 +35,7 @@ PARAMETERS = ("x0", "y0", "s_x", "s_y")
 Z95 = stats.norm.ppf(0.975)
 
 
-def two_sided(chi2, dof):
+def two_sided(chi2: float | np.ndarray, dof: float | np.ndarray) -> float | np.ndarray:
     """``2 min(P(X >= chi2), P(X <= chi2))`` for X ~ chi-square(dof), at most 1: small both
     when the frames scatter more than their SDs say (posteriors too narrow) and when they
     scatter less (too wide: a gain declared too high reads so)."""
@@ -41,13 +43,21 @@ def two_sided(chi2, dof):
 
 
 def frame_consistency(
-    table: pd.DataFrame, parameters=PARAMETERS, by: str = "molecule"
+    table: pd.DataFrame, parameters: Sequence[str] | str = PARAMETERS, by: str = "molecule"
 ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
-    """The check of the module docstring on per-frame posterior summaries.
+    """Whether each immobile molecule's per-frame posteriors agree within their stated widths.
 
-    ``table`` has one row per (molecule, frame) with ``by`` and ``{p}_mean``, ``{p}_sd`` for
-    every ``p`` in ``parameters``; rows with a missing mean or SD are left out, and an SD that
-    is 0, negative or infinite is an error.
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        One row per (molecule, frame) with ``by`` and ``{p}_mean``, ``{p}_sd`` for every
+        ``p`` in ``parameters`` (posterior summaries, e.g. ``sample_many``'s rows); rows
+        with a missing mean or SD are left out.
+    parameters : sequence of str or str, default ``PARAMETERS``
+        The parameters checked (``x0``, ``y0``, ``s_x``, ``s_y``: those an immobile
+        molecule keeps from frame to frame).
+    by : str, default "molecule"
+        The column naming each row's molecule.
 
     Returns
     -------
@@ -63,6 +73,42 @@ def frame_consistency(
         standard error (``sqrt((kurtosis - 1) / (4 n))`` for the SD of n values, 1/sqrt(2n) for
         normal ones), total ``chi2``, ``dof``, ``p_value`` and ``p_two_sided``, ``coverage``
         with its binomial SE and ``expected_coverage``.
+
+    Raises
+    ------
+    BayespsfInputError
+        A table without the columns, or an SD that is 0, negative or infinite.
+
+    See Also
+    --------
+    two_sided : the two-sided chi-square p-value.
+    analyze : runs this check on every analysed movie.
+    width_spread : the width's spread over frames against its predictions.
+
+    Notes
+    -----
+    The module docstring gives the check: per molecule and parameter, the inverse-variance
+    weighted mean of the frames' posterior means, each frame's z-score about it, the
+    chi-square of the frames with K - 1 degrees of freedom, and the coverage of each frame's
+    95% interval against its expected value. It holds where the posteriors are near normal
+    and their means near unbiased across frames.
+
+    Examples
+    --------
+    Four frames each of two molecules whose posterior means scatter by their stated SDs:
+
+    >>> import pandas as pd
+    >>> from bayespsf.analysis import frame_consistency
+    >>> table = pd.DataFrame({
+    ...     "molecule": [0, 0, 0, 0, 1, 1, 1, 1],
+    ...     "x0_mean": [1.0, -1.0, 0.5, -0.5, 10.0, 12.0, 9.0, 11.0],
+    ...     "x0_sd": [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0],
+    ... })
+    >>> frames, molecules, overall = frame_consistency(table, "x0")
+    >>> molecules[["molecule", "frames", "combined", "chi2", "dof"]]
+       molecule  frames  combined  chi2  dof
+    0         0       4       0.0   2.5    3
+    1         1       4      10.5   5.0    3
     """
     if isinstance(parameters, str):
         parameters = (parameters,)

@@ -1,4 +1,4 @@
-"""The figures of ``bayespsf analyze``'s report (issue 14, item 7), each written to a PNG.
+"""The figures of ``bayespsf analyze``'s report, each written to a PNG.
 
 ``detections``: the mean projection with every candidate (selected, rejected by a rule,
 rejected by detection); ``traces``: the selected molecules' photons per frame with their
@@ -46,14 +46,18 @@ def detections(image: np.ndarray, molecules: pd.DataFrame, path) -> Path:
                 "rejected by a selection rule",
             ),
         )
-        for label, marker, color in (("selected", "o", "C2"),
-                                     ("rejected by a selection rule", "s", "C1"),
-                                     ("rejected by detection", "x", "C3")):  # fmt: skip
+        for label, marker, color in (
+            ("selected", "o", "C2"),
+            ("rejected by a selection rule", "s", "C1"),
+            ("rejected by detection", "x", "C3"),
+        ):
             part = molecules[outcome == label]
-            style = {"color": color} if marker == "x" else {"facecolors": "none",
-                                                            "edgecolors": color}  # fmt: skip
-            ax.scatter(part["x"], part["y"], s=60, marker=marker,
-                       label=f"{label} ({len(part)})", **style)  # fmt: skip
+            style = (
+                {"color": color} if marker == "x" else {"facecolors": "none", "edgecolors": color}
+            )
+            ax.scatter(
+                part["x"], part["y"], s=60, marker=marker, label=f"{label} ({len(part)})", **style
+            )
         ax.set_xlabel("x (pixels)")
         ax.set_ylabel("y (pixels)")
         ax.legend(fontsize=7, loc="upper right")
@@ -67,8 +71,13 @@ def traces(frames: pd.DataFrame, molecules: pd.DataFrame, path) -> Path:
     with _figure(path, figsize=(6, 3.5)) as (_, ax):
         for k, row in enumerate(chosen.itertuples()):
             trace = frames[frames["molecule"] == row.molecule].sort_values("frame")
-            ax.plot(trace["frame"], trace["photons"], lw=0.8, color=f"C{k % 10}",
-                    label=f"molecule {row.molecule}")  # fmt: skip
+            ax.plot(
+                trace["frame"],
+                trace["photons"],
+                lw=0.8,
+                color=f"C{k % 10}",
+                label=f"molecule {row.molecule}",
+            )
             if pd.notna(row.bleach_frame):
                 ax.axvline(row.bleach_frame, color=f"C{k % 10}", lw=0.8, ls="--")
         ax.set_xlabel("frame")
@@ -89,8 +98,14 @@ def zscores(frame_z: pd.DataFrame, parameters, path) -> Path:
         for k, p in enumerate(parameters):
             z = frame_z[f"{p}_z"].dropna().to_numpy()
             if z.size:
-                ax.hist(z, bins=np.linspace(-4, 4, 33), density=True, histtype="step",
-                        color=f"C{k}", label=f"{p} (SD {z.std(ddof=1):.2f})")  # fmt: skip
+                ax.hist(
+                    z,
+                    bins=np.linspace(-4, 4, 33),
+                    density=True,
+                    histtype="step",
+                    color=f"C{k}",
+                    label=f"{p} (SD {z.std(ddof=1):.2f})",
+                )
         ax.plot(grid, stats.norm.pdf(grid), color="k", lw=1, label="N(0, 1)")
         ax.set_xlabel("per-frame z-score about the molecule's combined estimate")
         ax.legend(fontsize=7)
@@ -143,10 +158,14 @@ def width_precision(spread: pd.DataFrame, path) -> Path:
     """Delta s against N per molecule, each estimator and each prediction."""
     path = Path(path)
     with _figure(path, figsize=(6, 4)) as (_, ax):
-        styles = {"delta_s_lsq": ("least squares (the paper's)", "s", "C3"),
-                  "delta_s_mle": ("MLE", "^", "C1"), "delta_s_mean": ("posterior mean", "o", "C0"),
-                  "posterior_sd": ("mean posterior SD", "_", "C0"), "crlb": ("mean CRLB", "_", "k"),
-                  "eq_sigma2dp3": ("Eq. sigma2dp3", "x", "C2")}  # fmt: skip
+        styles = {
+            "delta_s_lsq": ("least squares (the paper's)", "s", "C3"),
+            "delta_s_mle": ("MLE", "^", "C1"),
+            "delta_s_mean": ("posterior mean", "o", "C0"),
+            "posterior_sd": ("mean posterior SD", "_", "C0"),
+            "crlb": ("mean CRLB", "_", "k"),
+            "eq_sigma2dp3": ("Eq. sigma2dp3", "x", "C2"),
+        }
         for column, (label, marker, color) in styles.items():
             if column in spread:
                 ax.scatter(spread["N"], spread[column], marker=marker, color=color, label=label)

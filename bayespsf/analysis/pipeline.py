@@ -1,4 +1,4 @@
-"""From a movie to per-molecule results: ``analyze`` (``bayespsf analyze``; issue 14, item 1).
+"""From a movie to per-molecule results: ``analyze``, the library side of ``bayespsf analyze``.
 
 The stages, in order:
 
@@ -9,45 +9,76 @@ The stages, in order:
    ``OUT/posteriors``, so a rerun with the same ``OUT`` continues and a killed run loses no
    finished ROI), the MLE with its Cramér-Rao bound (``fit_mle``) and the paper's least squares
    (``fit_lsq``), in the camera file's photon unit, and a bootstrap goodness-of-fit p-value
-   per ROI (``bayespsf.model_check``, run by ``sample_many(check=True)`` beside each
+   per ROI (``bayespsf.inference.gof``, run by ``sample_many``'s ``check`` beside each
    posterior and stored with it);
-3b. per selected molecule, the joint posterior of its frames (``bayespsf.analysis.joint``:
+3b. per selected molecule, the joint posterior of its frames (``bayespsf.inference.joint``:
    one position and width shared by the frames, N and b per frame);
 4. the tables and files: ``locs.hdf5`` + ``locs.yaml`` (picasso), ``locs.csv``
    (ThunderSTORM), ``locs.parquet`` (every column), ``molecules.csv`` (the selection outcome
    and, per selected molecule, its joint posterior and, per parameter, the calibration check
    without ground truth), ``consistency.csv`` (that check over all molecules),
    ``width_spread.csv`` (the paper's experimental Delta s against N), ``width_by_window.csv``
-   (``bayespsf.analysis.misfit``) and ``report.md``.
+   (``bayespsf.analysis.misfit``), the figures and ``report.md`` (``bayespsf.analysis.report``).
 """
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 
 from bayespsf.analysis.consistency import PARAMETERS, frame_consistency
-from bayespsf.analysis.joint import joint_posteriors
-from bayespsf.analysis.locs import localizations, write_all
+from bayespsf.analysis.localizations import localizations
 from bayespsf.analysis.misfit import mean_residuals, width_by_window
+from bayespsf.analysis.report import report_markdown
 from bayespsf.analysis.width_spread import width_spread
-from bayespsf.batch import sample_many
 from bayespsf.errors import BayespsfInputError
-from bayespsf.estimators import fit_lsq, fit_mle
+from bayespsf.inference import fit_lsq, fit_mle
+from bayespsf.inference.gof import check_discrepancy
+from bayespsf.io import write_locs
 from bayespsf.model import Model
-from bayespsf.model_check import check_discrepancy, flag_excess_p
-from bayespsf.movie.extract import iter_rois, open_movie
-from bayespsf.movie.pipeline import FoundMolecules, find_molecules
+from bayespsf.movie import FoundMolecules, Movie, Rules, find_molecules, iter_rois
+from bayespsf.movie.extract import open_movie
 from bayespsf.movie.pipeline import write as write_selection
-from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.parallel import joint_posteriors, sample_many
+from bayespsf.psf import PARAMETER_NAMES, DefocusCalibration
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 
 @dataclass
 class Analysis:
-    """What ``analyze`` made: its tables, and the files it wrote (``paths``, by name)."""
+    """What ``analyze`` made: its tables, and the files it wrote (``paths``, by name).
+
+    Attributes
+    ----------
+    found : FoundMolecules
+        ``find_molecules``' tables: candidates, molecules, frames and the selection report.
+    frames : pandas.DataFrame
+        One row per analysed (molecule, frame): posterior, MLE, LSQ (``analyze``'s Returns
+        lists the columns).
+    molecules : pandas.DataFrame
+        One row per candidate: the selection outcome and, per analysed molecule, the
+        calibration check and its joint posterior over its frames.
+    consistency : pandas.DataFrame
+        The calibration check without ground truth over all molecules, one row per parameter
+        (``frame_consistency``'s ``overall``).
+    width_spread : pandas.DataFrame
+        The paper's experimental Delta s against N, one row per molecule (``width_spread``).
+    width_by_window : pandas.DataFrame
+        The mean widths when the central w x w pixels are fitted (``width_by_window``).
+    paths : dict of str to Path
+        Every file in the output folder, by name.
+
+    See Also
+    --------
+    analyze : makes one.
+    """
 
     found: FoundMolecules
     frames: pd.DataFrame  # one row per analysed (molecule, frame): posterior, MLE, LSQ
@@ -58,9 +89,30 @@ class Analysis:
     paths: dict[str, Path] = field(default_factory=dict)
 
 
-def valid_rois(movie, found: FoundMolecules, fit: int, block: int = 64):
-    """The ``fit`` x ``fit`` ROIs of the valid frames of the selected molecules, with their
-    table (``molecule``, ``frame``, ``row``, ``col``: the movie pixel at each ROI's centre)."""
+def valid_rois(
+    movie: Movie | str | Path, found: FoundMolecules, fit: int, block: int = 64
+) -> tuple[np.ndarray, pd.DataFrame]:
+    """The ``fit`` x ``fit`` ROIs of the valid frames of the selected molecules.
+
+    Parameters
+    ----------
+    movie : Movie or path
+        The movie in counts (ADU).
+    found : FoundMolecules
+        ``find_molecules``' result (its ``frames``' ``valid`` column).
+    fit : int
+        Odd side of the ROIs in pixels.
+    block : int, default 64
+        Frames read at a time.
+
+    Returns
+    -------
+    counts : numpy.ndarray, shape (n, fit, fit)
+        The ROIs in ADU, float64, ordered by molecule, then frame.
+    table : pandas.DataFrame
+        One row per ROI: ``molecule``, ``frame``, ``row``, ``col`` (the movie pixel at the
+        ROI's centre).
+    """
     valid = found.frames.loc[found.frames["valid"].astype(bool), ["molecule", "frame"]]
     chosen = found.molecules[found.molecules["molecule"].isin(valid["molecule"])]
     wanted = set(map(tuple, valid.to_numpy()))
@@ -100,22 +152,182 @@ def _per_molecule(found: FoundMolecules, molecules: pd.DataFrame) -> pd.DataFram
 
 
 def analyze(
-    movie, model: Model, *, s0: float, out, roi: int = 25, fit: int = 15, rules=None,
-    method: str = "auto", ess: float | None = None, seed: int = 0, workers: int | None = None,
-    executor=None, progress: bool | None = None, provenance: dict | None = None,
-    z_calibration=None, z_range=(-800.0, 800.0), files: dict | None = None,
+    movie: Movie | str | Path,
+    model: Model,
+    *,
+    s0: float,
+    out: str | Path,
+    roi: int = 25,
+    fit: int = 15,
+    rules: Rules | None = None,
+    method: str = "auto",
+    ess: float | None = None,
+    seed: int = 0,
+    workers: int | None = None,
+    executor: Executor | Client | str | None = None,
+    progress: bool | None = None,
+    provenance: dict | None = None,
+    z_calibration: DefocusCalibration | None = None,
+    z_range: tuple[float, float] = (-800.0, 800.0),
+    files: dict[str, Path] | None = None,
     gof_discrepancy: str = "likelihood",
-) -> Analysis:  # fmt: skip
-    """The module docstring's stages on ``movie`` with ``model`` (a camera file's model, its
-    ROI size unused); every file goes into the folder ``out``. ``provenance`` (the camera
-    file's text, the command) is recorded in ``locs.yaml`` and the report. With
-    ``z_calibration`` (a ``bayespsf.axial.calibrate.Calibration``), every frame also gets its
-    z posterior (``bayespsf.axial.table.z_posteriors``, z uniform on ``z_range`` nm), whose
-    summary goes into the localisation tables and whose calibration into ``locs.yaml``.
-    ``files`` (name: path) are files the caller put into ``out`` (the camera file), listed in
-    the report beside the run's own. ``gof_discrepancy``: the goodness-of-fit test's
-    discrepancy (``bayespsf.model_check.DISCREPANCIES``; ``"pearson"`` is calibrated at a
-    background of a few photons per pixel, where the default is conservative)."""
+) -> Analysis:
+    """Analyse a movie of immobile molecules end to end: selection, posteriors, checks, files.
+
+    Parameters
+    ----------
+    movie : Movie or path
+        The movie in counts (ADU), from ``read_movie`` or a path it opens.
+    model : Model
+        A camera file's model: camera law (ADU to photons), pixel size, prior and photon
+        unit. Its ROI size is not used: the posteriors use ``model.for_roi(fit)``.
+    s0 : float
+        The spot's SD in nm: the detector's template and the traces' aperture
+        (``find_molecules``).
+    out : str or Path
+        The folder every file goes into (made if missing). The posteriors' store is
+        ``out/posteriors``: a rerun with the same ``out`` continues, and a killed run loses
+        no finished ROI.
+    roi : int, default 25
+        Odd side in pixels of the cut around each molecule for detection, traces and the
+        selection's fits (the paper's 25 x 25; its periphery gives the background).
+    fit : int, default 15
+        Odd side in pixels of the central ROI whose posterior, MLE and least squares are
+        computed (the paper's 15 x 15).
+    rules : Rules, optional
+        The selection rules (default: the paper's numbers).
+    method : {"auto", "laplace", "importance", "mcmc"}, default "auto"
+        The per-ROI posterior's sampler (``sample_many``): ``"auto"`` the batched Laplace
+        where its pilot passes, else importance sampling, else an emcee chain.
+    ess : float, optional
+        Effective sample size of every posterior (per ROI, per molecule's joint posterior
+        and, with ``z_calibration``, of z); default each sampler's own.
+    seed : int, default 0
+        ROI ``i`` is sampled with ``molecule_seed(seed, i)`` (ROIs in the order of
+        ``frames``), molecule ``m``'s joint posterior with ``molecule_seed(seed, m)``: the
+        results do not depend on the number of workers.
+    workers : int, optional
+        Local processes when ``executor`` is None (default: all cores; 1 runs in this
+        process).
+    executor : concurrent.futures.Executor, distributed.Client or str, optional
+        Where the posteriors run: an executor, a Dask ``Client`` or a scheduler address such
+        as ``"tcp://10.0.0.5:8786"`` (not together with ``workers``).
+    progress : bool, optional
+        Progress bars on stderr (default: when stderr is a terminal).
+    provenance : dict, optional
+        What made the run (the camera file's text, the command), recorded in ``locs.yaml``
+        and, where a value has no line break, in the report. The run adds the
+        goodness-of-fit discrepancy (when not the default) and the z calibration (when
+        given).
+    z_calibration : DefocusCalibration, optional
+        Defocus curves (``bayespsf.axial.calibrate``): every frame also gets its z posterior
+        (``bayespsf.axial.z_posteriors``), whose summary goes into the localisation tables
+        and whose calibration into ``locs.yaml``.
+    z_range : (float, float), default (-800.0, 800.0)
+        With ``z_calibration``: the support ``(low, high)`` of z's uniform prior, nm.
+    files : dict of str to Path, optional
+        Files the caller put into ``out`` (the camera file), by name: listed in the report
+        beside the run's own, and in ``paths``.
+    gof_discrepancy : {"likelihood", "pearson"}, default "likelihood"
+        The goodness-of-fit test's discrepancy (``bayespsf.inference.gof.DISCREPANCIES``;
+        ``"pearson"`` is calibrated at a background of a few photons per pixel, where the
+        default is conservative).
+
+    Returns
+    -------
+    Analysis
+        The tables, photons in the model's photon unit (``photon_unit``):
+
+        - ``frames``: one row per analysed (molecule, frame): ``molecule``, ``frame``,
+          ``row``, ``col`` (the movie pixel at the ROI's centre); ``sample_many``'s summary
+          (``seed``, ``converged``, ``status``, ``message``, ``method``, ``why``, ``steps``,
+          ``draws``, ``acceptance``, ``seconds``; per parameter ``<p>`` of ``x0 y0 s_x s_y N
+          b`` ``<p>_mean``, ``<p>_sd``, the quantiles ``<p>_q0025`` to ``<p>_q0975``,
+          ``<p>_tau``, ``<p>_ess``; ``gof_p``, ``gof_discrepancy``, ``gof_replicates``,
+          ``photon_unit``); the MLE ``<p>_mle`` with its Cramér-Rao bound ``crlb_<p>`` and
+          the paper's least squares ``<p>_lsq`` (NaN where it did not converge),
+          ``mle_converged``; ``selected``; with ``z_calibration`` ``z_mean``, ``z_sd``,
+          ``z_q0025``, ``z_q0975`` (nm), ``z_khat``, ``z_converged``, ``z_why`` (and
+          ``z_above_plane`` on a symmetric curve). x0 and y0 are nm from the ROI's centre.
+        - ``molecules``: ``found.molecules``' columns; per parameter ``<p>`` of ``x0 y0 s_x
+          s_y`` the check's ``<p>_combined``, ``<p>_combined_se``, ``<p>_p_value``,
+          ``<p>_p_two_sided``, ``<p>_z_sd``, ``<p>_coverage``; and the joint posterior's
+          columns (``joint_posteriors``: ``<p>_frame_sd``, ``<p>_joint_mean``,
+          ``<p>_joint_sd``, its quantiles and ``<p>_joint_mle``, ``joint_frames``,
+          ``joint_method``, ``joint_khat``, ...). NaN for molecules not analysed.
+        - ``consistency``: per parameter ``parameter``, ``frames``, ``molecules``,
+          ``z_sd``, ``z_sd_se``, ``chi2``, ``dof``, ``p_value``, ``p_two_sided``,
+          ``coverage``, ``coverage_se``, ``expected_coverage``.
+        - ``width_spread``: ``width_spread``'s columns for s_x, in detected photoelectrons.
+        - ``width_by_window``: ``molecule``, ``window``, ``frames``, ``s_x``, ``s_x_se``,
+          ``s_y``, ``s_y_se`` for windows of 7, 11 and 15 pixels (those within ``fit``).
+        - ``paths``: the files written into ``out``, by name: ``candidates.csv``,
+          ``molecules.csv``, ``frames.csv``, ``selection.md`` (the selection), ``locs.hdf5``
+          and ``locs.yaml`` (picasso), ``locs.csv`` (ThunderSTORM), ``locs.parquet``
+          (``bayespsf.analysis.localizations``' table), ``consistency.csv``,
+          ``width_spread.csv``, ``width_by_window.csv``, the figures ``detections.png``,
+          ``traces.png``, ``zscores.png``, ``width_precision.png``, ``gof_p.png``,
+          ``residuals.png`` and ``report.md``, with ``files``.
+
+    Raises
+    ------
+    BayespsfInputError
+        An unknown ``gof_discrepancy``, no molecule passing the selection rules (naming
+        ``selection.md``), or any error of the stages (``find_molecules``, ``sample_many``:
+        sampler options, executor; ``z_posteriors``).
+
+    See Also
+    --------
+    find_molecules : stage 1, the selection alone.
+    bayespsf.sample_many : the per-ROI posteriors.
+    bayespsf.parallel.joint_posteriors : each molecule's joint posterior over its frames.
+    frame_consistency : the calibration check without ground truth.
+    width_spread : the paper's experimental width precision.
+    localizations : the localisation table.
+
+    Notes
+    -----
+    The stages, in order (module docstring): the selection (``find_molecules``, in detected
+    photoelectrons); the central ``fit`` x ``fit`` ROI of every valid frame of every selected
+    molecule; a posterior per ROI with its bootstrap goodness-of-fit p-value, the MLE with its
+    Cramér-Rao bound and the paper's least squares, in the camera file's photon unit; per
+    selected molecule the joint posterior of its frames (one position and width, N and b per
+    frame); then the tables, figures and report. Delta s is compared with Eq. sigma2dp3 of
+    DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), which is stated in detected photons.
+
+    Examples
+    --------
+    A 20-frame simulated movie of one molecule that bleaches; the rules' 75 valid frames are
+    relaxed to 8 for so short a movie:
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import bayespsf
+    >>> from bayespsf.movie import Rules
+    >>> scene = bayespsf.load_scene("paper-movie").replace(
+    ...     movie={"frames": 20, "height": 48, "width": 48, "molecules": 1, "dark_frames": 0,
+    ...            "bleach_mean": 12.0, "two_fluorophores": 0.0, "moving": 0.0}
+    ... )
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> made = bayespsf.simulate_movie(scene, seed=0, out=folder / "m")
+    >>> result = bayespsf.analyze(
+    ...     made.files["movie"], bayespsf.Model.from_scene(scene), s0=120.0,
+    ...     out=folder / "out", rules=Rules(min_valid_frames=8), workers=1, progress=False,
+    ... )
+    >>> result.found.molecules[["molecule", "selected", "valid_frames"]]
+       molecule  selected  valid_frames
+    0         0      True            16
+    >>> result.frames["status"].value_counts().to_dict()
+    {'converged': 16}
+    >>> result.consistency[["parameter", "frames", "molecules"]]
+      parameter  frames  molecules
+    0        x0      16          1
+    1        y0      16          1
+    2       s_x      16          1
+    3       s_y      16          1
+    >>> (folder / "out" / "locs.hdf5").exists()
+    True
+    """
     check_discrepancy("gof_discrepancy", gof_discrepancy)
     if gof_discrepancy != "likelihood":
         provenance = {**(provenance or {}), "goodness-of-fit discrepancy": gof_discrepancy}
@@ -132,43 +344,83 @@ def analyze(
     counts, place = valid_rois(movie, found, fit)
     fitting = model.for_roi(fit)
     effective = {} if ess is None else {"ess": ess}  # else each sampler's default
-    posteriors = sample_many(counts, fitting, seed=seed, executor=executor, workers=workers,
-                             store=out / "posteriors", progress=progress,
-                             check=gof_discrepancy,
-                             method=method, **effective)  # fmt: skip
+    posteriors = sample_many(
+        counts,
+        fitting,
+        seed=seed,
+        executor=executor,
+        workers=workers,
+        store=out / "posteriors",
+        progress=progress,
+        check=gof_discrepancy,
+        method=method,
+        **effective,
+    )
     frames = pd.concat(
         [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1
     )
     frames["selected"] = True
     if z_calibration is not None:
-        from bayespsf.axial.table import z_posteriors
+        from bayespsf.axial import z_posteriors
 
-        z_rows = z_posteriors(counts, fitting, z_calibration, seed=seed, z_range=z_range,
-                              workers=workers, executor=executor, progress=progress,
-                              **effective)  # fmt: skip
+        z_rows = z_posteriors(
+            counts,
+            fitting,
+            z_calibration,
+            seed=seed,
+            z_range=z_range,
+            workers=workers,
+            executor=executor,
+            progress=progress,
+            **effective,
+        )
         frames = pd.concat([frames, z_rows], axis=1)
         provenance = {**(provenance or {}), "z calibration": z_calibration.record()}
     frame_z, per_molecule, overall = frame_consistency(frames, PARAMETERS)
-    joint = joint_posteriors(counts, frames, fitting, seed=seed, workers=workers,
-                             executor=executor, progress=progress, **effective)  # fmt: skip
+    joint = joint_posteriors(
+        counts,
+        frames,
+        fitting,
+        seed=seed,
+        workers=workers,
+        executor=executor,
+        progress=progress,
+        **effective,
+    )
     molecules = _per_molecule(found, per_molecule).merge(joint, on="molecule", how="left")
     scale = fitting.photoelectrons_per_photon  # Eq. sigma2dp3 is stated in detected photons
-    detected = frames.assign(N_mean=frames["N_mean"] * scale, b_mean=frames["b_mean"] * scale,
-                             photon_unit="photoelectrons")  # fmt: skip
+    detected = frames.assign(
+        N_mean=frames["N_mean"] * scale,
+        b_mean=frames["b_mean"] * scale,
+        photon_unit="photoelectrons",
+    )
     spread = width_spread(detected, fitting.pixel_size)
     windows = width_by_window(counts, fitting, frames["molecule"].to_numpy())
     mle = frames[[f"{p}_mle" for p in PARAMETER_NAMES]].where(frames["mle_converged"], axis=0)
     residuals = mean_residuals(counts, fitting, mle.to_numpy(float), frames["molecule"])
     _, height, width = movie.shape
     info = {
-        "Width": int(width), "Height": int(height), "Frames": len(movie),
-        "Pixelsize": float(fitting.pixel_size), "Generated by": "bayespsf analyze",
-        "bayespsf": {"model": repr(fitting), "photon_unit": fitting.photon_unit_label,
-                     "method": method, "roi": roi, "fit": fit, **(provenance or {})},
-    }  # fmt: skip
-    paths.update(write_all(localizations(frames, fitting.pixel_size), out, info))
-    tables = {"molecules.csv": molecules, "consistency.csv": overall,
-              "width_spread.csv": spread, "width_by_window.csv": windows}  # fmt: skip
+        "Width": int(width),
+        "Height": int(height),
+        "Frames": len(movie),
+        "Pixelsize": float(fitting.pixel_size),
+        "Generated by": "bayespsf analyze",
+        "bayespsf": {
+            "model": repr(fitting),
+            "photon_unit": fitting.photon_unit_label,
+            "method": method,
+            "roi": roi,
+            "fit": fit,
+            **(provenance or {}),
+        },
+    }
+    paths.update(write_locs(localizations(frames, fitting.pixel_size), out, info))
+    tables = {
+        "molecules.csv": molecules,
+        "consistency.csv": overall,
+        "width_spread.csv": spread,
+        "width_by_window.csv": windows,
+    }
     for name, table in tables.items():
         paths[name] = out / name
         table.to_csv(paths[name], index=False)
@@ -182,7 +434,7 @@ def analyze(
 def _figures(movie, found, frame_z, spread, gof_p, residuals, out: Path) -> dict[str, Path]:
     """The report's figures (``bayespsf.analysis.figures``), by file name."""
     from bayespsf.analysis import figures
-    from bayespsf.movie.project import project
+    from bayespsf.movie import project
 
     made = [
         figures.detections(project(movie, "mean"), found.molecules, out / "detections.png"),
@@ -195,123 +447,4 @@ def _figures(movie, found, frame_z, spread, gof_p, residuals, out: Path) -> dict
     return {path.name: path for path in made}
 
 
-def _flag_table(frames: pd.DataFrame) -> pd.DataFrame:
-    """The fraction of frames flagged at each level, beside its value when the model holds,
-    and the binomial p-value of at least that many flags when it holds (``flag_excess_p``)."""
-    p = frames["gof_p"].dropna()
-    rows = []
-    for alpha in (0.02, 0.1):
-        rate = float((p <= alpha).mean()) if len(p) else np.nan
-        rows.append({"alpha": alpha, "frames": len(p), "flagged": rate,
-                     "binomial SE": np.sqrt(alpha * (1 - alpha) / max(len(p), 1)),
-                     "expected when the model holds": alpha,
-                     "p (this many flags or more)": flag_excess_p(p, alpha)})  # fmt: skip
-    return pd.DataFrame(rows)
-
-
-def _window_table(windows: pd.DataFrame) -> pd.DataFrame:
-    """Mean s_x (and its SE) per molecule, one column per fitting window."""
-    wide = windows.pivot(index="molecule", columns="window", values=["s_x", "s_x_se"])
-    wide.columns = [f"{stat} ({w} x {w})" for stat, w in wide.columns]
-    return wide.reset_index()
-
-
-def _joint_table(molecules: pd.DataFrame) -> pd.DataFrame:
-    """The report's joint-posterior columns of the analysed molecules."""
-    columns = ["molecule", "joint_frames", "x0_joint_mean", "x0_joint_sd", "s_x_joint_mean",
-               "s_x_joint_sd", "s_x_frame_sd", "s_y_joint_mean", "s_y_joint_sd", "joint_method",
-               "joint_khat"]  # fmt: skip
-    analysed = molecules[molecules["joint_method"].notna()]
-    return analysed[[c for c in columns if c in analysed]]
-
-
-def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
-    """The run's report: selection, the calibration check, Delta s against N, the files."""
-    fmt = {"index": False, "floatfmt": ".4g"}
-    discrepancy = (
-        "Pearson's statistic at the MLE"
-        if (provenance or {}).get("goodness-of-fit discrepancy") == "pearson"
-        else "the MLE's negative log-likelihood"
-    )
-    check = result.consistency[["parameter", "frames", "molecules", "z_sd", "z_sd_se",
-                                "p_value", "p_two_sided", "coverage", "coverage_se",
-                                "expected_coverage"]]  # fmt: skip
-    spread_columns = [c for c in ("molecule", "frames", "N", "delta_s_lsq", "delta_s_mle",
-                                  "delta_s_mean", "posterior_sd", "crlb", "eq_sigma2dp3")
-                      if c in result.width_spread]  # fmt: skip
-    lines = [
-        "# bayespsf analyze",
-        "",
-        *(f"- {k}: `{v}`" for k, v in (provenance or {}).items() if "\n" not in str(v)),
-        "",
-        "![detections on the mean projection](detections.png)",
-        "",
-        "![traces of the selected molecules](traces.png)",
-        "",
-        result.found.report_markdown(),
-        "## The calibration check without ground truth",
-        "",
-        "Per-frame posterior means about each molecule's combined (inverse-variance weighted) "
-        "estimate, in units of their stated SDs (`bayespsf.analysis.consistency`): a calibrated "
-        "model gives z-score SDs of 1 within their errors, chi-square p-values that are not "
-        "small, and a coverage at its expected value. `p_value` is small when the frames "
-        "scatter more than their SDs say (posteriors too narrow), `p_two_sided` also when "
-        "they scatter less (too wide, as with a gain declared too high).",
-        "",
-        check.to_markdown(**fmt),
-        "",
-        "![z-scores of the calibration check](zscores.png)",
-        "",
-        "## The joint posterior of each molecule over its frames",
-        "",
-        "One position and width shared by a molecule's valid frames, N and b per frame "
-        "(`bayespsf.analysis.joint`: importance sampling from the joint Laplace approximation). "
-        "`s_x_frame_sd` is the mean per-frame posterior SD: the joint SD is expected near "
-        "`s_x_frame_sd / sqrt(joint_frames)`.",
-        "",
-        _joint_table(result.molecules).to_markdown(**fmt),
-        "",
-        "## Can the model have made each image?",
-        "",
-        "A parametric-bootstrap goodness-of-fit test of every frame's ROI "
-        f"(`bayespsf.model_check`: {discrepancy} against 49 "
-        "refitted replicates; column `gof_p`). Where the model holds, a fraction alpha of the "
-        "frames has `gof_p <= alpha`; more flags mean ROIs it does not describe (two "
-        "molecules, a hot pixel, a spot that is not Gaussian). `p (this many flags or more)` "
-        "tests the whole dataset: small when more frames are flagged than the model allows. "
-        "It sees a misfit that every frame shares (an Airy spot fitted with a Gaussian), "
-        "which the check across frames above cannot.",
-        "",
-        _flag_table(result.frames).to_markdown(**fmt),
-        "",
-        "![goodness-of-fit p-values](gof_p.png)",
-        "",
-        "How a misfit shows (`bayespsf.analysis.misfit`): each molecule's mean Pearson residual "
-        "image at its frames' fits, scaled to ~N(0, 1) per pixel where the model holds (a "
-        "pattern, such as a core and a ring, is a spot the Gaussian does not describe), and "
-        "its mean width when only the central w x w pixels are fitted (a Gaussian spot gives "
-        "one width in every window, within its SE; `width_by_window.csv`).",
-        "",
-        "![residual images](residuals.png)",
-        "",
-        _window_table(result.width_by_window).to_markdown(**fmt),
-        "",
-        "## Width precision per molecule (the paper's Fig. 2, experimental points)",
-        "",
-        "`delta_s_*`: the SD over frames of each estimator's s_x (nm); beside it the mean "
-        "posterior SD, the mean Cramér-Rao bound and Eq. sigma2dp3 of DeSantis, DeCenzo, Li & "
-        "Wang, Opt. Express 18 (2010) at the molecule's mean N (detected photons).",
-        "",
-        result.width_spread[spread_columns].to_markdown(**fmt),
-        "",
-        "![width error against N](width_precision.png)",
-        "",
-        "## Files",
-        "",
-        *(f"- `{name}`" for name in result.paths),
-        "",
-    ]
-    return "\n".join(lines)
-
-
-__all__ = ["Analysis", "analyze", "report_markdown", "valid_rois"]
+__all__ = ["Analysis", "analyze", "valid_rois"]

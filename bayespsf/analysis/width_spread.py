@@ -1,4 +1,4 @@
-"""The paper's experimental width precision per molecule (issue 14, item 2).
+"""The paper's experimental width precision per molecule.
 
 DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), Fig. 2's experimental points: for each
 immobile molecule, the spread of its per-frame width estimates across its valid frames,
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from bayespsf._checks import scalar_in_range
+from bayespsf._validate import scalar_in_range
 from bayespsf.errors import BayespsfInputError
 from bayespsf.theory import delta_s_analytic
 
@@ -26,18 +26,67 @@ ESTIMATORS = {"lsq": "least squares", "mle": "MLE", "mean": "posterior mean"}
 
 
 def width_spread(
-    frames: pd.DataFrame, pixel_size: float, *, width: str = "s_x", by: str = "molecule",
-    photons: str = "N_mean", background: str = "b_mean", background_variance=None,
-) -> pd.DataFrame:  # fmt: skip
-    """Per molecule: ``frames``, mean ``N`` and ``b``, ``delta_s_<estimator>`` (the SD over
-    frames, ``ddof=1``, of each ``{width}_<estimator>`` column present: ``lsq``, ``mle``,
-    ``mean``) with its standard error (``delta / sqrt(2 (K - 1))`` for normal estimates; NaN
-    for a molecule of one frame),
-    ``posterior_sd`` (the mean of ``{width}_sd``, if present), ``crlb`` (the mean of
-    ``crlb_{width}``, if present) and ``eq_sigma2dp3``.
+    frames: pd.DataFrame,
+    pixel_size: float,
+    *,
+    width: str = "s_x",
+    by: str = "molecule",
+    photons: str = "N_mean",
+    background: str = "b_mean",
+    background_variance: float | str | None = None,
+) -> pd.DataFrame:
+    """Per molecule, the spread of its width estimates over frames beside its predictions.
 
-    ``background_variance``: the background photons' variance per pixel (a number, or a column
-    name); default the mean background (Poisson photons).
+    Parameters
+    ----------
+    frames : pandas.DataFrame
+        One row per (molecule, frame): ``by``, ``photons``, ``background``, ``s_x_mean``,
+        ``s_y_mean`` and, where present, ``{width}_lsq``, ``{width}_mle``, ``{width}_sd`` and
+        ``crlb_{width}`` (nm); N and b in detected photoelectrons (``photon_unit``, checked
+        where the column exists).
+    pixel_size : float
+        Pixel side in nm (> 0).
+    width : {"s_x", "s_y"}, default "s_x"
+        The width whose spread is measured.
+    by : str, default "molecule"
+        The column naming each row's molecule.
+    photons : str, default "N_mean"
+        The column of each frame's photon count N.
+    background : str, default "b_mean"
+        The column of each frame's background b, photons per pixel.
+    background_variance : float or str, optional
+        The background photons' variance per pixel (a number, or a column name); default the
+        mean background (Poisson photons).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per molecule: ``by``, ``frames``, mean ``N`` and ``b``,
+        ``delta_s_<estimator>`` (the SD over frames, ``ddof=1``, of each
+        ``{width}_<estimator>`` column present: ``lsq``, ``mle``, ``mean``, nm) with its
+        standard error ``delta_s_<estimator>_se`` (``delta / sqrt(2 (K - 1))`` for normal
+        estimates; NaN for a molecule of one frame), ``posterior_sd`` (the mean of
+        ``{width}_sd``, if present), ``crlb`` (the mean of ``crlb_{width}``, if present) and
+        ``eq_sigma2dp3`` (nm).
+
+    Raises
+    ------
+    BayespsfInputError
+        A ``pixel_size`` that is not > 0, an unknown ``width``, missing columns, or N and b
+        in a unit other than detected photoelectrons.
+
+    See Also
+    --------
+    bayespsf.theory.delta_s_analytic : Eq. sigma2dp3.
+    frame_consistency : whether the frames agree within their stated SDs.
+    analyze : writes this table as ``width_spread.csv``.
+
+    Notes
+    -----
+    The paper's Fig. 2, experimental points (module docstring): ``Delta s_rms`` of each
+    immobile molecule over its valid frames against its mean N, for every estimator, beside
+    the mean posterior SD, the mean Cramér–Rao bound and Eq. sigma2dp3 at the molecule's mean
+    N, background and widths. Eq. sigma2dp3 is stated in detected photons.
     """
     pixel_size = scalar_in_range("pixel_size", pixel_size, 0.0, low_inclusive=False)
     if width not in ("s_x", "s_y"):
@@ -70,9 +119,13 @@ def width_spread(
     else:
         variance = pd.Series(float(background_variance), index=out.index)
     out["eq_sigma2dp3"] = delta_s_analytic(
-        out["N"], g[f"{width}_mean"].mean(), g[f"{other}_mean"].mean(), pixel_size,
-        np.sqrt(variance), out["b"],
-    )  # fmt: skip
+        out["N"],
+        g[f"{width}_mean"].mean(),
+        g[f"{other}_mean"].mean(),
+        pixel_size,
+        np.sqrt(variance),
+        out["b"],
+    )
     return out.reset_index()
 
 

@@ -1,123 +1,91 @@
-"""Defocus curves from a bead z-stack (issue 16, item 2).
+"""Defocus curves from a bead z-stack.
 
 A z-stack images one bright, immobile bead at known stage positions z, several frames per
 step. Calibration, in three steps:
 
 1. **Per-step widths.** The frames of each step share the bead's position and widths, so each
-   step's widths are the joint posterior over its frames (``bayespsf.analysis.joint``): the
+   step's widths are the joint posterior over its frames (``bayespsf.inference.joint``): the
    posterior mean and SD of s_x and s_y per step.
 2. **Curves.** Per axis, the curve (``HuangCurve`` or ``PolynomialCurve``) fitted to the steps'
    widths by weighted least squares, each step weighted by its posterior SD; the parameters'
    covariance is the inverse of ``J' W J`` at the fit (the Gauss-Newton approximation, Seber &
    Wild, Nonlinear Regression (1989), sec. 2.1).
 3. **Does the curve fit?** The weighted residuals' chi-square against its degrees of freedom;
-   where its p-value is below ``MISFIT_P`` the calibration says so (``Calibration.problems``):
-   the stack has structure the curve does not describe (residuals beyond their errors), and
-   its z will be biased where the curve is wrong.
+   where its p-value is below ``MISFIT_P`` the calibration says so
+   (``DefocusCalibration.problems``): the stack has structure the curve does not describe
+   (residuals beyond their errors), and its z will be biased where the curve is wrong.
 
-Stacks come from ``simulate_zstack`` (a scene with ``[axial]``: the bead at each step) or from
-a user's movie (``bead_rois``: the movie reader, the detector on its mean projection, and the
-ROIs of the brightest bead). ``bayespsf.axial.calibration_file`` saves and loads the result.
+Stacks come from ``bayespsf.simulation.simulate_zstack`` (a scene with ``[axial]``: the bead
+at each step) or from a user's movie (``bead_rois``: the movie reader, the detector on its
+mean projection, and the ROIs of the brightest bead). ``bayespsf.io.z_calibration`` saves and
+loads the result.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
-from bayespsf import simulate
-from bayespsf._checks import finite_array
-from bayespsf.axial.defocus import Defocus, HuangCurve, PolynomialCurve
+from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
-from bayespsf.psf import PARAMETER_NAMES
+from bayespsf.psf import CURVES, PARAMETER_NAMES, TERMS, Defocus, DefocusCalibration
 
-CURVES = {"huang": HuangCurve, "polynomial": PolynomialCurve}
-TERMS = ("w0", "c", "d", "A", "B")
-MISFIT_P = 1e-3  # a chi-square p-value below this says the curve does not fit the stack
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from bayespsf.model import Model
+    from bayespsf.movie import Movie
+
 MIN_STEPS = 6  # a five-term curve per axis needs more steps than terms
 
 
-@dataclass
-class Calibration:
-    """Fitted defocus curves with their uncertainty and how they were made.
+def bead_rois(
+    movie: Movie | str | Path,
+    model: Model,
+    *,
+    s0: float,
+    fit: int | None = None,
+    roi: int = 25,
+) -> tuple[np.ndarray, pd.DataFrame]:
+    """The ROIs of a z-stack movie's brightest bead, and its detection row.
 
-    ``fits``: one row per axis (``x``, ``y``): the terms, their SDs, ``chi2``, ``dof``, ``p``.
-    ``covariance``: per axis, the terms' covariance (5 x 5; rows and columns of terms held
-    fixed are 0). ``steps``: the per-step widths the curves were fitted to. ``source``: where
-    the stack came from (free-form provenance, kept in every file and result).
+    Parameters
+    ----------
+    movie : Movie or path
+        The z-stack in counts (ADU), one frame per stage position and frame.
+    model : Model
+        The camera (ADU to photons) and pixel size.
+    s0 : float
+        The detector's template SD, nm.
+    fit : int, optional
+        Odd side in pixels of the ROIs returned; default the model's ROI side.
+    roi : int, default 25
+        Odd side in pixels of the cut around the bead (its border must lie inside the frames).
+
+    Returns
+    -------
+    counts : numpy.ndarray, shape (frames, fit, fit)
+        The bead's central ROIs in every frame, in the movie's data type (ADU).
+    bead : pandas.DataFrame
+        Its row of ``detect_movie``'s table (``molecule`` set to 0).
+
+    Raises
+    ------
+    BayespsfInputError
+        No bead accepted on the mean projection at least ``roi // 2`` pixels from the edges,
+        or any error of ``detect_movie`` or ``cut_rois``.
+
+    See Also
+    --------
+    step_widths : the per-step widths of these ROIs.
+    bayespsf.movie.detect_movie : detection on the mean projection.
     """
-
-    curve: str
-    defocus: Defocus
-    fits: pd.DataFrame
-    covariance: dict[str, np.ndarray]
-    steps: pd.DataFrame
-    source: dict = field(default_factory=dict)
-
-    def record(self) -> dict:
-        """What a result that used this calibration keeps of it: the curve, each axis's terms
-        and fit, and the source (with the file it was loaded from)."""
-        axes = {axis: {k: float(v) for k, v in row[[*TERMS, "chi2", "p"]].items()}
-                for axis, row in self.fits.iterrows()}  # fmt: skip
-        return {"curve": self.curve, **axes, "source": dict(self.source)}
-
-    @property
-    def problems(self) -> list[str]:
-        """One sentence per axis whose curve does not fit its stack (chi-square p below
-        ``MISFIT_P``)."""
-        out = []
-        for axis, row in self.fits.iterrows():
-            if row["p"] < MISFIT_P:
-                out.append(
-                    f"the {self.curve} curve does not fit the stack's {axis} widths: "
-                    f"chi2 = {row['chi2']:.1f} on {int(row['dof'])} degrees of freedom "
-                    f"(p = {row['p']:.1e}); residuals are beyond their errors, so z from this "
-                    "curve will be biased where it is wrong"
-                )
-        return out
-
-
-def zstack_positions(start: float, step: float, steps: int, frames_per_step: int) -> np.ndarray:
-    """The stage z of every frame of a stack: ``steps`` positions ``start + k step``, each
-    held for ``frames_per_step`` frames."""
-    for name, value in (("steps", steps), ("frames_per_step", frames_per_step)):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-            raise BayespsfInputError(f"{name} must be a positive integer, got {value!r}")
-    start, step = (float(finite_array(n, v)) for n, v in (("start", start), ("step", step)))
-    if step == 0:
-        raise BayespsfInputError("step must not be 0")
-    return np.repeat(start + step * np.arange(steps), frames_per_step)
-
-
-def simulate_zstack(scene, z, seed: int):
-    """Counts ``(len(z), roi, roi)`` of the scene's emitter at each stage position of ``z``
-    (a scene with ``[axial]``; its z law is replaced by each position), and the truth table.
-    Frame ``i`` depends on ``seed`` and its step only."""
-    if "axial" not in scene.to_dict():
-        raise BayespsfInputError("the scene declares no [axial] table: no defocus to image")
-    z = finite_array("z", z)
-    counts, truths = [], []
-    values, first = np.unique(z, return_index=True)
-    for k, value in enumerate(values[np.argsort(first)]):
-        n = int(np.sum(z == value))
-        step_seed = int(np.random.SeedSequence([seed, k]).generate_state(1)[0])
-        c, t = simulate(scene.replace(axial={"z": "fixed", "z0": float(value)}), n, step_seed)
-        counts.append(c)
-        truths.append(t)
-    order = np.argsort(np.concatenate([np.flatnonzero(z == v) for v in values[np.argsort(first)]]))
-    return np.concatenate(counts)[order], pd.concat(truths, ignore_index=True).iloc[order]
-
-
-def bead_rois(movie, model, *, s0: float, fit: int | None = None, roi: int = 25):
-    """The ROIs ``(frames, fit, fit)`` of a z-stack movie's brightest bead (detected on the
-    movie's mean projection, ``bayespsf.movie.detect.detect_movie``, with the template SD
-    ``s0`` nm) and its detection row. ``fit`` defaults to the model's ROI side; ``roi`` is
-    the cut around the bead (its border must lie inside the frames)."""
-    from bayespsf.movie.detect import detect_movie
-    from bayespsf.movie.extract import cut_rois, open_movie
+    from bayespsf.movie import cut_rois, detect_movie
+    from bayespsf.movie.extract import open_movie
 
     movie = open_movie(movie)
     fit = model.roi if fit is None else fit
@@ -133,25 +101,67 @@ def bead_rois(movie, model, *, s0: float, fit: int | None = None, roi: int = 25)
     return stack.central(fit), bead
 
 
-def step_widths(counts, z, model, *, seed: int = 0, ess: float = 400.0,
-                workers: int | None = None) -> pd.DataFrame:  # fmt: skip
-    """Per step (frames of equal z): the joint posterior mean and SD of s_x and s_y over its
-    frames (``bayespsf.analysis.joint.joint_posteriors``), one row per step in z order."""
-    from bayespsf.analysis.joint import joint_posteriors
-    from bayespsf.estimators import fit_mle
+def step_widths(
+    counts: ArrayLike,
+    z: ArrayLike,
+    model: Model,
+    *,
+    seed: int = 0,
+    ess: float = 400.0,
+    workers: int | None = None,
+) -> pd.DataFrame:
+    """Per step (frames of equal z): the joint posterior mean and SD of s_x and s_y.
+
+    Parameters
+    ----------
+    counts : array_like, shape (frames, roi, roi)
+        The bead's ROIs in ADU (``bead_rois``, or ``simulate_zstack``).
+    z : array_like, shape (frames,)
+        The stage position of each frame, nm; frames of equal z are one step.
+    model : Model
+        Camera, geometry and prior of the ROIs.
+    seed : int, default 0
+        Seed of the joint posteriors (``molecule_seed(seed, step)``).
+    ess : float, default 400.0
+        Effective sample size of each step's joint posterior.
+    workers : int, optional
+        Local processes (default as ``joint_posteriors``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per step in z order: ``z`` (nm), ``frames``, ``s_x``, ``s_x_sd``, ``s_y``,
+        ``s_y_sd`` (the joint posterior's mean and SD over the step's frames, nm; NaN where
+        it has none) and ``method`` (the joint posterior's).
+
+    Raises
+    ------
+    BayespsfInputError
+        ``counts`` that are not a stack of the model's ROIs with one ``z`` per frame.
+
+    See Also
+    --------
+    calibrate : the curves from this table.
+    bayespsf.parallel.joint_posteriors : the joint posterior over a step's frames.
+    """
+    from bayespsf.inference import fit_mle
+    from bayespsf.parallel import joint_posteriors
 
     z = finite_array("z", z)
     counts = model.check_counts(counts)
     if counts.ndim != 3 or len(counts) != len(z):
-        raise BayespsfInputError(f"counts must be (frames, roi, roi) with one z per frame; got "
-                                 f"{np.shape(counts)} and {len(z)} positions")  # fmt: skip
+        raise BayespsfInputError(
+            f"counts must be (frames, roi, roi) with one z per frame; got "
+            f"{np.shape(counts)} and {len(z)} positions"
+        )
     values, step = np.unique(z, return_inverse=True)
     fits = fit_mle(counts, model)
     frames = pd.DataFrame({"molecule": step, "mle_converged": fits["converged"].to_numpy()})
     for p in PARAMETER_NAMES:
         frames[f"{p}_mle"] = fits[p].to_numpy()
-    joint = joint_posteriors(counts, frames, model, seed=seed, ess=ess, workers=workers,
-                             progress=False)  # fmt: skip
+    joint = joint_posteriors(
+        counts, frames, model, seed=seed, ess=ess, workers=workers, progress=False
+    )
     table = pd.DataFrame({"z": values, "frames": np.bincount(step)})
     for axis in ("s_x", "s_y"):
         for stat in ("mean", "sd"):
@@ -163,10 +173,51 @@ def step_widths(counts, z, model, *, seed: int = 0, ess: float = 400.0,
     return table
 
 
-def fit_curve(z, width, sd, curve: str = "huang", higher_order: bool = True) -> dict:
-    """One axis's curve by weighted least squares (module docstring): the terms, their
-    covariance (5 x 5), ``chi2``, ``dof`` and its ``p``-value. ``higher_order`` False holds
-    A = B = 0."""
+def fit_curve(
+    z: ArrayLike,
+    width: ArrayLike,
+    sd: ArrayLike,
+    curve: str = "huang",
+    higher_order: bool = True,
+) -> dict:
+    """One axis's curve fitted to the steps' widths by weighted least squares.
+
+    Parameters
+    ----------
+    z : array_like, shape (steps,)
+        Stage positions, nm.
+    width : array_like, shape (steps,)
+        The widths at each z, nm (> 0).
+    sd : array_like, shape (steps,)
+        Their SDs, nm (> 0): each step's weight is ``1 / sd^2``.
+    curve : {"huang", "polynomial"}, default "huang"
+        The curve's kind (``CURVES``).
+    higher_order : bool, default True
+        Fit the terms ``A`` and ``B``; False holds A = B = 0.
+
+    Returns
+    -------
+    dict
+        ``terms`` (5,: ``w0 c d A B``), their ``covariance`` (5 x 5; rows and columns of held
+        terms 0), ``chi2``, ``dof`` and its ``p``-value.
+
+    Raises
+    ------
+    BayespsfInputError
+        An unknown curve, fewer steps than ``MIN_STEPS`` (or the free terms plus one), a
+        width or SD that is not > 0, or no start that could be fitted.
+
+    See Also
+    --------
+    calibrate : both axes, as a ``DefocusCalibration``.
+
+    Notes
+    -----
+    The terms' covariance is the inverse of ``J' W J`` at the fit (the Gauss-Newton
+    approximation, Seber & Wild, Nonlinear Regression (1989), sec. 2.1); the fit starts from
+    three guesses (``w0`` the smallest width, ``c`` where it is and a quarter of the stack's
+    span to either side) and keeps the best.
+    """
     if curve not in CURVES:
         raise BayespsfInputError(f"curve must be one of {sorted(CURVES)}, got {curve!r}")
     z, width, sd = (finite_array(n, v) for n, v in (("z", z), ("width", width), ("sd", sd)))
@@ -192,8 +243,7 @@ def fit_curve(z, width, sd, curve: str = "huang", higher_order: bool = True) -> 
     for start in _starts(z, width, curve)[:, :free]:
         lower = [0.0, -np.inf, 1.0, -np.inf, -np.inf][:free]
         try:
-            result = optimize.least_squares(residuals, start, bounds=(lower, np.inf),
-                                            x_scale="jac")  # fmt: skip
+            result = optimize.least_squares(residuals, start, bounds=(lower, np.inf), x_scale="jac")
         except ValueError:
             continue
         if best is None or result.cost < best.cost:
@@ -209,8 +259,13 @@ def fit_curve(z, width, sd, curve: str = "huang", higher_order: bool = True) -> 
     chi2 = float(2 * best.cost)
     dof = len(z) - free
     terms = np.concatenate([best.x, np.zeros(5 - free)])
-    return {"terms": terms, "covariance": covariance, "chi2": chi2, "dof": dof,
-            "p": float(stats.chi2.sf(chi2, dof))}  # fmt: skip
+    return {
+        "terms": terms,
+        "covariance": covariance,
+        "chi2": chi2,
+        "dof": dof,
+        "p": float(stats.chi2.sf(chi2, dof)),
+    }
 
 
 def _starts(z, width, curve: str) -> np.ndarray:
@@ -228,9 +283,73 @@ def _starts(z, width, curve: str) -> np.ndarray:
     return np.array([[w0, c + shift, d, 0.0, 0.0] for shift in (0.0, -span / 4, span / 4)])
 
 
-def calibrate(steps: pd.DataFrame, curve: str = "huang", higher_order: bool = True,
-              source: dict | None = None) -> Calibration:  # fmt: skip
-    """Curves for both axes from ``step_widths``' table (steps without widths are left out)."""
+def calibrate(
+    steps: pd.DataFrame, curve: str = "huang", higher_order: bool = True, source: dict | None = None
+) -> DefocusCalibration:
+    """Defocus curves for both axes from the per-step widths of a bead z-stack.
+
+    Parameters
+    ----------
+    steps : pandas.DataFrame
+        ``step_widths``' table: ``z``, ``s_x``, ``s_x_sd``, ``s_y``, ``s_y_sd`` (nm), one row
+        per step; steps without finite widths are left out.
+    curve : {"huang", "polynomial"}, default "huang"
+        The curve's kind (``CURVES``).
+    higher_order : bool, default True
+        Fit the terms ``A`` and ``B``; False holds A = B = 0.
+    source : dict, optional
+        Where the stack came from, kept in the result (beside ``steps_left_out``).
+
+    Returns
+    -------
+    DefocusCalibration
+        The curves (``defocus``), ``fits`` (index ``x``, ``y``; columns ``w0 c d A B``, their
+        ``_sd``, ``chi2``, ``dof``, ``p``, ``steps``), the terms' ``covariance`` per axis,
+        the ``steps`` and the ``source``; ``problems`` names an axis whose curve does not fit.
+
+    Raises
+    ------
+    BayespsfInputError
+        A table without the columns, or any error of ``fit_curve``.
+
+    See Also
+    --------
+    step_widths : the table from a stack's ROIs.
+    fit_curve : one axis.
+    z_posterior : z of an emitter from the curves.
+    bayespsf.io.write_z_calibration : the calibration as a file.
+
+    Notes
+    -----
+    The three steps of the module docstring: per-step widths (joint posteriors), curves by
+    weighted least squares with the Gauss-Newton covariance, and the chi-square check of the
+    fit (a p-value below ``MISFIT_P`` is reported in ``DefocusCalibration.problems``).
+
+    Examples
+    --------
+    Widths of an astigmatic curve at 25 steps, each with an error of 2 nm:
+
+    >>> import numpy as np
+    >>> import pandas as pd
+    >>> from bayespsf.axial import calibrate
+    >>> from bayespsf.psf import Defocus
+    >>> truth = Defocus.astigmatic(w0=120.0, separation=400.0, depth=400.0)
+    >>> z = np.linspace(-600.0, 600.0, 25)
+    >>> s_x, s_y = truth.widths(z)
+    >>> rng = np.random.default_rng(0)
+    >>> steps = pd.DataFrame({
+    ...     "z": z, "s_x": s_x + rng.normal(0, 2.0, z.size), "s_x_sd": 2.0,
+    ...     "s_y": s_y + rng.normal(0, 2.0, z.size), "s_y_sd": 2.0,
+    ... })
+    >>> result = calibrate(steps, "huang", higher_order=False)
+    >>> result.fits[["w0", "c", "d"]].round(0)
+             w0      c      d
+    axis
+    x     119.0 -196.0  392.0
+    y     121.0  193.0  403.0
+    >>> result.problems
+    []
+    """
     missing = [c for c in ("z", "s_x", "s_x_sd", "s_y", "s_y_sd") if c not in steps]
     if missing:
         raise BayespsfInputError(f"steps: no column {', '.join(missing)}")
@@ -240,17 +359,29 @@ def calibrate(steps: pd.DataFrame, curve: str = "huang", higher_order: bool = Tr
     for axis in ("x", "y"):
         fit = fit_curve(used["z"], used[f"s_{axis}"], used[f"s_{axis}_sd"], curve, higher_order)
         sd = np.sqrt(np.diagonal(fit["covariance"]))
-        rows.append({"axis": axis, **dict(zip(TERMS, fit["terms"], strict=True)),
-                     **{f"{t}_sd": s for t, s in zip(TERMS, sd, strict=True)},
-                     "chi2": fit["chi2"], "dof": fit["dof"], "p": fit["p"],
-                     "steps": len(used)})  # fmt: skip
+        rows.append(
+            {
+                "axis": axis,
+                **dict(zip(TERMS, fit["terms"], strict=True)),
+                **{f"{t}_sd": s for t, s in zip(TERMS, sd, strict=True)},
+                "chi2": fit["chi2"],
+                "dof": fit["dof"],
+                "p": fit["p"],
+                "steps": len(used),
+            }
+        )
         covariance[axis] = fit["covariance"]
         curves[axis] = CURVES[curve](*fit["terms"])
     fits = pd.DataFrame(rows).set_index("axis")
     source = {"steps_left_out": int((~usable).sum()), **(source or {})}
-    return Calibration(curve, Defocus(curves["x"], curves["y"]), fits, covariance,
-                       steps.reset_index(drop=True), source)  # fmt: skip
+    return DefocusCalibration(
+        curve,
+        Defocus(curves["x"], curves["y"]),
+        fits,
+        covariance,
+        steps.reset_index(drop=True),
+        source,
+    )
 
 
-__all__ = ["CURVES", "Calibration", "bead_rois", "calibrate", "fit_curve", "simulate_zstack",
-           "step_widths", "zstack_positions"]  # fmt: skip
+__all__ = ["bead_rois", "calibrate", "fit_curve", "step_widths"]

@@ -1,5 +1,5 @@
 """The posterior of an emitter's axial position: a model of ``(x0, y0, z, N, b)`` whose widths
-are the calibration's ``(s_x(z), s_y(z))`` (issue 16, item 3).
+are the calibration's ``(s_x(z), s_y(z))``.
 
 Likelihood: the camera law of ``Model`` at the six parameters ``(x0, y0, s_x(z), s_y(z), N, b)``
 (``bayespsf.axial.bounds.to_widths``). Prior: the model's own for x0, y0, N and b, and z uniform
@@ -9,7 +9,7 @@ Sampler: importance sampling from a proposal built on a grid of z, so that every
 found by construction, never by a chain's chance:
 
 1. at each z of a grid over ``z_range`` (``COARSE_STEP``), the maximum of the likelihood in
-   ``(x0, y0, N, b)`` with the widths held at the curve's (``bayespsf.stack_mle.maximise``,
+   ``(x0, y0, N, b)`` with the widths held at the curve's (``bayespsf.inference.solver.maximise``,
    all grid points as one stack), and its Laplace approximation;
 2. the Laplace approximation of z's marginal posterior at each grid point,
    ``log p(z) ~ log L + log prior + log N + (1/2) log det C`` (Tierney & Kadane, JASA 81
@@ -20,14 +20,15 @@ found by construction, never by a chain's chance:
    uniform over the whole range), the rest from the conditional Gaussian of the cell nearest
    z mixed with a wider one (a defensive mixture, Hesterberg, Technometrics 37 (1995));
    Pareto-smoothed importance weights against the exact posterior
-   (``bayespsf.importance``), with their k-hat as the check (Vehtari et al., arXiv:1507.02646).
+   (``bayespsf.inference.importance``), with their k-hat as the check (Vehtari et al.,
+   arXiv:1507.02646).
 
 Where the curves are even about a plane (the paper's symmetric defocus: z and -z give the
 same image), both mirror modes are on the grid with their exact weight, so the posterior
 reports both; ``info["above_plane"]`` is the posterior probability of the upper one.
 
 The calibration's own uncertainty can be marginalised (``calibration_uncertainty``): each
-draw then also carries curve terms drawn from their Gaussian (``Calibration.covariance``),
+draw then also carries curve terms drawn from their Gaussian (``DefocusCalibration.covariance``),
 in the proposal and in the target alike, so the weights are unchanged in form and the z
 draws are those of the posterior integrated over the curves. The proposal's z is moved, given
 the drawn terms, by the first-order shift that keeps the widths at the grid's mode (a
@@ -39,21 +40,24 @@ Sampling coordinates: ``v = (x0, y0, z, log N, b)`` (nm, nm, nm, log photons, ph
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import arviz_stats
 import numpy as np
 import pandas as pd
 
-from bayespsf._checks import as_generator, probability, scalar_in_range
+from bayespsf._validate import as_generator, probability, scalar_in_range
 from bayespsf.axial.bounds import THETA_NAMES
-from bayespsf.axial.calibrate import CURVES, TERMS, Calibration
-from bayespsf.axial.defocus import Defocus, widths_of_terms
 from bayespsf.axial.push import check_z_range, symmetry_plane
 from bayespsf.errors import BayespsfInputError
-from bayespsf.estimators import start_values
-from bayespsf.importance import KHAT_MAX, psis, systematic_resample
-from bayespsf.model import Model, _PriorTerms
-from bayespsf.stack_mle import maximise, observed_information
+from bayespsf.inference import start_values
+from bayespsf.inference.importance import KHAT_MAX, psis, systematic_resample
+from bayespsf.inference.solver import maximise, observed_information
+from bayespsf.model import Model, PriorTerms
+from bayespsf.psf import CURVES, TERMS, Defocus, DefocusCalibration, widths_of_terms
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 COARSE_STEP = 10.0  # nm between the first grid's z
 FINE_STEP = 1.0  # nm between the refined grid's z
@@ -69,7 +73,23 @@ FLAT_WIDTH_PRIOR = {"kind": "uniform", "low": 0.0, "high": np.inf}
 
 @dataclass
 class ZPosterior:
-    """Equally weighted draws of ``(x0, y0, z, N, b)`` and how they were made."""
+    """Equally weighted draws of ``(x0, y0, z, N, b)`` and how they were made.
+
+    Parameters
+    ----------
+    draws : pandas.DataFrame
+        One row per draw, columns ``x0``, ``y0``, ``z`` (nm), ``N`` (photons), ``b``
+        (photons per pixel).
+    info : dict
+        How they were made (``z_posterior``'s Returns lists the keys).
+    grid : pandas.DataFrame, optional
+        ``z`` (nm) on the coarse grid and its Laplace ``log_marginal`` (unnormalised).
+
+    See Also
+    --------
+    z_posterior : makes one.
+    distance_from_focus : the unified interval of ``|z - c|`` on a symmetric curve.
+    """
 
     draws: pd.DataFrame
     info: dict = field(default_factory=dict)
@@ -79,8 +99,9 @@ class ZPosterior:
         """Mean, SD and the 2.5/16/50/84/97.5% quantiles of every parameter."""
         q = self.draws.quantile([0.025, 0.16, 0.5, 0.84, 0.975]).T
         q.columns = ["q2.5", "q16", "median", "q84", "q97.5"]
-        return pd.concat([self.draws.mean().rename("mean"), self.draws.std().rename("sd"), q],
-                         axis=1)  # fmt: skip
+        return pd.concat(
+            [self.draws.mean().rename("mean"), self.draws.std().rename("sd"), q], axis=1
+        )
 
     def hdi(self, prob: float = 0.95) -> pd.DataFrame:
         """The highest-density region of z holding ``prob`` of its posterior: one row per
@@ -104,7 +125,7 @@ class ZPosterior:
         region = region[np.all(np.isfinite(region), axis=1)]
         return pd.DataFrame(region[np.argsort(region[:, 0])], columns=["lower", "upper"])
 
-    def covers(self, z, prob: float = 0.95) -> bool:
+    def covers(self, z: float, prob: float = 0.95) -> bool:
         """Whether ``z`` (nm) lies in the ``prob`` highest-density region (``hdi``)."""
         region = self.hdi(prob)
         z = scalar_in_range("z", z, -np.inf)
@@ -120,7 +141,7 @@ class _Problem:
         self.calibration = calibration
         self.low, self.high = z_range
         defocus.widths(np.linspace(self.low, self.high, 1001))  # names a z outside its domain
-        self.prior = _PriorTerms({**model.prior, "s_x": FLAT_WIDTH_PRIOR, "s_y": FLAT_WIDTH_PRIOR})
+        self.prior = PriorTerms({**model.prior, "s_x": FLAT_WIDTH_PRIOR, "s_y": FLAT_WIDTH_PRIOR})
         self.start = start_values(model.to_photons(counts[None]), model)[0]
 
     def draw_terms(self, n: int, rng) -> np.ndarray:
@@ -262,9 +283,11 @@ def _grid(problem: _Problem):
         )
     step = coarse[1] - coarse[0]
     kept = np.flatnonzero(log_m >= log_m.max() - KEEP)
-    points = np.unique(np.concatenate([
-        np.arange(z - step / 2, z + step / 2, FINE_STEP) + FINE_STEP / 2 for z in coarse[kept]
-    ]))  # fmt: skip
+    points = np.unique(
+        np.concatenate(
+            [np.arange(z - step / 2, z + step / 2, FINE_STEP) + FINE_STEP / 2 for z in coarse[kept]]
+        )
+    )
     points = points[(points >= low) & (points <= high)]
     nearest = np.clip(np.searchsorted(coarse, points) - 1, 0, len(coarse) - 1)
     nearer = np.abs(coarse[np.minimum(nearest + 1, len(coarse) - 1)] - points) < np.abs(
@@ -276,10 +299,17 @@ def _grid(problem: _Problem):
     return points[good], fine_fit[good], covariance[good], fine_log_m[good], (coarse, log_m)
 
 
-def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.0),
-                seed=0, ess: float = 400.0,
-                calibration_uncertainty: bool = False) -> ZPosterior:  # fmt: skip
-    """The posterior of ``(x0, y0, z, N, b)`` of one ROI (module docstring).
+def z_posterior(
+    counts: ArrayLike,
+    model: Model,
+    defocus: Defocus | DefocusCalibration,
+    *,
+    z_range: tuple[float, float] = (-800.0, 800.0),
+    seed: int | np.random.Generator = 0,
+    ess: float = 400.0,
+    calibration_uncertainty: bool = False,
+) -> ZPosterior:
+    """The posterior of ``(x0, y0, z, N, b)`` of one ROI, z from the widths' curves.
 
     Parameters
     ----------
@@ -287,49 +317,105 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
         One ROI in ADU, as ``Model`` reads it.
     model : Model
         Camera, geometry and the prior of x0, y0, N and b (its width priors are not used).
-    defocus : Defocus or Calibration
-        The curves ``(s_x(z), s_y(z))``; a ``Calibration`` (``bayespsf.axial.calibrate``) is
+    defocus : Defocus or DefocusCalibration
+        The curves ``(s_x(z), s_y(z))``; a ``DefocusCalibration`` (``bayespsf.psf.defocus``) is
         also recorded in ``info["calibration"]``.
-    z_range : (low, high)
-        Support of z's uniform prior (nm).
-    seed : int or Generator
-    ess : float
-        Effective sample size of the importance weights to reach (draws returned).
-    calibration_uncertainty : bool
-        With a ``Calibration``: marginalise its curves' uncertainty (each draw at curve terms
-        drawn from the terms' Gaussian, ``Calibration.covariance``), so that z's posterior
-        widens by what the stack left unknown. Default False: the fitted curves as exact.
+    z_range : (float, float), default (-800.0, 800.0)
+        Support ``(low, high)`` of z's uniform prior (nm).
+    seed : int or numpy.random.Generator, default 0
+        The draws' random numbers.
+    ess : float, default 400.0
+        Effective sample size of the importance weights to reach (draws returned), in
+        [10, 1e6].
+    calibration_uncertainty : bool, default False
+        With a ``DefocusCalibration``: marginalise its curves' uncertainty (each draw at curve
+        terms drawn from the terms' Gaussian, ``DefocusCalibration.covariance``), so that z's
+        posterior widens by what the stack left unknown. False: the fitted curves as exact.
 
     Returns
     -------
     ZPosterior
-        ``info``: ``method`` ("importance"), ``khat``, ``ess`` achieved, ``converged`` (k-hat
-        <= 0.7 and the ESS reached), ``why`` where not, ``plane`` and ``above_plane`` where the
-        curves are symmetric, ``grid_points``.
+        ``draws``: ``ceil(ess)`` equally weighted rows of ``x0``, ``y0``, ``z`` (nm), ``N``
+        (photons), ``b`` (photons per pixel). ``info``: ``method`` ("importance"), ``khat``,
+        ``ess`` achieved, ``draws_scored``, ``converged`` (k-hat <= 0.7 and the ESS reached),
+        ``why`` where not, ``grid_points``, ``z_range``, ``plane`` and ``above_plane`` where
+        the curves are symmetric, and ``calibration`` and ``calibration_uncertainty`` with a
+        ``DefocusCalibration``. ``grid``: z's coarse Laplace log marginal.
+
+    Raises
+    ------
+    BayespsfInputError
+        ``counts`` that are not one ROI of the model's shape, a ``defocus`` of another type,
+        an ``ess`` outside [10, 1e6], a bad ``z_range`` or one outside the curves' domain,
+        ``calibration_uncertainty`` without a ``DefocusCalibration``, or no z in ``z_range``
+        with a converged fit of the ROI.
+
+    See Also
+    --------
+    z_posteriors : the same for a stack of ROIs, in parallel.
+    z_draws : z from the widths' posterior, pushed through the curves.
+    crlb_z : the Cramér-Rao bound of z.
+    calibrate : the curves from a bead z-stack.
+
+    Notes
+    -----
+    The module docstring states the likelihood (the camera law at the curves' widths), the
+    prior (the model's for x0, y0, N and b; z uniform on ``z_range``) and the sampler:
+    importance sampling from a proposal built on a grid of z (Laplace marginals of z on a
+    coarse and a fine grid, a defensive mixture), with Pareto-smoothed weights whose k-hat is
+    the check. Every mode of z is on the grid by construction; where the curves are even
+    about a plane both mirror modes are reported with their exact weight.
+
+    References
+    ----------
+    .. [1] L. Tierney and J. B. Kadane, J. Am. Stat. Assoc. 81, 82 (1986).
+    .. [2] T. Hesterberg, Technometrics 37, 185 (1995).
+    .. [3] A. Vehtari et al., "Pareto smoothed importance sampling", arXiv:1507.02646.
+
+    Examples
+    --------
+    One simulated ROI of the ``astigmatic`` scene at z = 300 nm (2 000 photons):
+
+    >>> from bayespsf import Model, load_scene, simulate
+    >>> from bayespsf.axial import z_posterior
+    >>> from bayespsf.psf import Defocus
+    >>> scene = load_scene("astigmatic")
+    >>> axial = {k: v for k, v in scene.axial.items() if k not in ("z_low", "z_high")}
+    >>> counts, truth = simulate(scene.replace(axial={**axial, "z": "fixed", "z0": 300.0}), 1, 0)
+    >>> defocus = Defocus.from_table(scene.axial, 130.0, 130.0)
+    >>> post = z_posterior(counts[0], Model.from_scene(scene), defocus, seed=1)
+    >>> post.info["method"], post.info["converged"]
+    ('importance', True)
+    >>> post.covers(300.0)  # the 95% highest-density region holds the true z
+    True
     """
     c = model.check_counts(counts)
     if c.ndim != 2:
         raise BayespsfInputError(f"counts must be one ROI of shape ({model.roi}, {model.roi})")
-    calibration = defocus if isinstance(defocus, Calibration) else None
+    calibration = defocus if isinstance(defocus, DefocusCalibration) else None
     defocus = defocus.defocus if calibration is not None else defocus
     if not isinstance(defocus, Defocus):
         raise BayespsfInputError(
-            f"defocus must be a Defocus or a Calibration, got {type(defocus).__name__}"
+            f"defocus must be a Defocus or a DefocusCalibration, got {type(defocus).__name__}"
         )
     if not (isinstance(ess, int | float) and np.isfinite(ess) and 10 <= ess <= 1e6):
         raise BayespsfInputError(f"ess must be a number in [10, 1e6], got {ess!r}")
     rng = as_generator(seed)
     if calibration_uncertainty and calibration is None:
-        raise BayespsfInputError("calibration_uncertainty needs a Calibration, not a Defocus")
-    problem = _Problem(c, model, defocus, check_z_range(z_range),
-                       calibration if calibration_uncertainty else None)  # fmt: skip
+        raise BayespsfInputError(
+            "calibration_uncertainty needs a DefocusCalibration, not a Defocus"
+        )
+    problem = _Problem(
+        c, model, defocus, check_z_range(z_range), calibration if calibration_uncertainty else None
+    )
     points, fit, covariance, log_m, (coarse, coarse_log_m) = _grid(problem)
     edges = np.concatenate([[problem.low], 0.5 * (points[1:] + points[:-1]), [problem.high]])
     lower = np.maximum(edges[:-1], points - FINE_STEP / 2)
     upper = np.minimum(edges[1:], points + FINE_STEP / 2)
     centre = np.column_stack([fit[:, 0], fit[:, 1], np.log(fit[:, 4]), fit[:, 5]])
-    proposal = _GridProposal(lower, upper, log_m + np.log(upper - lower), centre, covariance,
-                             (problem.low, problem.high))  # fmt: skip
+    proposal = _GridProposal(
+        lower, upper, log_m + np.log(upper - lower), centre, covariance, (problem.low, problem.high)
+    )
     drawn, drawn_terms, log_ratio = [], [], []
     mode = float(points[np.argmax(log_m)])
     batch, max_draws = int(np.ceil(ess / 0.7)), int(MAX_DRAWS_PER_ESS * ess)
@@ -347,8 +433,13 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
         achieved = 1.0 / np.sum(weights**2)
         if achieved >= ess or khat > KHAT_MAX or scored >= max_draws:
             break
-        batch = int(np.clip(1.2 * (ess - achieved) * scored / max(achieved, 1.0), 100,
-                            min(BATCH * 16, max_draws - scored)))  # fmt: skip
+        batch = int(
+            np.clip(
+                1.2 * (ess - achieved) * scored / max(achieved, 1.0),
+                100,
+                min(BATCH * 16, max_draws - scored),
+            )
+        )
     v = np.concatenate(drawn)
     keep = systematic_resample(weights, int(np.ceil(ess)), rng)
     terms = None if problem.calibration is None else np.concatenate(drawn_terms, axis=1)
@@ -358,14 +449,21 @@ def z_posterior(counts, model: Model, defocus: Defocus, *, z_range=(-800.0, 800.
         columns=list(THETA_NAMES),
     )
     converged = bool(khat <= KHAT_MAX and achieved >= ess)
-    info = {"method": "importance", "khat": float(khat), "ess": float(achieved),
-            "draws_scored": len(v), "converged": converged, "grid_points": len(points),
-            "z_range": [problem.low, problem.high]}  # fmt: skip
+    info = {
+        "method": "importance",
+        "khat": float(khat),
+        "ess": float(achieved),
+        "draws_scored": len(v),
+        "converged": converged,
+        "grid_points": len(points),
+        "z_range": [problem.low, problem.high],
+    }
     if not converged:
         info["why"] = (
-            f"k-hat {khat:.2f} > {KHAT_MAX}" if khat > KHAT_MAX
+            f"k-hat {khat:.2f} > {KHAT_MAX}"
+            if khat > KHAT_MAX
             else f"ESS {achieved:.0f} < {ess:g} after {len(v)} draws"
-        )  # fmt: skip
+        )
     if calibration is not None:
         info["calibration"] = calibration.record()
         info["calibration_uncertainty"] = bool(calibration_uncertainty)

@@ -1,4 +1,4 @@
-"""z from the widths' posterior pushed through the calibration (issue 16, item 3, the cheap way).
+"""z from the widths' posterior pushed through the calibration: the cheap way to z.
 
 Each posterior draw of ``(s_x, s_y)`` is mapped to the z whose calibrated widths are nearest
 in the metric of the widths' covariance ``S`` (generalised least squares,
@@ -19,19 +19,25 @@ gets one of the two at random, among those inside ``z_range``: under a prior sym
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from bayespsf._checks import as_generator, broadcast_pair, finite_array, scalar_in_range
+from bayespsf._validate import as_generator, broadcast_pair, finite_array, scalar_in_range
 from bayespsf.axial.bounds import precision
-from bayespsf.axial.defocus import Defocus
 from bayespsf.errors import BayespsfInputError
+from bayespsf.psf import Defocus
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 GRID_STEP = 2.0  # nm
 BLOCK = 4096  # width pairs per grid search
 GOLDEN_STEPS = 50  # shrink the bracket by 0.618^50 ~ 3e-11
 
 
-def _widths(s_x, s_y):
+def widths(s_x: ArrayLike, s_y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """``s_x`` and ``s_y`` as finite arrays > 0 of one shape (broadcast), or a named error."""
     s_x = finite_array("s_x", s_x)
     s_y = finite_array("s_y", s_y)
     if np.any(s_x <= 0) or np.any(s_y <= 0):
@@ -39,7 +45,7 @@ def _widths(s_x, s_y):
     return broadcast_pair("s_x", s_x, "s_y", s_y)
 
 
-def check_z_range(z_range) -> tuple[float, float]:
+def check_z_range(z_range: tuple[float, float]) -> tuple[float, float]:
     """``z_range`` as ``(low, high)`` floats with low < high, or a named error."""
     try:
         low, high = z_range
@@ -54,11 +60,50 @@ def check_z_range(z_range) -> tuple[float, float]:
     return low, high
 
 
-def nearest_z(defocus: Defocus, s_x, s_y, z_range=(-800.0, 800.0), covariance=None):
-    """Per width pair, the z in ``z_range`` (nm) whose calibrated widths are nearest in the
-    metric ``covariance^-1`` (2 x 2; default the identity, distances in nm), and that
-    distance: ``(z, distance)``."""
-    s_x, s_y = _widths(s_x, s_y)
+def nearest_z(
+    defocus: Defocus,
+    s_x: ArrayLike,
+    s_y: ArrayLike,
+    z_range: tuple[float, float] = (-800.0, 800.0),
+    covariance: ArrayLike | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per width pair, the z whose calibrated widths are nearest, and that distance.
+
+    Parameters
+    ----------
+    defocus : Defocus
+        The widths' curves.
+    s_x, s_y : array_like
+        Width pairs, nm (> 0; broadcast together).
+    z_range : (float, float), default (-800.0, 800.0)
+        The z searched, ``(low, high)`` nm.
+    covariance : array_like, shape (2, 2), optional
+        ``S``: the distance is measured in the metric ``S^-1`` (in the widths' SDs); default
+        the identity (distances in nm).
+
+    Returns
+    -------
+    z : numpy.ndarray
+        The nearest z in ``z_range`` (nm), the widths' shape.
+    distance : numpy.ndarray
+        ``sqrt(r' S^-1 r)`` with ``r = s - w(z)`` at that z.
+
+    Raises
+    ------
+    BayespsfInputError
+        Widths that are not finite and > 0, a bad ``z_range``, or a ``covariance`` that is
+        not a finite, positive definite 2 x 2 matrix.
+
+    See Also
+    --------
+    z_draws : z of every posterior draw of the widths.
+
+    Notes
+    -----
+    A grid ``GRID_STEP`` nm apart finds the nearest grid point; a golden-section search on
+    its two neighbouring intervals refines it to 1e-9 of a grid step (module docstring).
+    """
+    s_x, s_y = widths(s_x, s_y)
     low, high = check_z_range(z_range)
     metric = np.eye(2) if covariance is None else precision(covariance)
 
@@ -97,14 +142,55 @@ def symmetry_plane(defocus: Defocus) -> float | None:
     return x if x is not None and x == y else None
 
 
-def z_draws(defocus: Defocus, s_x, s_y, rng, z_range=(-800.0, 800.0),
-            covariance=None) -> np.ndarray:  # fmt: skip
-    """Draws of z from draws of the widths (module docstring), each at its nearest z in the
-    metric of ``covariance`` (default: the draws' own covariance, or the identity where they
-    do not spread in both widths). Where the curve is even about a plane (``symmetry_plane``),
-    each draw gets one of its two mirror values inside ``z_range`` at random (``rng``: a
-    Generator or an integer seed)."""
-    s_x, s_y = _widths(s_x, s_y)
+def z_draws(
+    defocus: Defocus,
+    s_x: ArrayLike,
+    s_y: ArrayLike,
+    rng: np.random.Generator | int,
+    z_range: tuple[float, float] = (-800.0, 800.0),
+    covariance: ArrayLike | None = None,
+) -> np.ndarray:
+    """Draws of z from draws of the widths, each at its nearest z on the curves.
+
+    Parameters
+    ----------
+    defocus : Defocus
+        The widths' curves.
+    s_x, s_y : array_like
+        Posterior draws of the widths, nm (> 0).
+    rng : numpy.random.Generator or int
+        Picks one of two mirror values where the curves are even about a plane (a Generator
+        or an integer seed).
+    z_range : (float, float), default (-800.0, 800.0)
+        The z searched, ``(low, high)`` nm.
+    covariance : array_like, shape (2, 2), optional
+        The metric's ``S``; default the draws' own covariance, or the identity where they do
+        not spread in both widths.
+
+    Returns
+    -------
+    numpy.ndarray
+        One z per draw (nm), the widths' shape.
+
+    Raises
+    ------
+    BayespsfInputError
+        As ``nearest_z``.
+
+    See Also
+    --------
+    nearest_z : the projection of one width pair.
+    z_posterior : z's posterior under a model of z.
+    symmetry_plane : the plane of a curve's mirror symmetry.
+
+    Notes
+    -----
+    A projection, not z's posterior under a model of z (module docstring). Where the curve
+    is even about a plane (``symmetry_plane``), each draw gets one of its two mirror values
+    inside ``z_range`` at random: under a prior symmetric about the plane both modes are
+    reported, never one by chance.
+    """
+    s_x, s_y = widths(s_x, s_y)
     low, high = check_z_range(z_range)
     if covariance is None and s_x.size > 2:
         covariance = np.cov(np.stack([s_x.ravel(), s_y.ravel()]))

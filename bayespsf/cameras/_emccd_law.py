@@ -17,10 +17,10 @@ around the integrand's mode (the integrand is log-concave in u, so it has one mo
 windows carry all but ``exp(-_DROP)`` of its mass), except where the readout is too narrow to
 change ``log J`` at double precision: there ``J = f`` (``readout_negligible``, with its bound).
 
-Numerical domain (``EMCCD`` refuses anything else; tests/test_camera_domain.py): ``r = 0`` or
-``RATIO_MIN <= r <= RATIO_MAX``, ``lam`` in ``[0, 1e10]`` and ``|t| <= T_MAX``. There every
-function here is finite (``-inf`` only outside the support) and warning-free: ``(t / r)**2``
-stays below 1e55 and ``r * r`` above 1e-24.
+Numerical domain (``EMCCD`` refuses anything else; tests/cameras/test_camera_domain.py):
+``r = 0`` or ``RATIO_MIN <= r <= RATIO_MAX``, ``lam`` in ``[0, 1e10]`` and ``|t| <= T_MAX``.
+There every function here is finite (``-inf`` only outside the support) and warning-free:
+``(t / r)**2`` stays below 1e55 and ``r * r`` above 1e-24.
 """
 
 from __future__ import annotations
@@ -189,7 +189,7 @@ def readout_negligible(t0, lam, r):
     hundredth of the quadrature's error) or below half an ulp of ``g(t)`` (``2**-53 |g|``),
     ``J = f(t)`` exactly in double precision; the score's error, to leading order
     ``r**2 g' dg'/dlam``, is smaller still. This is where the quadrature's windows (a few ``r``
-    wide) would fall below the spacing of doubles near ``t``: the issue-#17 regime of
+    wide) would fall below the spacing of doubles near ``t``: the regime of
     ``r <= 1e-5`` far in the upper tail. Returns the mask and ``log f(t0)`` (``-inf`` off it).
     """
     far = t0 > _REACH * r
@@ -273,7 +273,7 @@ def log_small_lam(t, lam, r):
     ``g2(t) = exp(r**2/2 - t) r [phi(m / r) + (m / r) Phi(m / r)]``, ``m = t - r**2``
     (Grushka, Anal. Chem. 44 (1972) for the first). The neglected third-order term is about
     ``lam**2 (t + r)**2 / 12`` of the first-order one: < 1e-7 in log p at ``lam = 1e-6`` up to
-    ``t`` = 1000 gain units (tests/test_emccd_table.py checks it against ``log_exact``).
+    ``t`` = 1000 gain units (tests/cameras/test_emccd_table.py checks it against ``log_exact``).
     Where ``m / r < -5`` the
     second-order term is below ``1e-6 lam`` of the first and is dropped.
     """
@@ -285,10 +285,13 @@ def log_small_lam(t, lam, r):
     xs = np.where(x > -5.0, x, 0.0)
     second = np.where(
         x > -5.0,
-        2.0 * np.log(lam) - np.log(2.0) + shift + np.log(r)
+        2.0 * np.log(lam)
+        - np.log(2.0)
+        + shift
+        + np.log(r)
         + np.log(np.exp(-0.5 * xs * xs) / np.sqrt(2.0 * np.pi) + xs * special.ndtr(xs)),
         -np.inf,
-    )  # fmt: skip
+    )
     return -lam + np.logaddexp(np.logaddexp(atom, first), second)
 
 

@@ -27,7 +27,7 @@ with log p below about -50) and cameras with ``r`` outside ``[R_MIN, R_MAX]`` ar
 the exact quadrature, so the tier is accurate everywhere and fast where data are. Below
 ``R_MIN`` the readout peak is so narrow that the bulk grid's lowest cells (counts within a few
 ``r`` of the offset) no longer resolve it: at ``r = 1e-3`` the interpolant is off by 8 in log p
-at log p ~ -46, at ``r = 1e-12`` by 1e19 (measured; issue #17). Spacings were chosen by
+at log p ~ -46, at ``r = 1e-12`` by 1e19 (measured). Spacings were chosen by
 measurement against the exact tier; see benchmarks/README.md.
 """
 
@@ -121,9 +121,20 @@ class Table:
         """
         out = np.empty(t.shape)
         misses = _interpolate(
-            t, lam, self.coef, self.xi[0], self.xi.size, self.eta[0], self.eta.size,
-            self.tau[0], self.tau.size, self.near_offset, self.r, out, score,
-        )  # fmt: skip
+            t,
+            lam,
+            self.coef,
+            self.xi[0],
+            self.xi.size,
+            self.eta[0],
+            self.eta.size,
+            self.tau[0],
+            self.tau.size,
+            self.near_offset,
+            self.r,
+            out,
+            score,
+        )
         if misses:
             outside = np.isnan(out)
             out[outside] = law.log_exact(t[outside], lam[outside], self.r)
@@ -131,8 +142,9 @@ class Table:
 
 
 @numba.njit(cache=True, nogil=True)
-def _interpolate(t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset, r, out,
-                 score=None):  # fmt: skip
+def _interpolate(
+    t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset, r, out, score=None
+):
     """Bicubic patch evaluation, one pixel at a time; NaN (and a count) for off-grid points.
 
     With ``score`` (an array like ``out``) also the interpolant's exact derivative by lam, from

@@ -55,20 +55,21 @@ tier; above the offset with ``expected == 0`` and no readout (all mass at the of
 density is below -1.8e308 (``expected`` < ~1e-278). ``score`` is finite wherever
 ``log_likelihood`` is and ``expected >= 1e-100`` (at ``expected == 0`` it is the one-sided
 derivative, ``+inf`` where the count is impossible without photons, NaN for the ``gaussian``
-tier's atom without readout). No operation warns. tests/test_camera_domain.py checks all of
+tier's atom without readout). No operation warns. tests/cameras/test_camera_domain.py checks all of
 it. Where ``readout_sd / gain`` is so small that the readout cannot change ``log p`` at double
 precision the ``exact`` tier is the closed form, with the error bound of
-``_emccd_law.readout_negligible`` (issue #17).
+``_emccd_law.readout_negligible``.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from bayespsf._checks import nonnegative_array, scalar_in_range
+from bayespsf._validate import nonnegative_array, scalar_in_range
 from bayespsf.cameras import _emccd_fisher, _emccd_law, _emccd_table
-from bayespsf.cameras._draws import add_normal, gamma_register
 from bayespsf.cameras.base import Camera
+from bayespsf.cameras.draws import add_normal, gamma_register
 from bayespsf.cameras.photon import poisson_log_pmf, poisson_score
 from bayespsf.errors import BayespsfInputError
 
@@ -99,6 +100,43 @@ class EMCCD(Camera):
         (``bayespsf.Model`` takes the table tier for a camera whose tier was not chosen, as a
         scene does), so that inference has one default tier however the camera was made.
         ``tier_chosen`` says whether it was given.
+
+    Attributes
+    ----------
+    gain, readout_sd, offset, e_per_adu : float
+        The constructor's arguments, as floats.
+    likelihood : str
+        The tier (``"exact"`` when none was given).
+    tier_chosen : bool
+        Whether ``likelihood`` was given.
+
+    Raises
+    ------
+    BayespsfInputError
+        If a parameter is outside the numerical domain of the module docstring, or
+        ``likelihood`` is not one of ``TIERS``.
+
+    See Also
+    --------
+    SCMOS : a camera without EM gain, with per-pixel maps.
+    Photon : ideal photon counting.
+
+    Notes
+    -----
+    Per pixel: photoelectrons ``n ~ Poisson(lam)``; the EM register turns ``n >= 1`` into
+    ``Gamma(n, gain)`` electrons (``n = 0`` stays 0); readout adds ``Normal(0, readout_sd)``
+    electrons; counts are ``offset + electrons / e_per_adu`` ADU (Basden, Haniff & Mackay,
+    MNRAS 345 (2003); Hirsch et al., PLoS ONE 8 (2013)). The tiers, their accuracy and the
+    numerical domain are described in the module docstring and docs/cameras.md.
+
+    Examples
+    --------
+    >>> from bayespsf.cameras import EMCCD
+    >>> camera = EMCCD(gain=100.0, readout_sd=10.0, offset=100.0)
+    >>> camera.log_likelihood([100.0, 300.0, 1100.0], expected=5.0).round(3)
+    array([-7.69 , -6.729, -8.08 ])
+    >>> camera.fisher_information([1.0, 10.0], method="excess-noise").round(4)
+    array([0.4975, 0.05  ])
     """
 
     fisher_methods = FISHER_METHODS
@@ -138,13 +176,26 @@ class EMCCD(Camera):
         """``log(e_per_adu / gain)``: a density in gain units to one in ADU."""
         return float(np.log(self.e_per_adu / self.gain))
 
-    def gain_units(self, counts):
+    def gain_units(self, counts: ArrayLike) -> np.ndarray:
         """Counts in ADU as electrons over gain, ``t = (counts - offset) e_per_adu / gain``.
 
+        Parameters
+        ----------
+        counts : array_like
+            Counts in ADU.
+
+        Returns
+        -------
+        ndarray
+            ``t``, the shape of ``counts``.
+
+        Notes
+        -----
         Without readout, where ``t == 0`` is the atom and ``t < 0`` outside the support, a
         nonzero ``counts - offset`` whose scaled value underflows keeps its sign as the
         smallest subnormal. With readout the law is continuous at 0, and the two array passes
-        this costs (~4% of a table-tier likelihood call) are skipped."""
+        this costs (~4% of a table-tier likelihood call) are skipped.
+        """
         x = np.asarray(counts, dtype=np.float64) - self.offset
         t = x * (self.e_per_adu / self.gain)
         if self.readout_sd > 0:
@@ -155,11 +206,62 @@ class EMCCD(Camera):
             t = np.where(underflow, tiny, t)
         return t
 
-    def log_likelihood(self, counts, expected) -> np.ndarray:
+    def log_likelihood(self, counts: ArrayLike, expected: ArrayLike) -> np.ndarray:
+        """Element-wise log p(counts | expected) under this camera's likelihood tier.
+
+        Parameters
+        ----------
+        counts : array_like
+            Counts in ADU, finite, within ``offset +/- MAX_GAIN_UNITS * gain / e_per_adu``.
+        expected : array_like
+            Expected photoelectrons per pixel, in ``[0, MAX_EXPECTED]`` for the ``exact`` and
+            ``table`` tiers with readout.
+
+        Returns
+        -------
+        ndarray
+            Log density per ADU (at the offset without readout: the log mass of the atom), the
+            broadcast shape of the arguments; ``-inf`` outside the tier's support.
+
+        Raises
+        ------
+        BayespsfInputError
+            If an argument is outside the numerical domain (the message names it).
+
+        See Also
+        --------
+        Camera.log_likelihood : the checks every camera makes.
+
+        Examples
+        --------
+        >>> from bayespsf.cameras import EMCCD
+        >>> EMCCD(gain=100.0, likelihood="high-gain").log_likelihood([0.0, 500.0], 5.0).round(3)
+        array([-5.   , -6.715])
+        """
         self._check_expected(expected)
         return super().log_likelihood(counts, expected)
 
-    def score(self, counts, expected) -> np.ndarray:
+    def score(self, counts: ArrayLike, expected: ArrayLike) -> np.ndarray:
+        """Element-wise ``d log p(counts | expected) / d expected`` under this tier.
+
+        Parameters
+        ----------
+        counts : array_like
+            Counts in ADU (the domain of ``log_likelihood``).
+        expected : array_like
+            Expected photoelectrons per pixel (the domain of ``log_likelihood``).
+
+        Returns
+        -------
+        ndarray
+            The derivative per photoelectron, the broadcast shape of the arguments; ``+inf``
+            at ``expected == 0`` where the count is impossible without photons.
+
+        Raises
+        ------
+        BayespsfInputError
+            If an argument is outside the numerical domain.
+        """
         self._check_expected(expected)
         return super().score(counts, expected)
 
@@ -269,16 +371,34 @@ class EMCCD(Camera):
     def photons_per_adu(self):
         return self.e_per_adu / self.gain, self.offset
 
-    def fisher_information(self, expected, method: str = "exact") -> np.ndarray:
+    def fisher_information(self, expected: ArrayLike, method: str = "exact") -> np.ndarray:
         """Per-pixel Fisher information about the expected photons.
 
-        ``method="exact"``: ``E[(d log p / d lam)^2]`` of the true law, by quadrature,
-        tabulated once per ``readout_sd / gain`` (a few seconds; ~1e-6 relative). Without
-        readout it falls from ``1 / lam`` (low signal: each photon is seen) to ``1 / (2 lam)``
-        (high signal); readout lowers it most at low signal.
-        ``method="excess-noise"``: the shortcut ``1 / (2 lam + (readout_sd / gain)^2)``, i.e.
-        Poisson information divided by the excess-noise factor F^2 = 2 (the weights of the
-        paper's Eq. pesum).
+        Parameters
+        ----------
+        expected : array_like
+            Expected photoelectrons per pixel ``lam``, finite and >= 0.
+        method : {"exact", "excess-noise"}, optional
+            ``"exact"``: ``E[(d log p / d lam)^2]`` of the true law, by quadrature, tabulated
+            once per ``readout_sd / gain`` (a few seconds; ~1e-6 relative).
+            ``"excess-noise"``: the shortcut ``1 / (2 lam + (readout_sd / gain)^2)``.
+
+        Returns
+        -------
+        ndarray
+            Information per photoelectron^2, the shape of ``expected``.
+
+        Raises
+        ------
+        BayespsfInputError
+            If ``expected`` is not finite or negative, or ``method`` is unknown.
+
+        Notes
+        -----
+        Without readout the exact information falls from ``1 / lam`` (low signal: each photon
+        is seen) to ``1 / (2 lam)`` (high signal); readout lowers it most at low signal. The
+        shortcut is the Poisson information divided by the excess-noise factor F^2 = 2 (the
+        weights of the paper's Eq. pesum).
         """
         lam = nonnegative_array("expected", expected)
         if method not in FISHER_METHODS:

@@ -29,7 +29,30 @@ def poisson_score(k, lam):
 
 
 class Photon(Camera):
-    """An ideal photon-counting detector: ``counts ~ Poisson(expected)``, 1 ADU per photon."""
+    """An ideal photon-counting detector: ``counts ~ Poisson(expected)``, 1 ADU per photon.
+
+    It takes no parameters: no gain, no offset, no readout.
+
+    See Also
+    --------
+    EMCCD, SCMOS : cameras with gain and readout noise.
+
+    Notes
+    -----
+    Counts must be non-negative integers (``log_likelihood`` raises
+    ``BayespsfInputError`` otherwise). The Fisher information is ``1 / lam`` (infinite at
+    ``lam == 0``) and the variance ``lam``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from bayespsf.cameras import Photon
+    >>> camera = Photon()
+    >>> camera.sample(np.full(3, 5.0), rng=1).shape
+    (3,)
+    >>> camera.fisher_information([1.0, 4.0])
+    array([1.  , 0.25])
+    """
 
     def _check_counts(self, counts):
         if np.any(counts < 0) or np.any(counts != np.round(counts)):

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayespsf.io import named_read_errors
+from bayespsf.io.rois import named_read_errors
 
 
 class NpyFrames:

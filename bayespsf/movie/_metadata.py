@@ -6,11 +6,34 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 
 # nanometres per unit of length, seconds per unit of time; "u" stands for the micro sign
-_NM = {"m": 1e9, "dm": 1e8, "cm": 1e7, "mm": 1e6, "um": 1e3, "micron": 1e3, "microns": 1e3,
-       "micrometer": 1e3, "micrometre": 1e3, "nm": 1.0, "pm": 1e-3, "a": 0.1, "angstrom": 0.1,
-       "å": 0.1}  # fmt: skip
-_SECONDS = {"s": 1.0, "sec": 1.0, "second": 1.0, "seconds": 1.0, "ms": 1e-3, "msec": 1e-3,
-            "us": 1e-6, "ns": 1e-9, "min": 60.0, "h": 3600.0}  # fmt: skip
+_NM = {
+    "m": 1e9,
+    "dm": 1e8,
+    "cm": 1e7,
+    "mm": 1e6,
+    "um": 1e3,
+    "micron": 1e3,
+    "microns": 1e3,
+    "micrometer": 1e3,
+    "micrometre": 1e3,
+    "nm": 1.0,
+    "pm": 1e-3,
+    "a": 0.1,
+    "angstrom": 0.1,
+    "å": 0.1,
+}
+_SECONDS = {
+    "s": 1.0,
+    "sec": 1.0,
+    "second": 1.0,
+    "seconds": 1.0,
+    "ms": 1e-3,
+    "msec": 1e-3,
+    "us": 1e-6,
+    "ns": 1e-9,
+    "min": 60.0,
+    "h": 3600.0,
+}
 
 
 @dataclass

@@ -120,7 +120,7 @@ def template(psf_sd, pixel_size, image_shape=None) -> tuple[np.ndarray, np.ndarr
         raise BayespsfInputError(f"psf_sd must be a number in nm, got {psf_sd!r}")
     if not (np.isfinite(psf_sd) and psf_sd > 0):
         raise BayespsfInputError(f"psf_sd must be > 0 nm and finite, got {psf_sd!r}")
-    _, a = psf._check_geometry(1, pixel_size)
+    _, a = psf.check_geometry(1, pixel_size)
     side = 2 * int(np.ceil(4.0 * psf_sd / a)) + 1
     if image_shape is not None and side > min(image_shape):
         raise BayespsfInputError(

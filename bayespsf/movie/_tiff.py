@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from bayespsf.errors import BayespsfInputError
-from bayespsf.io import named_read_errors, open_tiff, tiff_page_shape
+from bayespsf.io.rois import named_read_errors, open_tiff, tiff_page_shape
 from bayespsf.movie._frames import DecodedPages, MappedPages
 from bayespsf.movie._metadata import FileMetadata, from_imagej, from_ome
 

@@ -1,4 +1,4 @@
-"""Detecting molecules (issue 13, item 4): a likelihood-ratio test of "spot + background"
+"""Detecting molecules: a likelihood-ratio test of "spot + background"
 against "background only" at every pixel, with a threshold set by the expected number of false
 detections per image.
 
@@ -19,7 +19,7 @@ of background pixels whose ``T`` exceeds ``t`` is ``false_positives`` (linearity
 expectation); every false candidate is such a pixel, so ``false_positives`` bounds the
 expected number of false candidates per image, and the probability of any (Bonferroni). As
 ``T`` is smooth, exceedances cluster and the number of false local maxima is lower (measured
-in ``tests/test_movie_detect.py``). The Gaussian law is the central-limit approximation of a
+in ``tests/movie/test_movie_detect.py``). The Gaussian law is the central-limit approximation of a
 sum over the template's pixels: skewed counts (EMCCD, low background, single frames) put more
 mass in the tail than the Gaussian (docs/movies.md gives the measured rates).
 """
@@ -27,13 +27,15 @@ mass in the tail than the Gaussian (docs/movies.md gives the measured rates).
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 from scipy import stats
 
 from bayespsf import psf
-from bayespsf._checks import finite_array, scalar_in_range
+from bayespsf._validate import finite_array, scalar_in_range
 from bayespsf.errors import BayespsfInputError
 from bayespsf.movie._noise import (
     camera_noise_variance,
@@ -45,6 +47,13 @@ from bayespsf.movie._noise import (
 from bayespsf.movie._peaks import STATUSES, find_peaks
 from bayespsf.movie.extract import frame_span, open_movie, photon_model
 from bayespsf.movie.project import project
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from bayespsf.cameras import Camera
+    from bayespsf.model import Model
+    from bayespsf.movie.read import Movie
 
 __all__ = [
     "COLUMNS",
@@ -61,12 +70,12 @@ COLUMNS = tuple(_NAMES.split())
 
 
 def detect(
-    image,
+    image: ArrayLike,
     *,
     psf_sd: float,
     pixel_size: float,
-    noise_var=None,
-    background=None,
+    noise_var: float | ArrayLike | None = None,
+    background: float | ArrayLike | None = None,
     false_positives: float = 0.01,
     roi: int = 25,
     min_distance: float | None = None,
@@ -87,12 +96,12 @@ def detect(
     background : float or array_like (h, w), optional
         Background in photons per pixel; by default a local mean of the pixels away from spots
         over a window of three ROI sides (``estimate_background``).
-    false_positives : float
+    false_positives : float, default 0.01
         Expected number of background pixels above the threshold per image (> 0, below the
         number of pixels): a bound on the expected number of false candidates per image.
-    roi : int
-        Odd side of the ROI to be cut around each molecule; a candidate whose ROI would cross
-        the image's edge is ``rejected: edge``.
+    roi : int, default 25
+        Odd side of the ROI (pixels) to be cut around each molecule; a candidate whose ROI
+        would cross the image's edge is ``rejected: edge``.
     min_distance : float, optional
         Two candidates whose peak pixels are closer than this in rows or in columns (Chebyshev
         distance, pixels) are both ``rejected: neighbour``; by default ``roi``, so that
@@ -101,19 +110,70 @@ def detect(
     Returns
     -------
     pandas.DataFrame
-        One row per candidate, in image order, with ``COLUMNS``: ``molecule`` (id from 0),
-        ``x``, ``y`` (camera pixels in picasso's convention: column ``j``'s centre is
-        ``x = j``), ``row``, ``col`` (peak pixel), ``score`` (``T``), ``amplitude`` (``N̂``,
-        photons of a spot centred on the peak pixel), ``background`` (photons per pixel),
-        ``status`` (one of ``STATUSES``), ``threshold`` (``t``), ``noise_var`` (photons², at the
-        peak) and ``noise_source`` (``given``, ``camera`` or ``estimated``). ``attrs
-        ["detection"]`` holds the settings, the background's source and the counts by status.
+        One row per candidate, in image order, with the columns ``COLUMNS``:
+
+        - ``molecule``: id, from 0;
+        - ``x``, ``y``: sub-pixel position in camera pixels, picasso's convention (column
+          ``j``'s centre is ``x = j``);
+        - ``row``, ``col``: the peak pixel;
+        - ``score``: the matched-filter statistic ``T`` at the peak;
+        - ``amplitude``: ``N̂``, photons of a spot centred on the peak pixel;
+        - ``background``: photons per pixel at the peak;
+        - ``status``: one of ``STATUSES`` (``accepted``, ``rejected: edge``,
+          ``rejected: neighbour``);
+        - ``threshold``: ``t``, the same in every row;
+        - ``noise_var``: noise variance at the peak, photons²;
+        - ``noise_source``: ``given``, ``camera`` or ``estimated``.
+
+        ``attrs["detection"]`` holds the settings, the number of pixels above the threshold,
+        the background's source and the counts by status.
+
+    Raises
+    ------
+    BayespsfInputError
+        An image that is not 2-D of at least 3 x 3 finite values, or without noise; a
+        ``noise_var`` or ``background`` of the wrong shape, or a noise variance <= 0; a
+        ``false_positives`` outside (0, number of pixels); a bad ``roi`` or ``pixel_size``.
+
+    See Also
+    --------
+    detect_movie : on a temporal projection of a movie in ADU.
+    detect_frames : on every frame of a movie (blinking data).
+    camera_noise_variance : the noise variance from a camera law.
+    find_molecules : detection, traces and selection together.
 
     Notes
     -----
+    The test and its threshold are stated in the module docstring: the generalised
+    likelihood-ratio test of a spot of known shape and unknown amplitude against background
+    only reduces to the prewhitened matched filter ``T``, N(0, 1) under the null, and the
+    threshold ``t = Φ⁻¹(1 - false_positives / n)`` over ``n`` pixels bounds the expected
+    number of false candidates per image by ``false_positives``.
+
     Positions are refined by fitting a Gaussian through the score at the peak pixel and its
     two neighbours along each axis (a parabola through ``log T``; a parabola through ``T``
-    where a neighbour's score is not positive). The module docstring states the test.
+    where a neighbour's score is not positive).
+
+    References
+    ----------
+    .. [1] S. M. Kay, *Fundamentals of Statistical Signal Processing, Vol. II: Detection
+       Theory* (Prentice Hall, 1998), secs. 4.3, 4.5 and 7.4.
+
+    Examples
+    --------
+    One spot of 2 000 photons on a background of 10 photons per pixel, Poisson noise:
+
+    >>> import numpy as np
+    >>> from bayespsf import psf
+    >>> from bayespsf.movie import detect
+    >>> image = np.full((64, 64), 10.0)
+    >>> spot = psf.expected_counts([0.0, 0.0, 120.0, 120.0, 2000.0, 0.0], 15, 79.0)
+    >>> image[25:40, 30:45] += spot  # centred on row 32, column 37
+    >>> counts = np.random.default_rng(0).poisson(image)
+    >>> found = detect(counts, psf_sd=120.0, pixel_size=79.0, roi=15)
+    >>> found[["molecule", "x", "y", "status"]].round(1)
+       molecule     x     y    status
+    0         0  37.0  32.0  accepted
     """
     options = (noise_var, background, false_positives, roi, min_distance)
     return _detect(image, psf_sd, pixel_size, *options)
@@ -133,7 +193,7 @@ def _detect(
     if image.ndim != 2 or min(image.shape) < 3:
         raise BayespsfInputError(f"image must be 2-D (h, w) with h, w >= 3, got {image.shape}")
     spot = template(psf_sd, pixel_size, image.shape)
-    roi, _ = psf._check_geometry(roi, pixel_size)
+    roi, _ = psf.check_geometry(roi, pixel_size)
     min_distance = (
         roi if min_distance is None else scalar_in_range("min_distance", min_distance, 0.0)
     )
@@ -195,13 +255,13 @@ def _detect(
 
 
 def detect_movie(
-    movie,
+    movie: Movie | str | Path,
     *,
     psf_sd: float,
     pixel_size: float | None = None,
-    camera=None,
+    camera: Camera | Model | None = None,
     projection: str = "mean",
-    frames=None,
+    frames: slice | range | None = None,
     **options,
 ) -> pd.DataFrame:
     """Candidate molecules of an immobile-molecule movie, detected on a temporal projection.
@@ -209,17 +269,20 @@ def detect_movie(
     Parameters
     ----------
     movie : Movie or path
-        From ``read_movie`` (or a path it opens).
-    psf_sd, pixel_size
-        As ``detect``; ``pixel_size`` defaults to the Model's, else the movie's metadata.
+        From ``read_movie`` (or a path it opens); counts in ADU.
+    psf_sd : float
+        SD of the spot's Gaussian in nm, as ``detect``.
+    pixel_size : float, optional
+        Pixel side in nm; defaults to the Model's, else the movie's metadata.
     camera : Camera or Model, optional
         Converts counts (ADU) to photons (``Model.to_photons``) and, for a mean projection,
         gives the noise variance from the camera law at the background level divided by the
         number of frames (``camera_noise_variance``). Without it the movie is taken to be in
         photons and the noise is estimated from the projection.
-    projection : {"mean", "median"}
-        The projection (``bayespsf.movie.project``, memory bounded), over ``frames`` (None:
-        all; a slice or range of consecutive frames).
+    projection : {"mean", "median"}, default "mean"
+        The projection (``bayespsf.movie.project``, memory bounded).
+    frames : slice or range, optional
+        Consecutive frames to project (default all).
     **options
         ``noise_var``, ``background``, ``false_positives``, ``roi``, ``min_distance``: as
         ``detect``.
@@ -227,7 +290,19 @@ def detect_movie(
     Returns
     -------
     pandas.DataFrame
-        As ``detect``; ``attrs["detection"]`` also names the projection and its frames.
+        As ``detect`` (columns ``COLUMNS``); ``attrs["detection"]`` also names the
+        ``projection`` and its ``frames`` (first, stop).
+
+    Raises
+    ------
+    BayespsfInputError
+        An unknown ``projection``, frames that are not consecutive frames of the movie, no
+        pixel size from the arguments or the movie, or any error of ``detect``.
+
+    See Also
+    --------
+    detect : the test on one image in photons.
+    detect_frames : frame by frame instead of on a projection.
     """
     movie = open_movie(movie)
     if projection not in ("mean", "median"):
@@ -248,17 +323,34 @@ def detect_movie(
 
 
 def iter_detect_frames(
-    movie,
+    movie: Movie | str | Path,
     *,
     psf_sd: float,
     pixel_size: float | None = None,
-    camera=None,
-    frames=None,
+    camera: Camera | Model | None = None,
+    frames: slice | range | None = None,
     block: int = 16,
     **options,
 ) -> Iterator[pd.DataFrame]:
-    """``detect`` on each frame in turn: one table per frame, with a ``frame`` column first;
-    ``block`` frames are read at a time. Arguments as ``detect_frames``."""
+    """``detect`` on each frame in turn, one table per frame.
+
+    Parameters
+    ----------
+    movie, psf_sd, pixel_size, camera, frames, **options
+        As ``detect_movie`` (without ``projection``).
+    block : int, default 16
+        Frames read at a time.
+
+    Yields
+    ------
+    pandas.DataFrame
+        One frame's candidates: a ``frame`` column first, then ``detect``'s ``COLUMNS``
+        (``molecule`` numbers the rows of that frame).
+
+    See Also
+    --------
+    detect_frames : the same, concatenated into one table.
+    """
     movie = open_movie(movie)
     span = frame_span(movie, frames)
     for first, data in movie.blocks(block, span.start, span.stop):
@@ -268,14 +360,40 @@ def iter_detect_frames(
             yield table
 
 
-def detect_frames(movie, **options) -> pd.DataFrame:
+def detect_frames(movie: Movie | str | Path, **options) -> pd.DataFrame:
     """Candidates frame by frame (blinking data): ``detect`` on every frame.
 
-    Keywords as ``detect_movie`` (without ``projection``) plus ``block`` (frames read at a
-    time, default 16). Returns one table with a ``frame`` column before ``COLUMNS``;
-    ``molecule`` numbers the rows of the whole table. Memory: one block of frames and the
-    table; ``iter_detect_frames`` yields the per-frame tables instead. With a camera, each
-    frame's noise is the camera law's at its background (one frame).
+    Parameters
+    ----------
+    movie : Movie or path
+        From ``read_movie`` (or a path it opens); counts in ADU.
+    **options
+        Keywords as ``detect_movie`` (``psf_sd`` required; ``pixel_size``, ``camera``,
+        ``frames`` and ``detect``'s options), without ``projection``, plus ``block`` (frames
+        read at a time, default 16).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One table with a ``frame`` column before ``detect``'s ``COLUMNS``; ``molecule``
+        numbers the rows of the whole table. ``attrs["detection"]`` holds the first frame's
+        settings, the median ``noise_var`` over frames, the number of ``frames`` and the
+        counts by status.
+
+    Raises
+    ------
+    BayespsfInputError
+        As ``detect_movie``.
+
+    See Also
+    --------
+    iter_detect_frames : yields the per-frame tables instead.
+    detect_movie : on a temporal projection (immobile molecules).
+
+    Notes
+    -----
+    Memory: one block of frames and the table. With a camera, each frame's noise is the
+    camera law's at its background (one frame).
     """
     tables = list(iter_detect_frames(movie, **options))
     settings = [t.attrs["detection"] for t in tables]

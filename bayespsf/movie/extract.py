@@ -1,5 +1,5 @@
 """ROI geometry as the paper used it: a square cut around each molecule in every frame, its
-central part fitted and its periphery kept for a background estimate (issue 13, item 7).
+central part fitted and its periphery kept for a background estimate.
 
 DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), section "Data acquisition and
 selection": "the intensity values for 25 × 25 pixels centered at the molecule were recorded.
@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bayespsf._checks import finite_array
-from bayespsf._progress import progress_bar
+from bayespsf._runtime import progress_bar
+from bayespsf._validate import finite_array
 from bayespsf.cameras import Camera
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import MIN_ROI, Model
@@ -50,8 +50,12 @@ class RoiStack:
         One row per ROI: ``molecule``, ``frame``, ``row0``, ``col0`` (the movie pixel of the
         ROI's top-left corner: ``counts[k] == movie.frame(frame)[row0:row0 + roi,
         col0:col0 + roi]``).
-    fit : int
+    fit : int, default 15
         Side of the central part that the model fits (odd, at most ``roi``).
+
+    See Also
+    --------
+    cut_rois, iter_rois : make one.
     """
 
     counts: np.ndarray
@@ -60,6 +64,7 @@ class RoiStack:
 
     @property
     def roi(self) -> int:
+        """Side of the ROIs in pixels."""
         return int(self.counts.shape[-1])
 
     def __len__(self) -> int:
@@ -73,7 +78,7 @@ class RoiStack:
         k = (self.roi - fit) // 2
         return self.counts[:, k : k + fit, k : k + fit]
 
-    def periphery_background(self, camera, fit: int | None = None) -> pd.DataFrame:
+    def periphery_background(self, camera: Camera | Model, fit: int | None = None) -> pd.DataFrame:
         """Background photons per pixel of each ROI from its periphery.
 
         The mean of the ring outside the central ``fit`` × ``fit`` pixels, converted to
@@ -86,8 +91,10 @@ class RoiStack:
         Parameters
         ----------
         camera : Camera or Model
+            Converts the counts (ADU) to photons; one gain and offset (not per-pixel maps).
         fit : int, optional
-            Default: the stack's ``fit``; must be smaller than ``roi``.
+            Side of the central part left out; default the stack's ``fit``; must be smaller
+            than ``roi``.
 
         Returns
         -------
@@ -189,13 +196,49 @@ def frame_span(movie: Movie, frames) -> range:
 
 
 def iter_rois(
-    movie, molecules, *, roi: int = 25, fit: int = 15, frames=None, block: int = 64,
-    progress: bool | None = None, desc: str | None = None,
-) -> Iterator[RoiStack]:  # fmt: skip
-    """ROIs one block of frames at a time: a ``RoiStack`` per block of at most ``block``
-    frames, its ROIs ordered by molecule, then frame. Arguments as ``cut_rois``; only one
-    block (``block * M * roi**2`` values, and the rows the ROIs span) is in memory.
-    ``progress``: a bar of frames named ``desc`` (default: when stderr is a terminal)."""
+    movie: Movie | str | Path,
+    molecules: pd.DataFrame,
+    *,
+    roi: int = 25,
+    fit: int = 15,
+    frames: slice | range | None = None,
+    block: int = 64,
+    progress: bool | None = None,
+    desc: str | None = None,
+) -> Iterator[RoiStack]:
+    """ROIs one block of frames at a time.
+
+    Parameters
+    ----------
+    movie, molecules, roi, fit, frames
+        As ``cut_rois``.
+    block : int, default 64
+        Frames per yielded stack.
+    progress : bool, optional
+        A progress bar of frames on stderr (default: when stderr is a terminal).
+    desc : str, optional
+        The progress bar's name.
+
+    Yields
+    ------
+    RoiStack
+        The ROIs of at most ``block`` frames, ordered by molecule, then frame, with their
+        table (``molecule``, ``frame``, ``row0``, ``col0``).
+
+    Raises
+    ------
+    BayespsfInputError
+        As ``cut_rois``; a ``block`` that is not a whole number >= 1.
+
+    See Also
+    --------
+    cut_rois : all the ROIs at once.
+
+    Notes
+    -----
+    Only one block (``block * M * roi**2`` values for ``M`` molecules, and the rows the ROIs
+    span) is in memory.
+    """
     plan = _Plan(movie, molecules, roi, fit, frames)
     with progress_bar(len(plan.span), progress, unit="frame", desc=desc) as bar:
         for first, cut in plan.blocks(block):
@@ -205,7 +248,13 @@ def iter_rois(
 
 
 def cut_rois(
-    movie, molecules, *, roi: int = 25, fit: int = 15, frames=None, block: int = 64
+    movie: Movie | str | Path,
+    molecules: pd.DataFrame,
+    *,
+    roi: int = 25,
+    fit: int = 15,
+    frames: slice | range | None = None,
+    block: int = 64,
 ) -> RoiStack:
     """Cut a ``roi`` × ``roi`` ROI around every molecule in every frame.
 
@@ -216,23 +265,31 @@ def cut_rois(
     molecules : pandas.DataFrame
         Columns ``molecule`` (unique ids), ``x``, ``y`` (camera pixels, picasso's convention:
         column ``j``'s centre is ``x = j``). Other columns are ignored.
-    roi, fit : int
-        Odd sides of the cut (default 25, the paper's) and of its fitted centre (15).
+    roi, fit : int, default 25 and 15
+        Odd sides in pixels of the cut (the paper's 25) and of its fitted centre (15).
     frames : slice or range, optional
         Consecutive frames to cut (default all).
-    block : int
+    block : int, default 64
         Frames read at a time.
 
     Returns
     -------
     RoiStack
-        ``M * F`` ROIs ordered by molecule, then frame, with their table.
+        ``M * F`` ROIs ``(M * F, roi, roi)`` in the movie's data type (ADU), ordered by
+        molecule, then frame, with their table: ``molecule``, ``frame``, ``row0``, ``col0``
+        (the movie pixel of each ROI's top-left corner).
 
     Raises
     ------
     BayespsfInputError
         Even sizes, ``fit > roi``, a bad molecule table, or molecules whose ROI would leave
         the frame (named, with their positions).
+
+    See Also
+    --------
+    iter_rois : the same ROIs one block of frames at a time.
+    RoiStack.central : the fitted centre of each ROI.
+    RoiStack.periphery_background : the background from each ROI's periphery.
 
     Notes
     -----

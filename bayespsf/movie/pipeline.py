@@ -1,4 +1,4 @@
-"""From a movie to selected molecules: the stages of ``bayespsf.movie`` composed (issue 13).
+"""From a movie to selected molecules: the stages of ``bayespsf.movie`` composed.
 
 ``find_molecules`` runs, in order: detection on a temporal projection (``detect_movie``), each
 accepted candidate's trace over time with its bleaching steps and drift
@@ -10,15 +10,17 @@ bleaching (``frame_fits``: widths for the selection rules), and the paper's sele
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
-from bayespsf.estimators import fit_mle
+from bayespsf.inference import fit_mle
 from bayespsf.model import Model
 from bayespsf.movie.detect import detect_movie
 from bayespsf.movie.extract import RoiStack, check_sizes, iter_rois, open_movie, photon_model
+from bayespsf.movie.read import Movie
 from bayespsf.movie.select import Rules, report_markdown, select
 from bayespsf.movie.traces import molecules_over_time
 
@@ -43,8 +45,15 @@ class FoundMolecules:
         ``fit_converged``), ``peak``, ``background_var``, ``before_bleach``, ``valid`` and
         ``rejected_by``.
     report : pandas.DataFrame
-        The selection report (``select``).
+        The selection report (``select``): one row per rule with ``rule``, ``molecules
+        removed``, ``frames removed``, ``molecules left`` and ``frames left``.
     rules : Rules
+        The selection rules applied.
+
+    See Also
+    --------
+    find_molecules : makes one.
+    write : writes its tables and report to a folder.
     """
 
     candidates: pd.DataFrame
@@ -54,6 +63,8 @@ class FoundMolecules:
     rules: Rules
 
     def report_markdown(self) -> str:
+        """The selection report as markdown (``select.report_markdown``) and the number of
+        candidates detected by status."""
         detected = self.candidates["status"].value_counts()
         counts = ", ".join(f"{k}: {v}" for k, v in detected.items()) or "none"
         return report_markdown(self.report, self.rules) + f"\nCandidates detected: {counts}.\n"
@@ -66,21 +77,72 @@ def fit_model(model: Model, fit: int) -> Model:
     return model.for_roi(fit, detected=True)
 
 
-def frame_fits(movie, molecules, model: Model, *, roi=25, fit=15, frames=None, block=64,
-               until=None, progress=None):  # fmt: skip
-    """Per (molecule, frame): the maximum-likelihood fit of the central ``fit`` × ``fit`` ROI
-    (``fit_mle``'s stack engine, one block of frames at a time), the peak photons above the
-    background ``I0`` and the background variance ``sigma_b^2`` in photons from the ROI's
-    periphery (the paper's SNR ``I0 / sqrt(I0 + sigma_b^2)``, criterion 3).
+def frame_fits(
+    movie: Movie | str | Path,
+    molecules: pd.DataFrame,
+    model: Model,
+    *,
+    roi: int = 25,
+    fit: int = 15,
+    frames: slice | range | None = None,
+    block: int = 64,
+    until: pd.Series | None = None,
+    progress: bool | None = None,
+) -> pd.DataFrame:
+    """Per (molecule, frame): the maximum-likelihood fit of the central ROI and its SNR terms.
 
-    ``until`` (molecule -> first frame without signal, or NA) limits the fits to the frames
-    before each molecule's bleaching step: a frame without a spot has no width to measure.
+    Parameters
+    ----------
+    movie : Movie or path
+        The movie in counts (ADU).
+    molecules : pandas.DataFrame
+        ``molecule``, ``x``, ``y`` (camera pixels, picasso's convention), as ``cut_rois``.
+    model : Model
+        The camera and pixel size (its ROI size is replaced by ``fit``: ``fit_model``).
+    roi, fit : int, default 25 and 15
+        Odd sides in pixels of the cut and of its fitted centre.
+    frames : slice or range, optional
+        Consecutive frames (default all).
+    block : int, default 64
+        Frames read at a time.
+    until : pandas.Series, optional
+        Molecule id -> first frame without signal (or NA): limits the fits to the frames
+        before each molecule's bleaching step (a frame without a spot has no width to
+        measure).
+    progress : bool, optional
+        A progress bar on stderr (default: when it is a terminal).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per fitted (molecule, frame): ``molecule``, ``frame``, ``row0``, ``col0``,
+        ``s_x``, ``s_y`` (nm), ``N_fit``, ``b_fit`` (detected photoelectrons),
+        ``fit_converged``, ``peak`` (``I0``: the central ROI's brightest pixel above the
+        periphery's mean, photons) and ``background_var`` (``sigma_b^2``, photons²).
+
+    See Also
+    --------
+    bayespsf.fit_mle : the fit (its stack engine, one block of frames at a time).
+    select : uses ``peak`` and ``background_var`` for the SNR rule.
+
+    Notes
+    -----
+    ``I0`` and ``sigma_b^2`` make the paper's SNR ``I0 / sqrt(I0 + sigma_b^2)``, criterion
+    3; ``sigma_b^2`` is the periphery's variance (its mean's squared SE times its pixels).
     """
     fitting = fit_model(model, fit)
     ring_pixels = roi * roi - fit * fit
     parts = []
-    for stack in iter_rois(movie, molecules, roi=roi, fit=fit, frames=frames, block=block,
-                           progress=progress, desc="fits"):  # fmt: skip
+    for stack in iter_rois(
+        movie,
+        molecules,
+        roi=roi,
+        fit=fit,
+        frames=frames,
+        block=block,
+        progress=progress,
+        desc="fits",
+    ):
         keep = np.ones(len(stack), dtype=bool)
         if until is not None:
             end = stack.table["molecule"].map(until)
@@ -102,7 +164,7 @@ def frame_fits(movie, molecules, model: Model, *, roi=25, fit=15, frames=None, b
 
 
 def find_molecules(
-    movie,
+    movie: Movie | str | Path,
     model: Model,
     *,
     s0: float,
@@ -119,21 +181,98 @@ def find_molecules(
     Parameters
     ----------
     movie : Movie or path
+        The movie in counts (ADU), from ``read_movie`` or a path it opens.
     model : Model
         The camera (ADU to photons, its law) and pixel size; its ROI size is not used.
     s0 : float
         The spot's SD in nm (the detector's template and the traces' aperture).
-    roi, fit : int
-        The cut around each molecule and its fitted centre (the paper: 25 and 15).
-    false_positives : float
+    roi : int, default 25
+        Odd side in pixels of the cut around each molecule (the paper's 25); its periphery
+        outside ``fit`` gives the background.
+    fit : int, default 15
+        Odd side in pixels of the fitted centre (the paper's 15).
+    false_positives : float, default 0.01
         Expected false detections per projected image (``detect``).
-    projection : {"mean", "median"}
+    projection : {"mean", "median"}, default "mean"
+        The temporal projection detection runs on.
     rules : Rules, optional
         The selection rules (default: the paper's numbers).
-    block : int
+    block : int, default 64
         Frames read at a time.
     progress : bool, optional
         Progress bars of the traces and the fits on stderr (default: when it is a terminal).
+
+    Returns
+    -------
+    FoundMolecules
+        Every stage's table, photons in detected photoelectrons (``photon_unit``):
+
+        - ``candidates``: ``detect``'s columns (``molecule``, ``x``, ``y``, ``row``, ``col``,
+          ``score``, ``amplitude``, ``background``, ``status``, ``threshold``,
+          ``noise_var``, ``noise_source``) and ``photon_unit``;
+        - ``molecules``: one row per candidate with ``molecule``, ``x``, ``y`` (camera
+          pixels, picasso's convention), ``steps``, ``bleach_frame`` (nullable integer),
+          ``frames_before``, ``multiple_steps``, ``photons_mean``, ``drift_x``,
+          ``drift_x_se``, ``drift_y``, ``drift_y_se`` (nm per frame), ``rejected_by``,
+          ``selected``, ``valid_frames`` and ``photon_unit``; candidates rejected at
+          detection have only ``molecule``, ``x``, ``y``, ``selected`` (False) and
+          ``rejected_by`` (``detection: edge`` or ``detection: neighbour``) filled;
+        - ``frames``: one row per (molecule, frame) of the accepted candidates: the trace's
+          ``photons``, ``photons_se``, ``b``, ``b_se``, ``x``, ``y``; the ROI's ``row0``,
+          ``col0``; the fit's ``s_x``, ``s_y`` (nm), ``N_fit``, ``b_fit``,
+          ``fit_converged``; ``peak`` (``I0``, photons) and ``background_var``
+          (``sigma_b^2``, photons²); ``before_bleach``, ``rejected_by``, ``valid`` and
+          ``photon_unit`` (fits only before the bleaching step: NaN after it);
+        - ``report``: the selection report (``select``);
+        - ``rules``: the rules applied.
+
+    Raises
+    ------
+    BayespsfInputError
+        Even or inconsistent ``roi`` and ``fit``, a ``roi`` larger than the frames, a movie
+        shorter than the ``photon_window`` rule's ``min_valid_frames`` (unless skipped), or
+        any error of the stages.
+
+    See Also
+    --------
+    detect_movie : stage 1, detection on a temporal projection.
+    molecules_over_time : stage 2, traces, bleaching steps and drift.
+    frame_fits : stage 3, per-frame maximum-likelihood widths.
+    select : stage 4, the paper's selection rules.
+    write : the tables and the report as files.
+    bayespsf.analyze : posteriors of the selected molecules' frames.
+
+    Notes
+    -----
+    The stages run in the order of the module docstring: detection on a temporal projection,
+    each accepted candidate's trace with its bleaching steps and drift, a maximum-likelihood
+    fit of every frame's central ROI before bleaching, and the selection rules of DeSantis,
+    DeCenzo, Li & Wang, Opt. Express 18 (2010), section "Data acquisition and selection".
+    Every stage's table is kept, so a user can stop at any of them and look.
+
+    Examples
+    --------
+    A small simulated movie (3 molecules, 40 frames); the selection rules' 75 valid frames are
+    relaxed to 20 for so short a movie:
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import bayespsf
+    >>> from bayespsf.movie import Rules
+    >>> scene = bayespsf.load_scene("paper-movie").replace(
+    ...     movie={"frames": 40, "height": 64, "width": 64, "molecules": 3, "dark_frames": 0,
+    ...            "two_fluorophores": 0.0, "moving": 0.0}
+    ... )
+    >>> made = bayespsf.simulate_movie(scene, seed=2, out=Path(tempfile.mkdtemp()) / "m")
+    >>> found = bayespsf.find_molecules(
+    ...     made.files["movie"], bayespsf.Model.from_scene(scene), s0=120.0,
+    ...     rules=Rules(min_valid_frames=20), progress=False,
+    ... )
+    >>> found.molecules[["molecule", "bleach_frame", "selected", "rejected_by"]]
+       molecule  bleach_frame  selected  rejected_by
+    0         0          <NA>     False  single_step
+    1         1          <NA>     False  single_step
+    2         2            32      True
     """
     movie = open_movie(movie)
     rules = Rules() if rules is None else rules
@@ -149,8 +288,14 @@ def find_molecules(
             "valid frames the photon_window rule needs (Rules(min_valid_frames=...) or "
             "skip=('photon_window',))"
         )
-    candidates = detect_movie(movie, psf_sd=s0, camera=model, projection=projection,
-                              false_positives=false_positives, roi=roi)  # fmt: skip
+    candidates = detect_movie(
+        movie,
+        psf_sd=s0,
+        camera=model,
+        projection=projection,
+        false_positives=false_positives,
+        roi=roi,
+    )
     accepted = candidates[candidates["status"] == "accepted"].reset_index(drop=True)
     if accepted.empty:
         per_molecule = pd.DataFrame(
@@ -166,23 +311,29 @@ def find_molecules(
         frames = pd.DataFrame(columns=["molecule", "frame"])
         report = pd.DataFrame([{"rule": "no molecule accepted by detection"}])
     else:
-        per_molecule, per_frame = molecules_over_time(movie, accepted, model, s0=s0, roi=roi,
-                                                      fit=fit, block=block,
-                                                      progress=progress)  # fmt: skip
+        per_molecule, per_frame = molecules_over_time(
+            movie, accepted, model, s0=s0, roi=roi, fit=fit, block=block, progress=progress
+        )
         until = per_molecule.set_index("molecule")["bleach_frame"]
-        fitted = frame_fits(movie, accepted, model, roi=roi, fit=fit, block=block, until=until,
-                            progress=progress)  # fmt: skip
-        frames = per_frame.merge(fitted, on=["molecule", "frame"], how="left",
-                                 suffixes=("", "_roi"))  # fmt: skip
+        fitted = frame_fits(
+            movie, accepted, model, roi=roi, fit=fit, block=block, until=until, progress=progress
+        )
+        frames = per_frame.merge(
+            fitted, on=["molecule", "frame"], how="left", suffixes=("", "_roi")
+        )
         bleach = frames["molecule"].map(until)
         frames["before_bleach"] = (bleach.isna() | (frames["frame"] < bleach)).to_numpy(bool)
         per_molecule, frames, report = select(per_molecule, frames, rules)
     rejected = candidates[candidates["status"] != "accepted"]
-    others = pd.DataFrame({
-        "molecule": rejected["molecule"].to_numpy(), "x": rejected["x"].to_numpy(),
-        "y": rejected["y"].to_numpy(), "selected": False,
-        "rejected_by": "detection: " + rejected["status"].str.replace("rejected: ", ""),
-    })  # fmt: skip
+    others = pd.DataFrame(
+        {
+            "molecule": rejected["molecule"].to_numpy(),
+            "x": rejected["x"].to_numpy(),
+            "y": rejected["y"].to_numpy(),
+            "selected": False,
+            "rejected_by": "detection: " + rejected["status"].str.replace("rejected: ", ""),
+        }
+    )
     columns = list(dict.fromkeys([*per_molecule.columns, *others.columns]))
     parts = [t for t in (per_molecule, others) if len(t)]  # pandas warns on empty parts
     molecules = pd.concat(parts, ignore_index=True) if parts else per_molecule
@@ -200,16 +351,28 @@ def _first_columns(table: pd.DataFrame, first) -> pd.DataFrame:
     return table[[*first, *(c for c in table.columns if c not in first)]]
 
 
-def write(found: FoundMolecules, out) -> dict:
-    """Write ``candidates.csv``, ``molecules.csv``, ``frames.csv`` and ``selection.md`` into
-    the folder ``out``; returns their paths by name."""
-    from pathlib import Path
+def write(found: FoundMolecules, out: str | Path) -> dict[str, Path]:
+    """Write ``candidates.csv``, ``molecules.csv``, ``frames.csv`` and ``selection.md``.
 
+    Parameters
+    ----------
+    found : FoundMolecules
+        From ``find_molecules``.
+    out : str or Path
+        The folder (made if missing).
+
+    Returns
+    -------
+    dict of str to Path
+        The files' paths by name.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     first = ("molecule", "x", "y", "bleach_frame", "selected", "rejected_by")
-    paths = {name: out / name for name in
-             ("candidates.csv", "molecules.csv", "frames.csv", "selection.md")}  # fmt: skip
+    paths = {
+        name: out / name
+        for name in ("candidates.csv", "molecules.csv", "frames.csv", "selection.md")
+    }
     found.candidates.to_csv(paths["candidates.csv"], index=False)
     _first_columns(found.molecules, first).to_csv(paths["molecules.csv"], index=False)
     found.frames.to_csv(paths["frames.csv"], index=False)

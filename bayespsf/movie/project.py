@@ -3,15 +3,21 @@ peak memory bounded independently of the number of frames."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from bayespsf.errors import BayespsfInputError
+
+if TYPE_CHECKING:
+    from bayespsf.movie.read import Movie
 
 KINDS = ("mean", "median", "max", "std")
 
 
 def project(
-    movie,
+    movie: Movie,
     kind: str = "mean",
     frames: slice | range | None = None,
     block: int | None = None,
@@ -40,7 +46,18 @@ def project(
     Returns
     -------
     numpy.ndarray
-        ``(h, w)``, float64.
+        ``(h, w)``, float64, in the movie's units (ADU for a camera's movie).
+
+    Raises
+    ------
+    BayespsfInputError
+        An unknown ``kind``, a ``budget`` or ``block`` that is not a positive whole number,
+        or ``frames`` that select no frame.
+
+    See Also
+    --------
+    read_movie : the movie.
+    detect_movie : detection on a mean or median projection.
 
     Notes
     -----
@@ -53,6 +70,11 @@ def project(
     once: it is taken over tiles of all (selected) frames of a band of rows, the band chosen
     so that a tile (and ``numpy.median``'s working copy) stays under ``budget``; the movie is
     then read once per band (memory-mapped files only the band's rows).
+
+    References
+    ----------
+    .. [1] T. F. Chan, G. H. Golub and R. J. LeVeque, "Algorithms for computing the sample
+       variance: analysis and recommendations", Am. Stat. 37 (1983) 242.
     """
     if kind not in KINDS:
         raise BayespsfInputError(f"kind must be one of {', '.join(KINDS)}; got {kind!r}")
@@ -67,7 +89,7 @@ def project(
         return _median(movie, span, int(block), int(rows))
     if kind == "max":
         peak = None
-        for data in _blocks(movie, span, int(block)):
+        for data in blocks(movie, span, int(block)):
             top = data.max(axis=0)
             peak = top if peak is None else np.maximum(peak, top)
         return peak.astype(np.float64)
@@ -75,8 +97,12 @@ def project(
     return mean if kind == "mean" else np.sqrt(m2 / count)
 
 
-def mean_and_variance(movie, frames=None, block: int | None = None,
-                      budget: int = 256 * 2**20) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def mean_and_variance(
+    movie: Movie,
+    frames: slice | range | None = None,
+    block: int | None = None,
+    budget: int = 256 * 2**20,
+) -> tuple[np.ndarray, np.ndarray]:
     """Each pixel's mean and unbiased variance (``ddof=1``) over frames, in one streamed pass
     (as ``project``'s mean and std, which would read the movie twice)."""
     span = _span(movie, frames)
@@ -90,7 +116,7 @@ def _moments(movie, span: range, block: int):
     """The count, mean and summed squared deviations of every pixel over ``span``."""
     h, w = movie.shape[1:]
     count, mean, m2 = 0, np.zeros((h, w)), np.zeros((h, w))
-    for data in _blocks(movie, span, block):
+    for data in blocks(movie, span, block):
         count, mean, m2 = _merge(count, mean, m2, data.astype(np.float64))
     return count, mean, m2
 
@@ -129,7 +155,7 @@ def _median(movie, span: range, block: int, rows: int) -> np.ndarray:
         band = slice(top, min(top + rows, h))
         height = band.stop - band.start
         filled = 0
-        for data in _blocks(movie, span, block, band):
+        for data in blocks(movie, span, block, band):
             tile[filled : filled + len(data), :height] = data
             filled += len(data)
         out[band] = np.median(tile[:, :height], axis=0)
@@ -153,7 +179,9 @@ def _span(movie, frames) -> range:
     return span
 
 
-def _blocks(movie, span: range, block: int, rows: slice | None = None):
+def blocks(
+    movie: Movie, span: range, block: int, rows: slice | None = None
+) -> Iterator[np.ndarray]:
     """The frames of ``span``, ``block`` of them at a time (read in one call where they are
     consecutive, one by one where the span skips frames)."""
     for i in range(0, len(span), block):

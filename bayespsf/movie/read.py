@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import glob
 import re
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from bayespsf.errors import BayespsfInputError
-from bayespsf.io import checked_path, named_read_errors
+from bayespsf.io.rois import checked_path, named_read_errors
 from bayespsf.movie._frames import NpyFrames
 from bayespsf.movie._metadata import FileMetadata
 from bayespsf.movie._tiff import check_channel, checked_dtype, tiff_frames
@@ -19,7 +19,7 @@ from bayespsf.movie._tiff import check_channel, checked_dtype, tiff_frames
 _TIFF = (".tif", ".tiff")
 
 
-def read_movie(path, *, channel: int | None = None) -> Movie:
+def read_movie(path: str | Path | Sequence[str | Path], *, channel: int | None = None) -> Movie:
     """Open a movie for reading frame by frame.
 
     Parameters
@@ -37,8 +37,23 @@ def read_movie(path, *, channel: int | None = None) -> Movie:
     Returns
     -------
     Movie
-        Nothing is read but the file's structure and metadata. Uncompressed image data are
+        Frames ``(n_frames, height, width)`` in the file's data type (counts, ADU). Nothing
+        is read but the file's structure and metadata. Uncompressed image data are
         memory-mapped, compressed data decoded page by page when frames are asked for.
+
+    Raises
+    ------
+    BayespsfInputError
+        Naming the file and the problem: missing, a directory, unknown extension, unreadable,
+        damaged or truncated, no images, pages of different shapes (named), frames that are
+        not 2-D, complex or boolean values, no frames, several channels without ``channel``,
+        files of a series that disagree.
+
+    See Also
+    --------
+    Movie : the frames on demand, by block, or as a dask array.
+    bayespsf.movie.project : a temporal projection with bounded memory.
+    bayespsf.movie.find_molecules : detection to selection on a movie.
 
     Notes
     -----
@@ -50,13 +65,22 @@ def read_movie(path, *, channel: int | None = None) -> Movie:
     upper bound on the exposure. Where the file says nothing they are None, and the caller
     takes them from the user's camera file (its ``[geometry] pixel_size``).
 
-    Raises
-    ------
-    BayespsfInputError
-        Naming the file and the problem: missing, a directory, unknown extension, unreadable,
-        damaged or truncated, no images, pages of different shapes (named), frames that are
-        not 2-D, complex or boolean values, no frames, several channels without ``channel``,
-        files of a series that disagree.
+    Examples
+    --------
+    A small simulated OME-TIFF movie (the ``paper-movie`` scene's EMCCD, 79 nm pixels):
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import bayespsf
+    >>> scene = bayespsf.load_scene("paper-movie").replace(
+    ...     movie={"frames": 20, "height": 64, "width": 64, "molecules": 3, "dark_frames": 0}
+    ... )
+    >>> made = bayespsf.simulate_movie(scene, seed=1, out=Path(tempfile.mkdtemp()) / "m")
+    >>> movie = bayespsf.read_movie(made.files["movie"])
+    >>> movie.shape, movie.dtype.name, movie.pixel_size, movie.metadata["pixel_size"]
+    ((20, 64, 64), 'uint16', 79.0, 'OME')
+    >>> movie.frames(0, 5).shape  # only these frames are read
+    (5, 64, 64)
     """
     paths = _paths(path)
     suffixes = _TIFF if len(paths) > 1 else (*_TIFF, ".npy")
@@ -87,6 +111,17 @@ def read_movie(path, *, channel: int | None = None) -> Movie:
 class Movie:
     """A movie on disk: frames ``(n_frames, height, width)`` read on demand.
 
+    Made by ``read_movie``; not constructed directly.
+
+    Parameters
+    ----------
+    readers : iterable of frame readers
+        One per file, in frame order (internal: TIFF page or ``.npy`` readers).
+    calibration : FileMetadata
+        The pixel size and exposure read from the first file's metadata.
+    channel : int or None
+        The channel read (for reopening the files).
+
     Attributes
     ----------
     path : Path or tuple of Path
@@ -94,6 +129,7 @@ class Movie:
     shape : tuple of int
         ``(frames, height, width)``.
     n_frames : int
+        Number of frames (also ``len(movie)``).
     dtype : numpy.dtype
         The file's data type (in native byte order).
     pixel_size : float or None
@@ -105,6 +141,12 @@ class Movie:
         ``"OME"``, ``"ImageJ"`` or None; ``exposure_field`` names the field, ``axes`` the
         file's axes and ``channel`` the channel read, where these apply.
 
+    See Also
+    --------
+    read_movie : opens one.
+
+    Notes
+    -----
     Frames are read in the file's data type; a movie used as an array (``movie[10:20]``,
     ``to_dask``) reads only the frames indexed. Files decoded page by page stay open until
     ``close`` (or the end of a ``with`` block, or the movie's collection).
@@ -112,7 +154,7 @@ class Movie:
 
     ndim = 3
 
-    def __init__(self, readers, calibration: FileMetadata, channel: int | None):
+    def __init__(self, readers: Iterable, calibration: FileMetadata, channel: int | None) -> None:
         self._readers = list(readers)
         self._starts = np.cumsum([0] + [r.n for r in self._readers])
         self._channel = channel
@@ -142,7 +184,9 @@ class Movie:
             f"width={self.shape[2]}, dtype={self.dtype}, pixel_size={size}, exposure={time})"
         )
 
-    def frames(self, start: int = 0, stop: int | None = None, *, rows=None) -> np.ndarray:
+    def frames(
+        self, start: int = 0, stop: int | None = None, *, rows: slice | None = None
+    ) -> np.ndarray:
         """Frames ``start`` to ``stop`` (excluded; Python slice rules) as an array ``(k, h, w)``
         in the file's data type; ``rows`` (a slice) reads only those rows of each frame."""
         span = range(self.n_frames)[start:stop]
@@ -161,7 +205,9 @@ class Movie:
         i = range(self.n_frames)[i]
         return self.frames(i, i + 1)[0]
 
-    def blocks(self, size: int, start: int = 0, stop: int | None = None) -> Iterator:
+    def blocks(
+        self, size: int, start: int = 0, stop: int | None = None
+    ) -> Iterator[tuple[int, np.ndarray]]:
         """``(first frame, frames)`` for consecutive blocks of ``size`` frames (the last may
         be shorter) from ``start`` to ``stop``; one block is in memory at a time."""
         if isinstance(size, bool) or not isinstance(size, int | np.integer) or size < 1:

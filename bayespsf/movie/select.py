@@ -34,14 +34,58 @@ import pandas as pd
 from bayespsf.errors import BayespsfInputError
 
 MOLECULE_COLUMNS = ("molecule", "steps", "drift_x", "drift_x_se", "drift_y", "drift_y_se")
-FRAME_COLUMNS = ("molecule", "frame", "photons", "peak", "background_var", "s_x", "s_y",
-                 "before_bleach")  # fmt: skip
+FRAME_COLUMNS = (
+    "molecule",
+    "frame",
+    "photons",
+    "peak",
+    "background_var",
+    "s_x",
+    "s_y",
+    "before_bleach",
+)
 
 
 @dataclass(frozen=True)
 class Rules:
-    """The selection rules' settings; the defaults are the paper's numbers (module docstring).
-    A rule is switched off by its name in ``skip``."""
+    """The selection rules' settings; the defaults are the paper's numbers.
+
+    Parameters
+    ----------
+    drift_sigmas : float, default 3.0
+        ``no_drift``: the largest centroid slope, in standard errors, on either axis.
+    photon_tolerance : float, default 0.2
+        ``photon_window``: a frame is valid when its photons N lie within this fraction of
+        the molecule's mean ⟨N⟩ (in (0, 1)).
+    min_valid_frames : int, default 75
+        ``photon_window``: the fewest valid frames a molecule needs.
+    min_snr : float, default 2.5
+        ``snr``: a frame's ``I0 / sqrt(I0 + sigma_b^2)`` (photons) must exceed this.
+    width_difference_nm : float, default 10.0
+        ``equal_widths``: the largest difference of mean s_x and s_y in nm ...
+    width_difference_fraction : float, default 0.05
+        ... or as a fraction of their mean, whichever is larger.
+    width_low, width_high : float, default 95.0 and 135.0
+        ``width_range``: both mean widths must lie in this range (nm).
+    skip : tuple of str, default ()
+        Names of rules (``RULES``) switched off.
+
+    Raises
+    ------
+    BayespsfInputError
+        A setting that is not a finite number >= 0, a ``photon_tolerance`` outside (0, 1),
+        ``width_low > width_high``, a ``min_valid_frames`` that is not a whole number >= 1,
+        or ``skip`` naming an unknown rule (or given as a string).
+
+    See Also
+    --------
+    select : applies them.
+
+    Notes
+    -----
+    The module docstring states each rule as DeSantis, DeCenzo, Li & Wang, Opt. Express 18
+    (2010) applied it, and the order in which they run.
+    """
 
     drift_sigmas: float = 3.0
     photon_tolerance: float = 0.2
@@ -54,9 +98,16 @@ class Rules:
     skip: tuple[str, ...] = ()
 
     def __post_init__(self):
-        numbers = ("drift_sigmas", "photon_tolerance", "min_valid_frames", "min_snr",
-                   "width_difference_nm", "width_difference_fraction", "width_low",
-                   "width_high")  # fmt: skip
+        numbers = (
+            "drift_sigmas",
+            "photon_tolerance",
+            "min_valid_frames",
+            "min_snr",
+            "width_difference_nm",
+            "width_difference_fraction",
+            "width_low",
+            "width_high",
+        )
         for name in numbers:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float | np.number):
@@ -87,18 +138,53 @@ def _require(table: pd.DataFrame, columns, name: str) -> None:
         raise BayespsfInputError(f"{name} lacks the column(s) {missing}")
 
 
-def select(molecules: pd.DataFrame, frames: pd.DataFrame, rules: Rules | None = None):
-    """Apply the rules; returns ``(molecules, frames, report)``.
+def select(
+    molecules: pd.DataFrame, frames: pd.DataFrame, rules: Rules | None = None
+) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """Apply the paper's selection rules to molecules and their frames.
 
-    ``molecules``: one row per molecule with ``MOLECULE_COLUMNS`` (bleaching steps; centroid
-    slopes and their standard errors in nm per frame). ``frames``: one row per molecule and
-    frame with ``FRAME_COLUMNS`` (photons N, peak photons I0, background variance in photons^2,
-    the frame's width estimates in nm, and whether the frame precedes the bleaching step).
+    Parameters
+    ----------
+    molecules : pandas.DataFrame
+        One row per molecule with ``MOLECULE_COLUMNS``: ``molecule``, ``steps`` (bleaching
+        steps), ``drift_x``, ``drift_x_se``, ``drift_y``, ``drift_y_se`` (centroid slopes
+        and their standard errors, nm per frame).
+    frames : pandas.DataFrame
+        One row per molecule and frame with ``FRAME_COLUMNS``: ``molecule``, ``frame``,
+        ``photons`` (N), ``peak`` (peak photons I0), ``background_var`` (photons²), ``s_x``,
+        ``s_y`` (the frame's width estimates, nm) and ``before_bleach`` (the frame precedes
+        the bleaching step).
+    rules : Rules, optional
+        The settings (default: the paper's).
 
-    The returned molecules gain ``selected``, ``rejected_by`` (the first rule that removed the
-    molecule, empty if selected) and ``valid_frames``; the frames gain ``valid`` and
-    ``rejected_by``. ``report`` has one row per rule: molecules and frames it removed and what
-    was left.
+    Returns
+    -------
+    molecules : pandas.DataFrame
+        A copy of ``molecules`` with ``rejected_by`` (the first rule that removed the
+        molecule, empty if selected), ``selected`` and ``valid_frames``.
+    frames : pandas.DataFrame
+        A copy of ``frames`` with ``rejected_by`` (``after bleaching``, ``snr`` or
+        ``photon_window``; empty if kept) and ``valid``.
+    report : pandas.DataFrame
+        One row per rule, in order (a first row ``frames before bleaching``): ``rule``
+        (`` (skipped)`` appended where skipped), ``molecules removed``, ``frames removed``,
+        ``molecules left`` and ``frames left``.
+
+    Raises
+    ------
+    BayespsfInputError
+        A table without the columns it needs.
+
+    See Also
+    --------
+    Rules : the settings.
+    report_markdown : the report as markdown.
+    find_molecules : makes both tables and applies this.
+
+    Notes
+    -----
+    The rules run in the order of ``RULES`` (module docstring), each on what the previous
+    ones left; frames after a molecule's bleaching step are never valid.
     """
     rules = Rules() if rules is None else rules
     _require(molecules, MOLECULE_COLUMNS, "molecules")
@@ -143,8 +229,9 @@ def _single_step(mol, fr, rules):
 
 
 def _no_drift(mol, fr, rules):
-    z = np.maximum(np.abs(mol["drift_x"] / mol["drift_x_se"]),
-                   np.abs(mol["drift_y"] / mol["drift_y_se"]))  # fmt: skip
+    z = np.maximum(
+        np.abs(mol["drift_x"] / mol["drift_x_se"]), np.abs(mol["drift_y"] / mol["drift_y_se"])
+    )
     _reject(mol, ~(z <= rules.drift_sigmas), "no_drift")  # NaN (too few frames) fails too
 
 
@@ -186,16 +273,24 @@ def _width_range(mol, fr, rules):
     _reject(mol, ~inside, "width_range")
 
 
-_APPLY = {"single_step": _single_step, "no_drift": _no_drift, "snr": _snr,
-          "photon_window": _photon_window, "equal_widths": _equal_widths,
-          "width_range": _width_range}  # fmt: skip
+_APPLY = {
+    "single_step": _single_step,
+    "no_drift": _no_drift,
+    "snr": _snr,
+    "photon_window": _photon_window,
+    "equal_widths": _equal_widths,
+    "width_range": _width_range,
+}
 
 
 def _row(rule, mol, fr, removed_m, removed_f, skipped=False):
-    return {"rule": rule + (" (skipped)" if skipped else ""),
-            "molecules removed": int(removed_m), "frames removed": int(removed_f),
-            "molecules left": int(_alive(mol).sum()),
-            "frames left": int(_valid(fr, mol).sum())}  # fmt: skip
+    return {
+        "rule": rule + (" (skipped)" if skipped else ""),
+        "molecules removed": int(removed_m),
+        "frames removed": int(removed_f),
+        "molecules left": int(_alive(mol).sum()),
+        "frames left": int(_valid(fr, mol).sum()),
+    }
 
 
 def report_markdown(report: pd.DataFrame, rules: Rules | None = None) -> str:

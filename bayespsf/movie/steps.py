@@ -1,4 +1,4 @@
-"""Photobleaching steps of one time trace (issue 13, item 5).
+"""Photobleaching steps of one time trace.
 
 ``bleach_steps`` finds the steps with PELT (Killick, Fearnhead & Eckley, J. Am. Stat. Assoc.
 107, 1590 (2012)) from ``ruptures`` (Truong, Oudre & Vayatis, Signal Process. 167, 107299
@@ -12,15 +12,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import pairwise
+from typing import TYPE_CHECKING
 
 import numpy as np
 import ruptures as rpt
 from ruptures.base import BaseCost
 
-from bayespsf._checks import finite_array
+from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
 
-PENALTY = 4.0  # c of the penalty c * log(n); measured in tests/test_movie_traces.py
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+PENALTY = 4.0  # c of the penalty c * log(n); measured in tests/movie/test_movie_traces.py
 MIN_SEGMENT = 3  # frames: a step needs a level on either side
 PRIOR_WEIGHT = 2.0  # pseudo-frames at the trace's noise variance in each segment's variance
 GRID = 150  # PELT's candidate change points: every frame up to this many, a grid beyond
@@ -45,6 +49,10 @@ class BleachSteps:
         Frames before ``bleach_frame`` (all frames when it is None).
     multiple_steps : bool
         More than one step: several fluorophores (or blinking), excluded by the paper.
+
+    See Also
+    --------
+    bleach_steps : finds them.
     """
 
     steps: int
@@ -82,7 +90,11 @@ class _GaussianSegments(BaseCost):
 
 
 def bleach_steps(
-    trace, *, frames=None, penalty: float = PENALTY, min_size: int = MIN_SEGMENT
+    trace: ArrayLike,
+    *,
+    frames: ArrayLike | None = None,
+    penalty: float = PENALTY,
+    min_size: int = MIN_SEGMENT,
 ) -> BleachSteps:
     """Photobleaching steps of one molecule's trace.
 
@@ -90,16 +102,28 @@ def bleach_steps(
     ----------
     trace : array_like, shape (n,)
         Photons per frame (``traces(...)["photons"]`` of one molecule), in frame order.
-    frames : array_like of int, optional
+    frames : array_like of int, shape (n,), optional
         The frame number of each value (default ``0..n-1``).
-    penalty : float
+    penalty : float, default ``PENALTY`` (4.0)
         ``c`` of the penalty ``c * log(n)`` charged per step.
-    min_size : int
+    min_size : int, default ``MIN_SEGMENT`` (3)
         Fewest frames of a level.
 
     Returns
     -------
     BleachSteps
+        The number of steps, their change points (frame numbers), the levels' means (the
+        trace's units), the bleaching frame and the frames before it.
+
+    Raises
+    ------
+    BayespsfInputError
+        A trace that is not 1-D and finite, or ``frames`` of another shape.
+
+    See Also
+    --------
+    molecules_over_time : every molecule's trace and steps.
+    select : the ``single_step`` rule.
 
     Notes
     -----
@@ -116,6 +140,21 @@ def bleach_steps(
     over all split points between its neighbours. A one-frame level between its neighbours
     is the frame in which a step happened (a fluorophore bleaching within a frame holds part
     of that frame's exposure): the two change points around it count as one step.
+
+    References
+    ----------
+    .. [1] R. Killick, P. Fearnhead and I. A. Eckley, J. Am. Stat. Assoc. 107, 1590 (2012).
+    .. [2] C. Truong, L. Oudre and N. Vayatis, Signal Process. 167, 107299 (2020).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from bayespsf.movie import bleach_steps
+    >>> rng = np.random.default_rng(0)
+    >>> trace = np.r_[np.full(60, 1000.0), np.full(40, 5.0)] + rng.normal(0, 30, 100)
+    >>> found = bleach_steps(trace)
+    >>> found.steps, found.bleach_frame, found.frames_before
+    (1, 60, 60)
     """
     y = finite_array("trace", trace)
     if y.ndim != 1:
@@ -193,10 +232,12 @@ def _eliminate(cost: _GaussianSegments, cuts: list[int], pen: float, min_size: i
     while cuts:
         b = [0, *cuts, len(cost.signal)]
         gain = [
-            cost.error(b[i], b[i + 2]) - cost.error(b[i], b[i + 1]) - cost.error(b[i + 1], b[i + 2])
+            cost.error(b[i], b[i + 2])
+            - cost.error(b[i], b[i + 1])
+            - cost.error(b[i + 1], b[i + 2])
             - (pen if min(b[i + 1] - b[i], b[i + 2] - b[i + 1]) >= min_size else np.inf)
             for i in range(len(cuts))
-        ]  # fmt: skip
+        ]
         worst = int(np.argmin(gain))
         if gain[worst] >= 0:
             break

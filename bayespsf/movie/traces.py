@@ -1,5 +1,5 @@
 """Molecules over time: per-frame photons, background and centroid of every molecule, its
-photobleaching steps and its drift (issue 13, item 5).
+photobleaching steps and its drift.
 
 The paper selected streptavidin-Cy3 monomers "by examining the fluorescence time traces of the
 molecules for a single bleaching step" and required "no stage drift detected by using
@@ -15,6 +15,9 @@ then places each step by the exact least-squares scan over its split points.
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pandas as pd
 
@@ -24,6 +27,10 @@ from bayespsf.model import Model
 from bayespsf.movie.extract import iter_rois, molecule_pixels, open_movie, photon_model
 from bayespsf.movie.steps import PENALTY, bleach_steps
 
+if TYPE_CHECKING:
+    from bayespsf.cameras import Camera
+    from bayespsf.movie.read import Movie
+
 COLUMNS = ("photons", "photons_se", "b", "b_se", "x", "y", "_order")  # traces's, then its order
 MOLECULE_COLUMNS = (
     *("molecule", "x", "y", "steps", "bleach_frame", "frames_before", "multiple_steps"),
@@ -32,16 +39,16 @@ MOLECULE_COLUMNS = (
 
 
 def traces(
-    movie,
-    molecules,
-    camera,
+    movie: Movie | str | Path,
+    molecules: pd.DataFrame,
+    camera: Camera | Model,
     *,
     s0: float,
     pixel_size: float | None = None,
     roi: int = 25,
     fit: int = 15,
     aperture: float = 2.5,
-    frames=None,
+    frames: slice | range | None = None,
     block: int = 64,
     progress: bool | None = None,
 ) -> pd.DataFrame:
@@ -50,6 +57,7 @@ def traces(
     Parameters
     ----------
     movie : Movie or path
+        The movie in counts (ADU).
     molecules : pandas.DataFrame
         ``molecule``, ``x``, ``y`` (camera pixels, picasso's convention), as ``cut_rois``.
     camera : Camera or Model
@@ -58,19 +66,35 @@ def traces(
         The spot's width (nm): sets the aperture and its enclosed fraction.
     pixel_size : float, optional
         nm; default the Model's, else the movie's metadata.
-    roi, fit : int
+    roi, fit : int, default 25 and 15
         The ROI geometry of ``cut_rois`` (the periphery outside ``fit`` gives the background).
-    aperture : float
-        Radius of the photon aperture in units of ``s0`` (default 2.5: 95.6% of the spot).
-    frames, block
-        As ``cut_rois``.
+    aperture : float, default 2.5
+        Radius of the photon aperture in units of ``s0`` (2.5: 95.6% of the spot).
+    frames : slice or range, optional
+        Consecutive frames (default all), as ``cut_rois``.
+    block : int, default 64
+        Frames read at a time.
+    progress : bool, optional
+        A progress bar on stderr (default: when it is a terminal).
 
     Returns
     -------
     pandas.DataFrame
-        One row per (molecule, frame): ``photons`` (estimate of N, photons), ``photons_se``,
-        ``b`` and ``b_se`` (background photons per pixel from the periphery), ``x`` and ``y``
+        One row per (molecule, frame), ordered by molecule (as given), then frame:
+        ``molecule``, ``frame``, ``photons`` (estimate of N, photons), ``photons_se``, ``b``
+        and ``b_se`` (background photons per pixel from the periphery), ``x`` and ``y``
         (centroid, camera pixels in picasso's convention; NaN where the net signal is <= 0).
+
+    Raises
+    ------
+    BayespsfInputError
+        No pixel size, an aperture smaller than half a pixel or beyond the central ``fit``
+        pixels, or any error of ``cut_rois`` (sizes, molecule table, ROIs off the frame).
+
+    See Also
+    --------
+    molecules_over_time : the traces with each molecule's bleaching steps and drift.
+    cut_rois : the ROI geometry.
 
     Notes
     -----
@@ -100,8 +124,16 @@ def traces(
     spot = psf.expected_counts(np.column_stack([unit, np.zeros(len(ids))]), fit, a)[:, disc]
     enclosed = spot.sum(axis=1)
     parts = []
-    for stack in iter_rois(movie, molecules, roi=roi, fit=fit, frames=frames, block=block,
-                           progress=progress, desc="traces"):  # fmt: skip
+    for stack in iter_rois(
+        movie,
+        molecules,
+        roi=roi,
+        fit=fit,
+        frames=frames,
+        block=block,
+        progress=progress,
+        desc="traces",
+    ):
         m = np.repeat(np.arange(len(ids)), len(stack) // len(ids))
         background = stack.periphery_background(model)
         b, b_se = background["b"].to_numpy(), background["b_se"].to_numpy()
@@ -149,17 +181,25 @@ def drift(frames, position) -> tuple[float, float]:
 
 
 def molecules_over_time(
-    movie, molecules, model, *, s0: float, penalty: float = PENALTY, **options
+    movie: Movie | str | Path,
+    molecules: pd.DataFrame,
+    model: Model | Camera,
+    *,
+    s0: float,
+    penalty: float = PENALTY,
+    **options,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``traces`` and, per molecule, its bleaching steps and drift.
 
     Parameters
     ----------
     movie, molecules, model, s0
-        As ``traces`` (``model`` a Model or Camera); ``options`` go to ``traces``
-        (``pixel_size``, ``roi``, ``fit``, ``aperture``, ``frames``, ``block``).
-    penalty : float
+        As ``traces`` (``model`` a Model or Camera).
+    penalty : float, default ``PENALTY`` (4.0)
         ``bleach_steps``'s ``c``.
+    **options
+        Go to ``traces``: ``pixel_size``, ``roi``, ``fit``, ``aperture``, ``frames``,
+        ``block``, ``progress``.
 
     Returns
     -------
@@ -171,6 +211,17 @@ def molecules_over_time(
         before bleaching, nm per frame: the paper's criterion 1).
     per_frame : pandas.DataFrame
         ``traces``'s table.
+
+    Raises
+    ------
+    BayespsfInputError
+        As ``traces``.
+
+    See Also
+    --------
+    traces : the per-frame table.
+    bleach_steps : the steps of one trace.
+    select : the selection rules that use both tables.
     """
     movie = open_movie(movie)
     per_frame = traces(movie, molecules, model, s0=s0, **options)

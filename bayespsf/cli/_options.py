@@ -1,0 +1,168 @@
+"""Option groups that several subcommands share: each adds its options to a subparser, with
+the names, defaults, types, choices and help texts of ``bayespsf --help``.
+
+Where two subcommands word the help of the same option differently, the wording is a
+parameter (the module's ``*_HELP`` constants hold the variants), so that each command's help
+stays as ``docs/cli.md`` documents it.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+#: ``--camera`` of ``detect``, which the other movie commands refer to.
+CAMERA_HELP = (
+    "TOML with [camera] (kind, gain, offset, readout) and [geometry] pixel_size "
+    "(nm; optional when the movie's metadata give it), optionally [emitter] s0x, s0y"
+)
+#: ``--camera`` of ``analyze`` and ``calibrate-z``.
+CAMERA_AS_FOR_DETECT = "the camera file (as for detect)"
+#: ``--camera`` of ``fit``, where it stands beside ``--scene``.
+CAMERA_OR_SCENE_HELP = "TOML with [camera] and [geometry] pixel_size (and optional [prior])"
+
+MOVIE_HELP = "the movie: .tif/.tiff/.ome.tif or .npy"
+PSF_SD_HELP = "the spot's SD in nm"
+ROI_HELP = "ROI cut (default 25)"
+#: ``--roi`` of ``detect``, which names the paper's cut.
+ROI_PAPER_HELP = "ROI cut (default 25, the paper's)"
+SEED_HELP = "random seed (default 0)"
+
+METHODS = ("auto", "mcmc", "importance", "laplace")
+#: ``--method`` of ``fit``: the per-ROI rule.
+METHOD_PER_ROI_HELP = (
+    "auto (default): per ROI the Laplace where a pilot shows it accurate, else "
+    "importance sampling (PSIS) where its k-hat <= 0.7, else emcee; mcmc: emcee for "
+    "every ROI; importance; laplace (no check)"
+)
+#: ``--method`` of ``analyze``: the batched engine.
+METHOD_BATCHED_HELP = "posterior method (default auto: the batched engine, emcee where it fails)"
+
+
+def add_movie(
+    parser: argparse.ArgumentParser, help: str = MOVIE_HELP, metavar: str | None = None
+) -> None:
+    """Add the positional ``movie`` argument.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    help : str, optional
+        Its help text (default ``MOVIE_HELP``).
+    metavar : str, optional
+        Its name in the usage line (default ``MOVIE``).
+    """
+    parser.add_argument("movie", metavar=metavar, help=help)
+
+
+def add_camera(parser, help: str = CAMERA_AS_FOR_DETECT, required: bool = True) -> None:
+    """Add ``--camera``, the camera file (``bayespsf.io.read_camera_file``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser or argparse mutually exclusive group
+        Where to add it (``fit`` adds it to a group beside ``--scene``).
+    help : str, optional
+        Its help text: ``CAMERA_HELP``, ``CAMERA_AS_FOR_DETECT`` (default) or
+        ``CAMERA_OR_SCENE_HELP``.
+    required : bool, optional
+        Whether the command needs it (default True; False inside a required group).
+    """
+    parser.add_argument("--camera", required=required, help=help)
+
+
+def add_psf_sd(
+    parser: argparse.ArgumentParser, help: str = PSF_SD_HELP, required: bool = False
+) -> None:
+    """Add ``--psf-sd``, the spot's SD in nm (a float, default None).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    help : str, optional
+        Its help text (default ``PSF_SD_HELP``).
+    required : bool, optional
+        Whether the command needs it (default False: the camera file may give it).
+    """
+    parser.add_argument("--psf-sd", type=float, default=None, required=required, help=help)
+
+
+def add_geometry(parser: argparse.ArgumentParser, roi_help: str = ROI_HELP) -> None:
+    """Add ``--roi`` (the ROI cut, default 25) and ``--fit`` (the fitted centre, default 15).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    roi_help : str, optional
+        The help text of ``--roi``: ``ROI_HELP`` (default) or ``ROI_PAPER_HELP``.
+    """
+    parser.add_argument("--roi", type=int, default=25, help=roi_help)
+    parser.add_argument("--fit", type=int, default=15, help="fitted centre (default 15)")
+
+
+def add_method(parser: argparse.ArgumentParser, help: str) -> None:
+    """Add ``--method``, the posterior method (one of ``METHODS``, default ``auto``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    help : str
+        Its help text: ``METHOD_PER_ROI_HELP`` or ``METHOD_BATCHED_HELP``.
+    """
+    parser.add_argument("--method", choices=METHODS, default="auto", help=help)
+
+
+def add_seed(parser: argparse.ArgumentParser, help: str = SEED_HELP) -> None:
+    """Add ``--seed``, the random seed (an int, default 0).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    help : str, optional
+        Its help text (default ``SEED_HELP``).
+    """
+    parser.add_argument("--seed", type=int, default=0, help=help)
+
+
+def add_workers(
+    parser: argparse.ArgumentParser, *, scheduler: bool = False, terse: bool = False
+) -> None:
+    """Add ``--workers`` (local processes, default: the cores) and, optionally,
+    ``--scheduler`` (a Dask scheduler address, default none).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    scheduler : bool, optional
+        Whether to add ``--scheduler`` too (default False).
+    terse : bool, optional
+        Whether the help texts leave out their parenthesised defaults, as those of
+        ``analyze`` and ``calibrate-z`` do (default False).
+    """
+    workers_help = "local processes" if terse else "local processes (default: cores)"
+    parser.add_argument("--workers", type=int, default=None, help=workers_help)
+    if scheduler:
+        address = "a Dask scheduler address"
+        parser.add_argument(
+            "--scheduler", default=None, help=address if terse else f"{address} (a cluster)"
+        )
+
+
+def add_out(parser: argparse.ArgumentParser, default: str, help: str = "output folder") -> None:
+    """Add ``--out``, what the command writes.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    default : str
+        Its default path.
+    help : str, optional
+        Its help text (default ``"output folder"``).
+    """
+    parser.add_argument("--out", default=default, help=help)

@@ -1,0 +1,433 @@
+"""The ``bayespsf`` command: one thin function per subcommand (its parsed arguments in, the
+library called, a summary printed), ``main`` that runs the one ``args.command`` names, and the
+helpers they share.
+
+What the command accepts is in ``bayespsf.cli.parser``; ``build_parser`` is imported here so
+that ``bayespsf.cli.commands.build_parser`` keeps working. Each subcommand imports the library
+only when it runs, so that ``bayespsf --help`` loads no NumPy.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from bayespsf.cli.parser import build_parser
+from bayespsf.errors import BayespsfInputError
+
+
+class CommandError(Exception):
+    """A problem the command reports as one line, ``bayespsf: ...``, with exit status 1.
+
+    ``main`` reports ``bayespsf.errors.BayespsfInputError``, which the library raises for bad
+    input, in the same way.
+    """
+
+
+def _output_folder(path: str, option: str = "--out", stem: bool = False):
+    """``path`` as a folder to write into (or, with ``stem``, a path stem whose folder is
+    made): no file may stand at it or at any of its parents."""
+    out = Path(path)
+    if stem and out.is_dir():
+        raise CommandError(f"{option} {out} is a folder; give a path stem such as {out}/sim")
+    for place in out.parents if stem else (out, *out.parents):
+        if place.exists() and not place.is_dir():
+            what = "is" if place == out else f"lies under {place}, which is"
+            raise CommandError(f"{option} {out} {what} a file, not a folder")
+    return out
+
+
+def _scene_from(arg: str):
+    """The scene ``arg`` names: a shipped scene's name or the path of a scene file."""
+    from bayespsf import load_scene, shipped_scenes
+    from bayespsf.scene import Scene
+
+    if arg in shipped_scenes():
+        return load_scene(arg)
+    if not Path(arg).exists():
+        raise CommandError(
+            f"no scene file {arg!r} and no shipped scene of that name "
+            f"(shipped: {', '.join(shipped_scenes())})"
+        )
+    return Scene.load(arg)
+
+
+def _truth_table(path: str, n: int, unit: str):
+    """The true parameters ``(n, 6)`` from a truth table that ``bayespsf simulate`` wrote;
+    its N and b must be in ``unit`` (the model's ``photon_unit_label``) where it states one."""
+    import pandas as pd
+
+    from bayespsf.psf import PARAMETER_NAMES
+
+    try:
+        truth = pd.read_csv(path)
+    except (OSError, ValueError) as exc:
+        raise CommandError(f"--truth {path}: cannot read it as a CSV table ({exc})") from exc
+    missing = [name for name in PARAMETER_NAMES if name not in truth]
+    if missing:
+        raise CommandError(f"--truth {path}: no column(s) {', '.join(missing)}")
+    if len(truth) != n:
+        raise CommandError(f"--truth {path}: {len(truth)} rows for {n} ROIs")
+    stated = set(truth["photon_unit"]) if "photon_unit" in truth else {unit}
+    if stated != {unit}:
+        raise CommandError(
+            f"--truth {path}: N and b in {', '.join(sorted(map(str, stated)))}, but the model's "
+            f"are in {unit} (the scene's camera.photon_unit and quantum_efficiency)"
+        )
+    return truth[list(PARAMETER_NAMES)].to_numpy(float)
+
+
+def _movie_model(args):
+    """The movie, the camera file's model and the spot's SD of ``detect`` and ``analyze``."""
+    from bayespsf.io import camera_scene, read_camera_file
+    from bayespsf.model import Model
+    from bayespsf.movie import read_movie
+    from bayespsf.movie.extract import check_sizes
+
+    check_sizes(args.roi, args.fit)
+    movie = read_movie(args.movie)
+    table = read_camera_file(args.camera)
+    scene = camera_scene(table, args.camera, args.fit, movie.pixel_size)
+    emitter = scene.to_dict().get("emitter", {})
+    s0 = args.psf_sd
+    if s0 is None and {"s0x", "s0y"} <= set(table.get("emitter", {})):
+        s0 = 0.5 * (emitter["s0x"] + emitter["s0y"])
+    if s0 is None:
+        raise CommandError(
+            f"give --psf-sd (the spot's SD in nm), or [emitter] s0x and s0y in {args.camera}"
+        )
+    return movie, Model.from_scene(scene), s0
+
+
+def _command_line(args) -> str:
+    """The command as typed (``bayespsf calibrate ...``), for the provenance of its files."""
+    return f"bayespsf {args.command} " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
+
+
+def _copy_camera_file(args, out):
+    """The camera file used, verbatim, into the output folder."""
+    path = out / "camera.toml"
+    path.write_text(Path(args.camera).read_text(encoding="utf-8"))
+    return path
+
+
+def _selfcheck(_args) -> int:
+    """``bayespsf selfcheck``: the camera likelihoods of a typical EMCCD, checked and timed."""
+    from bayespsf.cli import selfcheck
+
+    print(selfcheck.run())
+    return 0
+
+
+def _simulate(args) -> int:
+    """``bayespsf simulate``: images of a scene and their truth table (or, with ``--movie``,
+    its movie)."""
+    import numpy as np
+
+    from bayespsf.simulation.pipeline import describe, scene_photon_label, simulate
+
+    out = _output_folder(args.out, stem=True)
+    scene = _scene_from(args.scene)
+    if args.movie:
+        return _simulate_movie(args, scene, out)
+    counts, truth = simulate(scene, 1000 if args.n is None else args.n, seed=args.seed)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.save(out.with_suffix(".npy"), counts)
+    truth.assign(photon_unit=scene_photon_label(scene)).to_csv(
+        out.with_suffix(".truth.csv"), index_label="image"
+    )
+    print(f"{scene!r}\n{describe(scene)}")
+    print(
+        f"wrote {counts.shape[0]} images to {out.with_suffix('.npy')} and the truth table to "
+        f"{out.with_suffix('.truth.csv')}"
+    )
+    return 0
+
+
+def _simulate_movie(args, scene, out) -> int:
+    """``bayespsf simulate --movie``: the movie the scene's ``[movie]`` table declares."""
+    from bayespsf.simulation.movie import simulate_movie
+
+    if "movie" not in scene.to_dict():
+        raise CommandError(
+            f"--movie: the scene {args.scene} declares no [movie] table (the shipped "
+            "paper-movie does; docs/scenes.md, 'Simulated movies')"
+        )
+    if args.n is not None:
+        raise CommandError("-n does not apply with --movie (the scene's movie.frames sets it)")
+    result = simulate_movie(scene, args.seed, out=out)
+    m = scene.movie
+    print(
+        f"{scene!r}\nwrote {m['frames']} frames of {m['height']} x {m['width']} pixels with "
+        f"{len(result.molecules)} molecules: "
+        + ", ".join(str(path) for path in result.files.values())
+    )
+    return 0
+
+
+def _schema(_args) -> int:
+    """``bayespsf schema``: every scene key, as markdown tables."""
+    from bayespsf.scene import schema_markdown
+
+    print(schema_markdown())
+    return 0
+
+
+def _demo(args) -> int:
+    """``bayespsf demo``: one molecule of paper-fig3, its posterior beside the theory."""
+    from bayespsf.cli import demo
+
+    _, _, text = demo.run(_output_folder(args.out), seed=args.seed)
+    print(text)
+    return 0
+
+
+def _bench(args) -> int:
+    """``bayespsf bench``: the accuracy-time frontier of the likelihood tiers."""
+    from bayespsf.cli import bench
+
+    plan = bench.QUICK if args.quick else bench.FULL
+    _output_folder(args.out)
+    rows = bench.frontier(plan, workers=args.workers)
+    command = "bayespsf bench" + (" --quick" if args.quick else "")
+    print(bench.report(rows, args.out, command))
+    print(f"written to {args.out}/frontier.{{md,csv,png}}")
+    return 0
+
+
+def _fit(args) -> int:
+    """``bayespsf fit``: the posterior of every ROI of a stack, and ``summary.csv``."""
+    from bayespsf.io import camera_scene, read_camera_file, read_rois
+    from bayespsf.model import Model
+    from bayespsf.parallel.batch import sample_many
+
+    out = _output_folder(args.out)
+    rois = read_rois(args.rois)
+    if args.scene:
+        scene = _scene_from(args.scene)
+        if scene.geometry["roi"] != rois.shape[1]:
+            raise CommandError(
+                f"{args.rois}: ROIs of {rois.shape[1]} pixels, but the scene declares "
+                f"{scene.geometry['roi']}"
+            )
+    else:
+        scene = camera_scene(read_camera_file(args.camera), args.camera, rois.shape[1])
+    model = Model.from_scene(scene, likelihood=args.likelihood)
+    truths = None
+    if args.truth is not None:
+        truths = _truth_table(args.truth, rois.shape[0], model.photon_unit_label)
+    table = sample_many(
+        rois,
+        model,
+        seed=args.seed,
+        executor=args.scheduler,
+        workers=None if args.scheduler else args.workers,
+        store=out,
+        truths=truths,
+        scene=scene,
+        ess=args.ess,
+        method=args.method,
+        max_seconds=args.max_seconds,
+        check=args.check,
+    )
+    for _, row in table.iterrows():
+        if row["status"] in ("refused", "failed"):
+            print(f"ROI {row['molecule']}: {row['status']}: {row['message']}")
+            continue
+        print(
+            f"ROI {row['molecule']} ({row['method']}): converged {row['converged']}, "
+            f"s_x = {row['s_x_mean']:.4g} +- {row['s_x_sd']:.3g} nm"
+        )
+    print(f"wrote {out / 'summary.csv'} and {len(table)} result files")
+    return 0
+
+
+def _detect(args) -> int:
+    """``bayespsf detect``: a movie's molecules, their traces and the paper's selection."""
+    from bayespsf.movie.pipeline import find_molecules, write
+
+    out = _output_folder(args.out)
+    movie, model, s0 = _movie_model(args)
+    found = find_molecules(
+        movie,
+        model,
+        s0=s0,
+        roi=args.roi,
+        fit=args.fit,
+        false_positives=args.false_positives,
+        projection=args.projection,
+    )
+    paths = write(found, out)
+    paths["camera.toml"] = _copy_camera_file(args, out)
+    selected = int(found.molecules["selected"].sum())
+    print(f"{movie!r}: {len(found.molecules)} candidate molecules, {selected} selected")
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def _analyze(args) -> int:
+    """``bayespsf analyze``: per-frame and per-molecule posteriors of a movie's molecules."""
+    from bayespsf.analysis.pipeline import analyze
+    from bayespsf.io import read_z_calibration
+    from bayespsf.movie.select import Rules
+
+    out = _output_folder(args.out)
+    movie, model, s0 = _movie_model(args)
+    settings = {} if args.min_valid_frames is None else {"min_valid_frames": args.min_valid_frames}
+    rules = Rules(**settings, skip=tuple(args.skip_rule))
+    command = _command_line(args)
+    out.mkdir(parents=True, exist_ok=True)
+    camera_path = _copy_camera_file(args, out)
+    z_calibration = None
+    if args.z_calibration is not None:
+        z_calibration = read_z_calibration(args.z_calibration)
+    result = analyze(
+        movie,
+        model,
+        s0=s0,
+        out=out,
+        roi=args.roi,
+        fit=args.fit,
+        rules=rules,
+        method=args.method,
+        ess=args.ess,
+        seed=args.seed,
+        workers=None if args.scheduler else args.workers,
+        executor=args.scheduler,
+        provenance={"command": command, "camera file": camera_path.read_text()},
+        z_calibration=z_calibration,
+        z_range=tuple(args.z_range),
+        files={"camera.toml": camera_path},
+        gof_discrepancy=args.gof_discrepancy,
+    )
+    check = result.consistency.set_index("parameter")
+    print(
+        f"{movie!r}: {int(result.molecules['selected'].sum())} molecules selected, "
+        f"{len(result.frames)} frames analysed; z-score SD of s_x "
+        f"{check.loc['s_x', 'z_sd']:.3g} +- {check.loc['s_x', 'z_sd_se']:.2g} (1 when the "
+        "model holds)"
+    )
+    print("wrote " + ", ".join(str(p) for p in result.paths.values()))
+    return 0
+
+
+def _calibrate_z(args) -> int:
+    """``bayespsf calibrate-z``: defocus curves from a bead z-stack, as a calibration file."""
+    from bayespsf.axial.calibrate import bead_rois, calibrate, step_widths
+    from bayespsf.io import write_z_calibration
+    from bayespsf.simulation.zstack import zstack_positions
+
+    out = Path(args.out)
+    if out.is_dir():
+        raise CommandError(f"--out {out} is a folder; give the calibration file's name")
+    if args.frames_per_step < 1:
+        raise CommandError(f"--frames-per-step must be >= 1, got {args.frames_per_step}")
+    movie, model, s0 = _movie_model(args)
+    steps, extra = divmod(len(movie), args.frames_per_step)
+    if steps == 0 or extra:
+        raise CommandError(
+            f"the stack has {len(movie)} frames, not a whole number of steps of "
+            f"--frames-per-step {args.frames_per_step}"
+        )
+    z = zstack_positions(args.z_start, args.z_step, steps, args.frames_per_step)
+    rois, bead = bead_rois(movie, model, s0=s0, fit=args.fit, roi=args.roi)
+    widths = step_widths(rois, z, model, seed=args.seed, workers=args.workers)
+    command = _command_line(args)
+    source = {
+        "command": command,
+        "stack": str(args.movie),
+        "camera file": Path(args.camera).read_text(encoding="utf-8"),
+        "bead x": float(bead["x"].iloc[0]),
+        "bead y": float(bead["y"].iloc[0]),
+    }
+    calibration = calibrate(
+        widths, args.curve, higher_order=not args.no_higher_order, source=source
+    )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_z_calibration(calibration, out)
+    fits = calibration.fits
+    for axis in ("x", "y"):
+        row = fits.loc[axis]
+        print(
+            f"{axis}: w0 {row['w0']:.1f} +- {row['w0_sd']:.1f} nm, focus {row['c']:.0f} +- "
+            f"{row['c_sd']:.0f} nm, depth {row['d']:.0f} +- {row['d_sd']:.0f} nm; chi2 "
+            f"{row['chi2']:.1f} on {int(row['dof'])} dof (p = {row['p']:.2g})"
+        )
+    for problem in calibration.problems:
+        print(f"warning: {problem}")
+    print(f"wrote {out}")
+    return 0
+
+
+def _calibrate(args) -> int:
+    """``bayespsf calibrate``: a camera file from a movie (and dark frames, if any)."""
+    from bayespsf.calibration.camera import calibrate_camera
+
+    out = Path(args.out)
+    if out.is_dir():
+        raise CommandError(f"--out {out} is a folder; give the camera file's name")
+    _output_folder(str(out.parent))
+    calibration = calibrate_camera(
+        args.movie,
+        args.dark,
+        kind=args.kind,
+        s0=args.psf_sd,
+        pixel_size=args.pixel_size,
+        e_per_adu=args.e_per_adu,
+        roi=args.roi,
+        fit=args.fit,
+        quantum_efficiency=args.quantum_efficiency,
+        readout_sd=args.readout_sd,
+    )
+    command = _command_line(args)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(calibration.toml(command))
+    print(calibration.gain)
+    print(f"wrote {out}")
+    return 0
+
+
+COMMANDS = {
+    "selfcheck": _selfcheck,
+    "simulate": _simulate,
+    "schema": _schema,
+    "demo": _demo,
+    "bench": _bench,
+    "fit": _fit,
+    "detect": _detect,
+    "analyze": _analyze,
+    "calibrate-z": _calibrate_z,
+    "calibrate": _calibrate,
+}  # each subcommand of build_parser() and the function that runs it
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``bayespsf`` command.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments, the subcommand first (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        The exit status: 0, or 130 when interrupted. Bad input (``CommandError`` or
+        ``bayespsf.errors.BayespsfInputError``) ends the command with one line
+        ``bayespsf: ...`` (``SystemExit``, exit status 1).
+    """
+    args = build_parser().parse_args(argv)
+    args.argv = None if argv is None else list(argv)[1:]
+    try:
+        return COMMANDS[args.command](args)
+    except (CommandError, BayespsfInputError) as exc:
+        raise SystemExit(f"bayespsf: {exc}") from None
+    except KeyboardInterrupt:
+        print("bayespsf: interrupted", file=sys.stderr)
+        return 130
+
+
+__all__ = ["CommandError", "build_parser", "main"]
+
+if __name__ == "__main__":
+    sys.exit(main())

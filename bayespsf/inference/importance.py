@@ -1,0 +1,140 @@
+"""Pareto-smoothed importance sampling from the Laplace approximation: a posterior without a
+Markov chain, for molecules whose posterior is close to its Laplace approximation.
+
+Draws come from the multivariate Student-t of the sampler's independence move (centred at the
+maximum-likelihood fit, scaled by the inverse observed information, in sampling coordinates),
+all scored in one vectorised log-posterior call. The importance ratios
+``pi(z) / g(z)`` are Pareto-smoothed (PSIS; Vehtari, Simpson, Gelman, Yao & Gabry, JMLR 25
+(2024), as implemented in ``arviz_stats``), and their Pareto shape k-hat says whether the
+estimate can be trusted: below 0.7 the smoothed estimates converge at a usable rate, above it
+they do not, and the molecule is sampled by MCMC instead (``bayespsf.sample_posterior``
+does this when ``method="importance"``; the result says which method made it).
+
+Draws are added in batches (the first ``first_batch(ess)`` draws, then as many as the ESS per
+draw so far predicts) until the effective sample size of the smoothed weights,
+``1 / sum(w**2)``, reaches the target; the result holds ``ess`` (rounded down) draws resampled
+from the weighted set by systematic resampling (Kitagawa, J. Comput. Graph. Stat. 5 (1996)),
+so that a Posterior keeps its meaning: equally weighted draws whose number is their effective
+sample size.
+"""
+
+from __future__ import annotations
+
+import emcee
+import numpy as np
+
+KHAT_MAX = 0.7
+MIN_BATCH = 200
+CHAINS = 4
+
+
+class IndependenceMove(emcee.moves.MHMove):
+    """Independence Metropolis-Hastings: every walker proposes a fresh draw from a fixed
+    multivariate Student-t ``t_dof(centre, scale)``, accepted with probability
+    ``min(1, pi(z') g(z) / (pi(z) g(z')))`` (Tierney, Ann. Stat. 22 (1994), sec. 2.3.3).
+
+    With ``centre`` and ``scale`` from the Laplace approximation at the maximum-likelihood fit
+    (a function of the data only, so the chain is a valid Markov chain), proposals are nearly
+    independent draws from a near-Gaussian posterior; the t's heavier tails keep the importance
+    ratio bounded where the posterior's tails are heavier than the Laplace Gaussian's.
+    """
+
+    def __init__(self, centre, scale, dof: float = 5.0):
+        self.centre = np.asarray(centre, dtype=np.float64)
+        self.cholesky = np.linalg.cholesky(np.asarray(scale, dtype=np.float64))
+        self.whiten = np.linalg.inv(self.cholesky)  # z - centre -> independent coordinates
+        self.dof = float(dof)
+        super().__init__(self._propose, ndim=len(self.centre))
+
+    def _log_kernel(self, u) -> np.ndarray:
+        return -0.5 * (self.dof + len(self.centre)) * np.log1p(np.sum(u * u, axis=-1) / self.dof)
+
+    def log_density(self, z) -> np.ndarray:
+        """Log proposal density up to a constant."""
+        return self._log_kernel((np.asarray(z) - self.centre) @ self.whiten.T)
+
+    def draw(self, n: int, random) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` draws (a NumPy RandomState's stream) and their log density."""
+        radius = np.sqrt(self.dof / random.chisquare(self.dof, n))
+        u = radius[:, None] * random.standard_normal((n, len(self.centre)))
+        return self.centre + u @ self.cholesky.T, self._log_kernel(u)
+
+    def _propose(self, coords, random):
+        new, log_new = self.draw(len(coords), random)
+        return new, self.log_density(coords) - log_new
+
+
+def psis(log_ratio: np.ndarray) -> tuple[np.ndarray, float]:
+    """Normalised Pareto-smoothed importance weights of ``log_ratio`` and their k-hat."""
+    from arviz_stats.base.array import array_stats
+
+    # arviz_stats smooths exp(-value) (its input is a log-likelihood in PSIS-LOO): negate
+    log_w, khat = array_stats.psislw(-np.asarray(log_ratio, dtype=np.float64))
+    w = np.exp(log_w - log_w.max())
+    return w / w.sum(), float(khat)
+
+
+def first_batch(ess: float) -> int:
+    """Draws scored in an importance run's first batch: the ESS target over the efficiency
+    of a good Laplace proposal (~0.8 on bright molecules, ``benchmarks/README.md``), at
+    least ``MIN_BATCH``."""
+    return max(MIN_BATCH, int(np.ceil(ess / 0.77)))
+
+
+class ImportanceRun:
+    """One ROI's importance sampling, batch by batch: ``propose()`` gives the next batch's
+    draws (sampling coordinates), ``take(log_posterior)`` scores them; ``done`` once the
+    smoothed weights' ESS reaches ``ess``, or k-hat exceeds ``KHAT_MAX``, or ``max_draws``
+    are scored. Several runs advance together in ``bayespsf.inference.batched`` (one
+    vectorised log-posterior call for the batches of many ROIs); each keeps its own random
+    stream (a NumPy RandomState), so a ROI's draws do not depend on its neighbours.
+    """
+
+    def __init__(self, proposal, ess: float, max_draws: int, random):
+        self.proposal, self.ess, self.max_draws, self.random = proposal, ess, max_draws, random
+        self.batch = min(first_batch(ess), max_draws)
+        self._z, self._log_ratio, self._pending = [], [], None
+        self.done = False
+        self.weights, self.khat, self.achieved = None, np.nan, 0.0
+
+    def propose(self) -> np.ndarray:
+        z, log_g = self.proposal.draw(self.batch, self.random)
+        self._pending = (z, log_g)
+        return z
+
+    def take(self, log_posterior: np.ndarray) -> None:
+        z, log_g = self._pending
+        self._z.append(z)
+        self._log_ratio.append(log_posterior - log_g)
+        log_ratio = np.concatenate(self._log_ratio)
+        self.weights, self.khat = psis(log_ratio)
+        self.achieved = 1.0 / np.sum(self.weights * self.weights)
+        scored = len(log_ratio)
+        if self.achieved >= self.ess or self.khat > KHAT_MAX or scored >= self.max_draws:
+            self.done = True
+            return
+        # the ESS per draw so far predicts the draws still needed (plus 20%)
+        needed = int(1.2 * (self.ess - self.achieved) * scored / max(self.achieved, 1.0))
+        self.batch = int(np.clip(needed, MIN_BATCH // 2, self.max_draws - scored))
+
+    @property
+    def draws(self) -> np.ndarray:
+        """Every draw scored so far (sampling coordinates), in the order of ``weights``."""
+        return np.concatenate(self._z)
+
+
+def systematic_resample(weights: np.ndarray, n: int, rng) -> np.ndarray:
+    """Indices of ``n`` draws by systematic resampling, in random order."""
+    positions = (rng.random() + np.arange(n)) / n
+    index = np.searchsorted(np.cumsum(weights), positions)
+    return rng.permutation(np.minimum(index, len(weights) - 1))
+
+
+__all__ = [
+    "KHAT_MAX",
+    "ImportanceRun",
+    "IndependenceMove",
+    "first_batch",
+    "psis",
+    "systematic_resample",
+]

@@ -1,0 +1,280 @@
+"""Maximum likelihood for a whole stack of ROIs at once: every ROI advances together.
+
+A Levenberg-Marquardt iteration with Fisher scoring (Levenberg 1944; Marquardt 1963; the
+scoring metric of Smith, Joseph, Rieger & Lidke, Nat. Methods 7 (2010)): per ROI, with ``g`` the
+gradient of ``-log L`` (the PSF Jacobian times the camera's per-pixel score) and ``M`` the
+expected information (the Jacobian weighted by the camera's per-pixel Fisher information), both
+in the coordinates ``u = (x0/a, y0/a, log s_x/a, log s_y/a, log N, b)``, the step solves
+``(M + lambda diag M) delta = -g``; a step that lowers ``-log L`` is taken and ``lambda``
+shrinks tenfold, one that does not is refused and ``lambda`` grows tenfold. A ROI has
+converged when its Newton decrement ``g' M^-1 g`` falls below ``DECREMENT`` (the log-likelihood
+is within ~1e-10 of its maximum, a step far below one standard deviation). All the arithmetic of
+an iteration is one array pass over the active ROIs of a block: the stack's cost is a few dozen
+vectorised likelihood calls, not a Python loop per ROI. Each trial point is evaluated once,
+``-log L`` with its gradient and metric (``evaluate``: one PSF pass, and one camera pass for
+the log-likelihood and the score together), and a ROI keeps those of the point it stands on, so
+a step costs one evaluation whether it is taken or refused.
+
+The box, the flags and the Laplace SDs are those of ``bayespsf.fit_mle`` (same search box, same
+observed information by differences of the analytic gradient), so the two paths give the same
+numbers to the optimisers' tolerance (``tests/inference/test_stack_mle.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+DECREMENT = 1e-10  # Newton decrement (in log-likelihood units) below which a ROI has converged
+STATIONARY = 1e-4  # ... and where no step lowers -log L, the decrement that still counts as one
+MAX_ITERATIONS = 200
+METRIC_FLOOR = 1e-6  # expected photons per pixel (the EMCCD Fisher table's lower end)
+BLOCK = 1024  # ROIs per array pass: the Jacobian of a block of 15 x 15 ROIs is 11 MB
+
+
+def box(roi: int) -> tuple[np.ndarray, np.ndarray]:
+    """The search box in ``u`` (``fit_mle``'s): the centre within one ROI side of the ROI's
+    centre, widths from a/20 to four ROI sides, N from 1e-3 to 1e9, b from 0 to 1e7 photons."""
+    low = np.array([-roi, -roi, np.log(0.05), np.log(0.05), np.log(1e-3), 0.0])
+    high = np.array([roi, roi, np.log(4 * roi), np.log(4 * roi), np.log(1e9), 1e7])
+    return low, high
+
+
+def to_internal(params: np.ndarray, a: float) -> np.ndarray:
+    """``x0 y0 s_x s_y N b`` (..., 6) to ``u``."""
+    u = np.array(params, dtype=np.float64)
+    u[..., :2] /= a
+    u[..., 2:4] = np.log(u[..., 2:4] / a)
+    u[..., 4] = np.log(u[..., 4])
+    return u
+
+
+def from_internal(u: np.ndarray, a: float) -> np.ndarray:
+    """``u`` (..., 6) to ``x0 y0 s_x s_y N b``."""
+    p = np.array(u, dtype=np.float64)
+    p[..., :2] *= a
+    p[..., 2:4] = a * np.exp(p[..., 2:4])
+    p[..., 4] = np.exp(p[..., 4])
+    return p
+
+
+def _chain(p: np.ndarray, a: float) -> np.ndarray:
+    """``d params / d u`` per ROI, shape (n, 6)."""
+    n = len(p)
+    return np.column_stack([np.full(n, a), np.full(n, a), p[:, 2], p[:, 3], p[:, 4], np.ones(n)])
+
+
+def _objective(model, counts, p):
+    """``-log L`` per ROI (n,) at parameters ``p`` (n, 6)."""
+    lam = model.expected(p)
+    return -model.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
+
+
+def _gradient_and_metric(model, counts, p):
+    """Gradient of ``-log L`` and the expected information, both in ``u``: (n, 6), (n, 6, 6)."""
+    lam, jac = model.expected_and_jacobian(p)
+    return _in_internal(model, p, lam, jac, model.camera._score(counts, lam))
+
+
+def evaluate(model, counts, p):
+    """``_objective`` and ``_gradient_and_metric`` at once, the same numbers from one PSF pass
+    and one camera pass (``camera._log_likelihood_and_score``): (n,), (n, 6), (n, 6, 6). The
+    gradient and metric are NaN where ``-log L`` is not finite (never formed there)."""
+    lam, jac = model.expected_and_jacobian(p)
+    log_l, score = model.camera._log_likelihood_and_score(counts, lam)
+    f = -log_l.sum(axis=(-2, -1))
+    finite = np.isfinite(f)
+    if finite.all():
+        return f, *_in_internal(model, p, lam, jac, score)
+    grad, metric = np.full((len(p), 6), np.nan), np.full((len(p), 6, 6), np.nan)
+    grad[finite], metric[finite] = _in_internal(
+        model, p[finite], lam[finite], jac[finite], score[finite]
+    )
+    return f, grad, metric
+
+
+def _in_internal(model, p, lam, jac, score):
+    """The gradient of ``-log L`` (the Jacobian times the per-pixel score) and the expected
+    information, in ``u``, from the pixels' expected counts, Jacobian and score."""
+    # the metric only steers the steps (the optimum is where the gradient vanishes): pixels
+    # below METRIC_FLOOR, where a camera's tabulated information ends, are scored at the floor
+    fisher = model.camera._step_information(np.maximum(lam, METRIC_FLOOR))
+    chain = _chain(p, model.pixel_size)
+    grad = -_contract(jac, score) * chain
+    return grad, _information(jac, fisher) * chain[:, :, None] * chain[:, None, :]
+
+
+def _contract(jac, pixels):
+    """``sum_xy jac[n, k, x, y] pixels[n, x, y]`` (n, 6), as one batched matrix product."""
+    n, pixel_count = len(jac), pixels[0].size if len(pixels) else 0
+    return (jac.reshape(n, 6, pixel_count) @ pixels.reshape(n, pixel_count, 1))[..., 0]
+
+
+def _information(jac, fisher):
+    """``J' diag(F) J`` per ROI (n, 6, 6), as one batched matrix product (BLAS, not einsum's
+    three-operand loop)."""
+    n, pixel_count = len(jac), fisher[0].size if len(fisher) else 0
+    j = jac.reshape(n, 6, pixel_count)
+    return (j * fisher.reshape(n, 1, pixel_count)) @ j.transpose(0, 2, 1)
+
+
+def crlb(model, p) -> np.ndarray:
+    """The Cramér-Rao bound at parameters ``p`` (n, 6): the square roots of the diagonal of the
+    inverse expected information ``J' diag(F) J`` in the parameters (the plug-in error bar
+    localisation software reports at its fit; Smith et al., Nat. Methods 7 (2010)); NaN where
+    the information is singular."""
+    lam, jac = model.expected_and_jacobian(p)
+    fisher = model.camera._fisher_information(np.maximum(lam, METRIC_FLOOR))
+    information = _information(jac, fisher)
+    out = np.full((len(p), 6), np.nan)
+    for i, matrix in enumerate(information):
+        try:
+            out[i] = np.sqrt(np.diagonal(np.linalg.inv(matrix)))
+        except np.linalg.LinAlgError:
+            continue
+    return out
+
+
+def gradient(model, counts, p):
+    """Gradient of ``-log L`` in the parameters ``x0 y0 s_x s_y N b``: (n, 6)."""
+    lam, jac = model.expected_and_jacobian(p)
+    return -_contract(jac, model.camera._score(counts, lam))
+
+
+def observed_information(model, counts, p):
+    """The Hessian of ``-log L`` in the parameters, by central differences of the analytic
+    gradient (forward at b = 0), symmetrised: (n, 6, 6). ``fit_mle``'s steps: 1e-3 pixel in
+    position, 1e-4 relative in s_x, s_y, N, and max(1e-4 b, 1e-4) in b."""
+    a = model.pixel_size
+    n = len(p)
+    steps = np.column_stack(
+        [
+            np.full(n, 1e-3 * a),
+            np.full(n, 1e-3 * a),
+            1e-4 * p[:, 2],
+            1e-4 * p[:, 3],
+            1e-4 * p[:, 4],
+            np.maximum(1e-4 * p[:, 5], 1e-4),
+        ]
+    )
+    hessian = np.empty((n, 6, 6))
+    for k in range(6):
+        upper, lower = p.copy(), p.copy()
+        upper[:, k] += steps[:, k]
+        lower[:, k] -= steps[:, k]
+        if k == 5:
+            lower[:, 5] = np.maximum(lower[:, 5], 0.0)
+        span = upper[:, k] - lower[:, k]
+        hessian[:, k] = (gradient(model, counts, upper) - gradient(model, counts, lower)) / span[
+            :, None
+        ]
+    return 0.5 * (hessian + np.swapaxes(hessian, 1, 2))
+
+
+def maximise(model, counts: np.ndarray, starts: np.ndarray, held=None):
+    """Maximum-likelihood parameters of every ROI of ``counts`` (n, roi, roi) from ``starts``
+    (n, 6), block by block; ``held`` (6,) bool marks parameters kept at their start (the
+    widths, for a fit at a given axial position: ``bayespsf.axial.posterior``).
+
+    Returns ``(params (n, 6), log_likelihood (n,), converged (n,) bool, message (n,) str)``.
+    """
+    n = len(counts)
+    held = np.zeros(6, dtype=bool) if held is None else np.asarray(held, dtype=bool)
+    params, logl = np.empty((n, 6)), np.empty(n)
+    converged, message = np.zeros(n, dtype=bool), np.empty(n, dtype=object)
+    for first in range(0, n, BLOCK):
+        block = slice(first, min(first + BLOCK, n))
+        params[block], logl[block], converged[block], message[block] = _maximise_block(
+            model, counts[block], starts[block], held
+        )
+    return params, logl, converged, message
+
+
+def _maximise_block(model, counts, starts, held):
+    a = model.pixel_size
+    low, high = box(model.roi)
+    u = np.clip(to_internal(starts, a), low, high)
+    # -log L, gradient and metric at each ROI's current point, computed with the trial step
+    # that moved it there: a refused step costs no new evaluation
+    f, gradients, metrics = evaluate(model, counts, from_internal(u, a))
+    damping = np.full(len(u), 1e-3)
+    done, failed = np.zeros(len(u), dtype=bool), np.zeros(len(u), dtype=bool)
+    message = np.full(len(u), f"iteration limit ({MAX_ITERATIONS})", dtype=object)
+    for _ in range(MAX_ITERATIONS):
+        active = np.flatnonzero(~done & np.isfinite(f))
+        if active.size == 0:
+            break
+        ua = u[active]
+        grad, metric = freeze_bounds(ua, gradients[active], metrics[active], low, high, held)
+        diagonal = np.einsum("nkk->nk", metric)
+        decrement = np.einsum("nk,nk->n", grad, _solve(metric, grad))
+        finished = decrement < DECREMENT
+        done[active[finished]] = True
+        message[active[finished]] = "Newton decrement below 1e-10"
+        keep = ~finished
+        active, ua, grad, metric, diagonal = (
+            active[keep],
+            ua[keep],
+            grad[keep],
+            metric[keep],
+            diagonal[keep],
+        )
+        if active.size == 0:
+            break
+        lm = metric + (damping[active][:, None] * diagonal)[:, :, None] * np.eye(6)
+        trial = np.clip(ua + _solve(lm, -grad), low, high)
+        # a step that is not finite (an overflowing metric) is refused like a worse one
+        f_trial = np.full(len(active), np.inf)
+        grad_trial, metric_trial = (
+            np.full((len(active), 6), np.nan),
+            np.full((len(active), 6, 6), np.nan),
+        )
+        real = np.isfinite(trial).all(axis=1)
+        if real.any():
+            f_trial[real], grad_trial[real], metric_trial[real] = evaluate(
+                model, counts[active[real]], from_internal(trial[real], a)
+            )
+        better = np.isfinite(f_trial) & (f_trial <= f[active])
+        moved = active[better]
+        u[moved], f[moved] = trial[better], f_trial[better]
+        gradients[moved], metrics[moved] = grad_trial[better], metric_trial[better]
+        damping[active] = np.where(better, damping[active] / 10, damping[active] * 10)
+        stuck = damping[active] > 1e12  # no step lowers -log L: stationary in float64
+        done[active[stuck]] = True
+        flat = decrement[keep] < STATIONARY
+        message[active[stuck & flat]] = "no step lowers -log L (stationary to rounding)"
+        message[active[stuck & ~flat]] = "no step lowers -log L away from a stationary point"
+        failed[active[stuck & ~flat]] = True
+    p = from_internal(u, a)
+    converged = done & ~failed & np.isfinite(f)
+    message[~np.isfinite(f)] = "non-finite estimate"
+    return p, -f, converged, message
+
+
+def freeze_bounds(u, grad, metric, low, high, held=False):
+    """Projected Newton (Bertsekas, SIAM J. Control Optim. 20 (1982)): a coordinate on a bound
+    of the box whose gradient points out of it is held there, its gradient zeroed and its
+    metric row and column made the identity, so that a maximum on the boundary (b = 0 for a
+    spot without background) converges instead of pushing at the bound. Coordinates marked
+    ``held`` are held so everywhere."""
+    out = ((u <= low) & (grad > 0)) | ((u >= high) & (grad < 0)) | held
+    if not out.any():
+        return grad, metric
+    grad = np.where(out, 0.0, grad)
+    keep = ~out
+    metric = metric * (keep[:, :, None] & keep[:, None, :]) + np.eye(6) * out[:, :, None]
+    return grad, metric
+
+
+def _solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve ``matrix x = rhs`` per ROI; a singular system gives a zero step (that ROI is then
+    flagged by its decrement or damping)."""
+    try:
+        return np.linalg.solve(matrix, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.zeros_like(rhs)
+        for i in range(len(rhs)):
+            try:
+                out[i] = np.linalg.solve(matrix[i], rhs[i])
+            except np.linalg.LinAlgError:
+                continue
+        return out

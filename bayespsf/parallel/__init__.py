@@ -1,0 +1,17 @@
+"""Many ROIs: reproducible (one seed per molecule, whatever the workers), resumable (a
+``Store`` written molecule by molecule), on local processes or a Dask cluster."""
+
+from bayespsf.parallel.batch import sample_many
+from bayespsf.parallel.executors import local_executor, molecule_seed, run_tasks, task_runner
+from bayespsf.parallel.joint import joint_posteriors
+from bayespsf.parallel.store import Store
+
+__all__ = [
+    "Store",
+    "joint_posteriors",
+    "local_executor",
+    "molecule_seed",
+    "run_tasks",
+    "sample_many",
+    "task_runner",
+]

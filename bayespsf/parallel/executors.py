@@ -1,0 +1,242 @@
+"""What runs many tasks: this process, a pool of local worker processes that die with their
+parent, or a Dask ``distributed`` cluster (a ``Client``, its executor, or a scheduler address),
+and the seed of each molecule, which depends on the run's seed and the molecule's index only,
+never on the number of workers or the order in which they finish."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing
+import os
+import sys
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from bayespsf.errors import BayespsfInputError
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+SCHEDULER_TIMEOUT = 10.0  # seconds to reach a Dask scheduler before the address is called wrong
+
+
+def _parallelism(runner) -> int:
+    """The number of tasks ``runner`` runs at once (1 in this process)."""
+    if runner is None:
+        return 1
+    client = getattr(runner, "client", None) or getattr(runner, "_client", None)  # Dask's
+    if client is not None and hasattr(client, "scheduler_info"):
+        return max(1, len(client.scheduler_info().get("workers", {})))
+    return int(getattr(runner, "_max_workers", None) or os.cpu_count() or 1)
+
+
+def molecule_seed(seed: int, index: int) -> int:
+    """The seed of molecule ``index`` in a run seeded with ``seed``.
+
+    Parameters
+    ----------
+    seed : int
+        The run's seed (>= 0).
+    index : int
+        The molecule's index in the stack (>= 0).
+
+    Returns
+    -------
+    int
+        A 64-bit seed, from NumPy's ``SeedSequence`` of the pair, so nearby seeds and indices
+        give unrelated streams; it depends on ``seed`` and ``index`` only, never on the
+        number of workers or the order in which they finish.
+
+    See Also
+    --------
+    sample_many : seeds molecule ``i`` with ``molecule_seed(seed, i)``.
+    """
+    state = np.random.SeedSequence([int(seed), int(index)]).generate_state(2, np.uint32)
+    return int(state[0]) << 32 | int(state[1])
+
+
+def _die_with_parent(parent: int) -> None:
+    """Worker initializer: ask the kernel to kill this worker when its parent dies (Linux
+    ``prctl(PR_SET_PDEATHSIG, SIGKILL)``), so that a killed run leaves no orphaned workers; if
+    the parent is already gone, exit."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)
+
+
+def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
+    """A pool of local worker processes to pass to several ``sample_many`` runs.
+
+    Parameters
+    ----------
+    workers : int, optional
+        Worker processes (>= 1); default one per core.
+
+    Returns
+    -------
+    concurrent.futures.ProcessPoolExecutor
+        Its workers, and their cached EMCCD tables, are reused from run to run; they die
+        with this process (Linux). Shut it down when done.
+
+    Raises
+    ------
+    BayespsfInputError
+        If ``workers`` is below 1.
+
+    See Also
+    --------
+    task_runner : what ``sample_many`` runs its tasks on.
+
+    Notes
+    -----
+    Workers are forked, the fastest start, while this process runs one thread; once threads
+    run (a Dask client, a progress monitor), where a fork is unsafe, they start from a
+    forkserver, which re-imports the main module.
+    """
+    workers = os.cpu_count() if workers is None else int(workers)
+    if workers < 1:
+        raise BayespsfInputError(f"workers must be >= 1, got {workers!r}")
+    # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
+    # client, a progress monitor): then forkserver, which re-imports the main module
+    method = "fork" if threading.active_count() == 1 else "forkserver"
+    context = multiprocessing.get_context(method)
+    # a forkserver's workers are its children: they die with it, and it ends with this process
+    parent = os.getpid() if method == "fork" else None
+    return cf.ProcessPoolExecutor(
+        workers, mp_context=context, initializer=_die_with_parent_of, initargs=(parent,)
+    )
+
+
+def _die_with_parent_of(parent: int | None) -> None:
+    _die_with_parent(os.getppid() if parent is None else parent)
+
+
+def _executor(executor, workers):
+    """(executor, owned): what runs the tasks, and whether sample_many must shut it down."""
+    if executor is None:
+        if workers == 1:
+            return None, False
+        return local_executor(workers), True
+    if workers is not None:
+        raise BayespsfInputError("give either executor or workers, not both")
+    if isinstance(executor, str):
+        from distributed import Client
+
+        try:
+            client = Client(executor, timeout=SCHEDULER_TIMEOUT)
+        except (OSError, TimeoutError) as exc:
+            raise BayespsfInputError(
+                f"no Dask scheduler answered at {executor!r} within {SCHEDULER_TIMEOUT:g} s "
+                f"({type(exc).__name__}); check the address and that the scheduler runs"
+            ) from None
+        return _AddressExecutor(client), True
+    if hasattr(executor, "get_executor"):  # a dask.distributed.Client
+        return executor.get_executor(), False
+    if isinstance(executor, cf.Executor):
+        return executor, False
+    raise BayespsfInputError(
+        "executor must be None, a concurrent.futures.Executor, a dask.distributed Client or "
+        f"a scheduler address; got {type(executor).__name__}"
+    )
+
+
+@contextmanager
+def task_runner(
+    executor: cf.Executor | Client | str | None, workers: int | None
+) -> Iterator[cf.Executor | None]:
+    """What runs a function's tasks, shut down on leaving when it was made here.
+
+    Parameters
+    ----------
+    executor : concurrent.futures.Executor, distributed.Client, str or None
+        ``None`` (local processes, or this process with ``workers=1``), an executor, a Dask
+        ``Client`` (its executor) or a Dask scheduler's address (a client is made and
+        closed here).
+    workers : int, optional
+        Local processes when ``executor`` is None (default: one per core).
+
+    Yields
+    ------
+    concurrent.futures.Executor or None
+        The runner to pass to ``run_tasks``: None for this process. One made here is shut
+        down on leaving, whatever went wrong.
+
+    Raises
+    ------
+    BayespsfInputError
+        If both ``executor`` and ``workers`` are given, ``executor`` is of another kind, or
+        no scheduler answers at the address within ``SCHEDULER_TIMEOUT`` seconds.
+
+    See Also
+    --------
+    run_tasks : runs a function's tasks on the runner.
+    """
+    runner, owned = _executor(executor, workers)
+    try:
+        yield runner
+    finally:
+        if owned:
+            runner.shutdown(wait=True, cancel_futures=True)
+
+
+class _AddressExecutor:
+    """The executor of a Client that sample_many made from a scheduler address (and closes)."""
+
+    def __init__(self, client):
+        self.client, self.inner = client, client.get_executor()
+
+    def submit(self, fn, *args):
+        return self.inner.submit(fn, *args)
+
+    def shutdown(self, wait=True, cancel_futures=False):
+        self.inner.shutdown(wait=wait)
+        self.client.close()
+
+
+def run_tasks[T, R](
+    function: Callable[[T], R], tasks: Iterable[T], runner: cf.Executor | None
+) -> Iterator[R]:
+    """``function`` over ``tasks``: in this process, or on ``runner`` as they finish.
+
+    Parameters
+    ----------
+    function : callable
+        One task to its result (picklable, with its tasks and results, for a process pool
+        or Dask).
+    tasks : iterable
+        The tasks.
+    runner : concurrent.futures.Executor or None
+        From ``task_runner``; None runs the tasks here, in order and lazily.
+
+    Returns
+    -------
+    iterator
+        The results: in the order of ``tasks`` in this process, in the order they finish
+        on a runner (every task is submitted at once).
+
+    See Also
+    --------
+    task_runner : the runner.
+    """
+    if runner is None:
+        return map(function, tasks)
+    futures = [runner.submit(function, task) for task in tasks]
+    return (f.result() for f in cf.as_completed(futures))
+
+
+__all__ = [
+    "SCHEDULER_TIMEOUT",
+    "local_executor",
+    "molecule_seed",
+    "run_tasks",
+    "task_runner",
+]

@@ -1,0 +1,280 @@
+"""The `bayespsf` command."""
+
+import subprocess
+import sys
+
+import pytest
+
+from bayespsf import cli
+from bayespsf.cameras import EMCCD
+from bayespsf.cli import selfcheck
+
+
+def test_selfcheck_moments_are_exact():
+    table = selfcheck.moments_table(EMCCD(**selfcheck.DEFAULT_CAMERA))
+    assert (table.abs() < 1e-8).all().all()
+
+
+def test_selfcheck_command_prints_every_tier(capsys):
+    assert cli.main(["selfcheck"]) == 0
+    out = capsys.readouterr().out
+    for tier in ("exact", "high-gain", "gaussian", "poisson"):
+        assert tier in out
+
+
+def test_help_and_unknown_command():
+    result = subprocess.run(
+        [sys.executable, "-m", "bayespsf.cli", "--help"], capture_output=True, text=True
+    )
+    assert result.returncode == 0 and "selfcheck" in result.stdout
+    with pytest.raises(SystemExit):
+        cli.main(["nonsense"])
+
+
+def test_simulate_command_writes_counts_and_truth(tmp_path, capsys):
+    import numpy as np
+    import pandas as pd
+
+    from bayespsf import load_scene, simulate
+
+    assert (
+        cli.main(["simulate", "paper-fig3", "-n", "7", "--seed", "3", "--out", str(tmp_path / "a")])
+        == 0
+    )
+    counts = np.load(tmp_path / "a.npy")
+    truth = pd.read_csv(tmp_path / "a.truth.csv", index_col="image")
+    expected, expected_truth = simulate(load_scene("paper-fig3"), 7, seed=3)
+    assert np.array_equal(counts, expected)
+    assert np.allclose(truth.drop(columns="photon_unit").to_numpy(), expected_truth.to_numpy())
+    assert set(truth["photon_unit"]) == {"photoelectrons"}
+    assert "MultinomialPhotons" in capsys.readouterr().out
+
+
+def test_simulate_command_scene_file_and_errors(tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_text("[geometry]\nroi = 5\n")
+    assert cli.main(["simulate", str(path), "-n", "2", "--out", str(tmp_path / "b")]) == 0
+    with pytest.raises(SystemExit, match="no scene file"):
+        cli.main(["simulate", str(tmp_path / "missing.toml")])
+    path.write_text("[geometry]\nroi = -5\n")
+    with pytest.raises(SystemExit, match=r"geometry\.roi"):
+        cli.main(["simulate", str(path)])
+
+
+def test_fit_command_tif_and_camera_file(tmp_path, capsys):
+    import numpy as np
+    import pandas as pd
+    import tifffile
+
+    from bayespsf import load_scene, simulate
+    from bayespsf.inference import Posterior
+
+    counts, _ = simulate(load_scene("emccd-typical"), 2, seed=4)
+    tifffile.imwrite(tmp_path / "rois.tif", counts.astype(np.float32))
+    camera = tmp_path / "camera.toml"
+    camera.write_text(
+        "[geometry]\npixel_size = 100.0\n[camera]\nkind = 'emccd'\ngain = 200.0\n"
+        "readout_sd = 50.0\noffset = 100.0\ne_per_adu = 12.0\n"
+    )
+    out = tmp_path / "fit"
+    args = ["fit", str(tmp_path / "rois.tif"), "--camera", str(camera), "--ess", "50"]
+    assert cli.main([*args, "--out", str(out), "--workers", "1"]) == 0
+    summary = pd.read_csv(out / "summary.csv")
+    assert len(summary) == 2 and {"s_x_mean", "s_x_sd", "s_x_q0975", "converged"} <= set(summary)
+    post = Posterior.load(out / "molecule-000001.nc")
+    assert post.draws()["s_x"].mean() == pytest.approx(summary.loc[1, "s_x_mean"], rel=1e-12)
+    assert cli.main([*args, "--out", str(out), "--workers", "1"]) == 0  # resumes: nothing to do
+    assert "ROI 1 (importance): converged" in capsys.readouterr().out  # auto, the default
+    checked = tmp_path / "fit-checked"
+    assert cli.main([*args, "--check", "--out", str(checked), "--workers", "1"]) == 0
+    assert pd.read_csv(checked / "summary.csv")["gof_p"].between(0, 1).all()
+    assert "gof_p" not in summary
+    chain = tmp_path / "fit-mcmc"
+    args = [*args[:-1], "400", "--method", "mcmc", "--out", str(chain), "--workers", "1"]
+    assert cli.main(args) == 0
+    assert set(pd.read_csv(chain / "summary.csv")["method"]) == {"mcmc"}
+
+
+def test_fit_command_errors_name_the_file(tmp_path):
+    import numpy as np
+
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.zeros((3, 14, 14)))
+    with pytest.raises(SystemExit, match=r"bad\.npy.*odd size"):
+        cli.main(["fit", str(bad), "--scene", "ideal"])
+    wrong = tmp_path / "rois.csv"
+    wrong.write_text("1,2\n")
+    with pytest.raises(SystemExit, match=r"rois\.csv.*unknown file type"):
+        cli.main(["fit", str(wrong), "--scene", "ideal"])
+    small = tmp_path / "small.npy"
+    np.save(small, np.zeros((1, 9, 9)))
+    with pytest.raises(SystemExit, match="declares 15"):
+        cli.main(["fit", str(small), "--scene", "ideal"])
+
+
+def _run(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "bayespsf.cli", *args], capture_output=True, text=True, cwd=cwd
+    )
+
+
+def test_help_loads_no_numerical_library():
+    # `bayespsf --help` took 3.5-4 s because the package imported NumPy, SciPy, ArviZ and numba
+    code = (
+        "import sys, bayespsf.cli\n"
+        "bayespsf.cli.build_parser().format_help()\n"
+        "print(sorted(m for m in ('numpy', 'scipy', 'arviz', 'pandas', 'numba', 'emcee')"
+        " if m in sys.modules))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.stdout.strip() == "[]", result.stdout + result.stderr
+
+
+def test_every_help_text_prints_plain_percent_signs():
+    import argparse
+
+    parser = cli.build_parser()
+    (commands,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    for name, sub in commands.choices.items():
+        assert "%%" not in sub.format_help(), name
+
+
+@pytest.mark.parametrize("command", ["fit", "simulate", "demo"])
+def test_out_that_is_or_lies_under_a_file_is_one_line(tmp_path, command):
+    import numpy as np
+
+    from bayespsf import load_scene, simulate
+
+    counts, _ = simulate(load_scene("ideal"), 1, seed=0)
+    np.save(tmp_path / "rois.npy", counts)
+    blocker = tmp_path / "taken"
+    blocker.write_text("a file")
+    args = {
+        "fit": ["fit", "rois.npy", "--scene", "ideal", "--workers", "1"],
+        "simulate": ["simulate", "ideal", "-n", "1"],
+        "demo": ["demo"],
+    }[command]
+    cases = [("taken/inner", "lies under")]
+    if command != "simulate":  # simulate's --out is a path stem: "taken" writes taken.npy
+        cases.append(("taken", "is a file"))
+    for out, words in cases:
+        result = _run(*args, "--out", out, cwd=tmp_path)
+        assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+        assert result.stderr.startswith(f"bayespsf: --out {out}") and words in result.stderr
+
+
+def test_camera_file_without_a_camera_is_an_error_not_a_photon_camera(tmp_path):
+    # a camera file with geometry only was read as a photon-counting camera: N = 15 298 for a
+    # 1 000-photon EMCCD spot. The counts' units depend on the camera, so it is never assumed
+    import numpy as np
+
+    from bayespsf import load_scene, simulate
+
+    counts, _ = simulate(load_scene("emccd-typical"), 1, seed=0)
+    np.save(tmp_path / "rois.npy", counts)
+    camera = tmp_path / "camera.toml"
+    for text in (
+        "[geometry]\npixel_size = 100.0\n",
+        "[geometry]\npixel_size = 100.0\n[camera]\ngain = 200.0\n",
+    ):
+        camera.write_text(text)
+        with pytest.raises(SystemExit, match=r"camera\.toml: no \[camera\] table with its kind"):
+            cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+    camera.write_text("[camera]\nkind = 'photon'\n")
+    with pytest.raises(SystemExit, match=r"no \[geometry\] pixel_size"):
+        cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+    # an EMCCD file with its kind only ran with gain 100, offset 0, e_per_adu 1: N 6x too low
+    camera.write_text("[geometry]\npixel_size = 100.0\n[camera]\nkind = 'emccd'\ngain = 200.0\n")
+    with pytest.raises(SystemExit, match=r"kind 'emccd' must state offset, readout_sd, e_per_ad"):
+        cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+    camera.write_text("geometry = 3\n[camera]\nkind = 'photon'\n")
+    with pytest.raises(SystemExit, match=r"\[geometry\] must be a table"):
+        cli.main(["fit", str(tmp_path / "rois.npy"), "--camera", str(camera)])
+
+
+def test_detect_sizes_and_spot_widths_that_cannot_work_are_one_line(tmp_path):
+    import numpy as np
+
+    np.save(tmp_path / "movie.npy", np.full((80, 64, 64), 100, np.uint16))
+    camera = tmp_path / "camera.toml"
+    camera.write_text("[geometry]\npixel_size = 100.0\n[camera]\nkind = 'photon'\n")
+    base = ["detect", str(tmp_path / "movie.npy"), "--camera", str(camera)]
+    for extra, words in (
+        (["--fit", "14"], "fit must be odd"),
+        (["--psf-sd", "1e6"], r"psf_sd \(1e\+06 nm = 1e\+04 pixels of 100 nm\)"),
+    ):
+        with pytest.raises(SystemExit, match=words):
+            cli.main([*base, "--psf-sd", "120", *extra])
+
+
+def test_fit_takes_the_truth_table_simulate_writes_and_keeps_logs_clean(tmp_path):
+    # the coverage columns of docs/scale.md from the command line; the progress bar only on a
+    # terminal (it was written into log files)
+    import pandas as pd
+
+    assert _run("simulate", "ideal", "-n", "2", "--out", "sim/a", cwd=tmp_path).returncode == 0
+    result = _run(
+        "fit",
+        "sim/a.npy",
+        "--scene",
+        "ideal",
+        "--truth",
+        "sim/a.truth.csv",
+        "--workers",
+        "1",
+        "--ess",
+        "100",
+        "--method",
+        "importance",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "molecule/s" not in result.stderr and "\r" not in result.stderr
+    summary = pd.read_csv(tmp_path / "bayespsf-fit" / "summary.csv")
+    truth = pd.read_csv(tmp_path / "sim" / "a.truth.csv")
+    assert summary["s_x_truth"].tolist() == pytest.approx(truth["s_x"].tolist())
+    assert summary["s_x_rank"].between(0, 99).all()
+    bad = _run(
+        "fit", "sim/a.npy", "--scene", "ideal", "--truth", "sim/a.npy", "--out", "x", cwd=tmp_path
+    )
+    assert bad.returncode == 1 and bad.stderr.startswith("bayespsf: --truth sim/a.npy")
+
+
+def test_fit_reports_a_refused_roi_and_fits_the_rest(tmp_path):
+    import numpy as np
+
+    from bayespsf import load_scene, simulate
+
+    counts, _ = simulate(load_scene("ideal"), 3, seed=0)
+    counts[1] = 4.0
+    np.save(tmp_path / "rois.npy", counts)
+    result = _run(
+        "fit",
+        "rois.npy",
+        "--scene",
+        "ideal",
+        "--workers",
+        "1",
+        "--method",
+        "importance",
+        "--ess",
+        "100",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "ROI 1: refused: every pixel has the same value" in result.stdout
+    assert "ROI 2 (importance)" in result.stdout
+
+
+def test_fit_settings_that_would_never_end_are_one_line(tmp_path):
+    # `--ess nan` ran forever
+    import numpy as np
+
+    from bayespsf import load_scene, simulate
+
+    counts, _ = simulate(load_scene("ideal"), 1, seed=0)
+    np.save(tmp_path / "rois.npy", counts)
+    for option, value in (("--ess", "nan"), ("--ess", "-5"), ("--max-seconds", "0")):
+        result = _run("fit", "rois.npy", "--scene", "ideal", option, value, cwd=tmp_path)
+        assert result.returncode == 1 and result.stderr.startswith("bayespsf: "), result.stderr
+        assert "Traceback" not in result.stderr

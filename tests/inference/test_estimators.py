@@ -1,0 +1,200 @@
+"""Least squares, maximum likelihood and Laplace fits on simulated molecules; gain calibration."""
+
+import numpy as np
+import pytest
+
+from bayespsf import Scene, load_scene, simulate
+from bayespsf.calibration import calibrate_gain
+from bayespsf.inference import covariance, fit_lsq, fit_mle, start_values
+from bayespsf.inference.estimators import lsq_first_order
+from bayespsf.model import Model
+from bayespsf.theory import crlb, scene_params
+
+COLUMNS = ["x0", "y0", "s_x", "s_y", "N", "b"]
+
+
+def fixed(name, **emitter):
+    return load_scene(name).replace(emitter={"position": "fixed", **emitter})
+
+
+@pytest.mark.parametrize("name", ["ideal", "emccd-typical"])
+def test_lsq_spread_matches_its_first_order_prediction(name):
+    # N = 5000: second-order terms are ~1/N; the SD's Monte Carlo SE is SD / sqrt(2 (n - 1));
+    # allowed: 5 SE + 3% for the neglected higher orders
+    scene = fixed(name, photons=5000.0)
+    model = Model.from_scene(scene)
+    limit, cov = lsq_first_order(model, scene_params(scene))
+    counts, _ = simulate(scene, 2000, seed=31)
+    fits = fit_lsq(counts, model)
+    assert fits["converged"].all()
+    est = fits[COLUMNS].to_numpy()
+    sd_pred = np.sqrt(np.diag(cov))
+    n = len(est)
+    assert np.all(np.abs(est.mean(0) - limit) <= 5 * sd_pred / np.sqrt(n) + 1e-3 * sd_pred)
+    se = est.std(0, ddof=1) / np.sqrt(2 * (n - 1))
+    assert np.all(np.abs(est.std(0, ddof=1) - sd_pred) <= 5 * se + 0.03 * sd_pred)
+    # the least-squares widths estimate the pixelated width, about sqrt(s0^2 + a^2 / 12)
+    assert limit[2] > scene.emitter["s0x"]
+
+
+@pytest.mark.parametrize("name", ["ideal", "emccd-typical"])
+def test_mle_unbiased_and_at_the_crlb_at_high_n(name):
+    # N = 1e4: MLE bias and excess variance are O(1/N) (~1e-4 relative here); 5 SE tolerances
+    scene = fixed(name, photons=1e4)
+    model = Model.from_scene(scene)
+    counts, _ = simulate(scene, 800, seed=32)
+    fits = fit_mle(counts, model)
+    assert fits["converged"].all()
+    truth = scene_params(scene)
+    bound = crlb(scene).to_numpy()
+    est = fits[COLUMNS].to_numpy()
+    n = len(est)
+    assert np.all(np.abs(est.mean(0) - truth) <= 5 * bound / np.sqrt(n))
+    se = bound / np.sqrt(2 * (n - 1))
+    assert np.all(np.abs(est.std(0, ddof=1) - bound) <= 5 * se + 0.01 * bound)
+    # the Laplace SDs of single molecules agree with the bound on average (within 3%)
+    laplace = fits[[f"sd_{c}" for c in COLUMNS]].to_numpy().mean(0)
+    assert np.allclose(laplace, bound, rtol=0.03)
+
+
+HARD = {
+    "N = 20": dict(emitter={"photons": 20.0}),
+    "b = 0": dict(background={"kind": "none"}),
+    "PSF on the ROI edge": dict(emitter={"x0": 700.0}),
+    "a/s0 = 0.2": dict(geometry={"pixel_size": 26.0, "roi": 31}),
+    "a/s0 = 3": dict(geometry={"pixel_size": 390.0, "roi": 7}),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HARD))
+def test_hard_cases_finite_or_flagged(case):
+    scene = fixed("emccd-typical").replace(**HARD[case])
+    model = Model.from_scene(scene)
+    counts, _ = simulate(scene, 40, seed=33)
+    for fits in (fit_lsq(counts, model), fit_mle(counts, model)):
+        assert len(fits) == 40  # nothing dropped
+        values = fits[COLUMNS].to_numpy()
+        finite = np.all(np.isfinite(values), axis=1)
+        assert np.all(finite | ~fits["converged"].to_numpy())
+        assert fits["message"].map(lambda m: isinstance(m, str) and len(m) > 0).all()
+
+
+def test_mle_with_the_exact_tier_matches_the_table_tier():
+    # the exact tier's closed-form score on a 2-D ROI; the table tier is within 1e-4 of it in
+    # log p, so the two maxima agree to a small fraction of the CRLB
+    scene = fixed("emccd-typical")
+    counts, _ = simulate(scene, 1, seed=35)
+    exact = fit_mle(counts, Model.from_scene(scene, likelihood="exact"))
+    table = fit_mle(counts, Model.from_scene(scene, likelihood="table"))
+    assert exact["converged"].all() and table["converged"].all()
+    bound = crlb(scene).to_numpy()
+    assert np.all(np.abs(exact[COLUMNS].to_numpy() - table[COLUMNS].to_numpy()) < 0.02 * bound)
+
+
+def test_all_zero_roi_is_refused_by_name():
+    model = Model.from_scene(load_scene("ideal"))
+    fits = fit_mle(np.zeros((2, 15, 15)), model)
+    assert (fits["status"] == "refused").all() and fits["message"].str.contains("same value").all()
+    with pytest.raises(ValueError, match="same value"):
+        model.check_counts(np.zeros((2, 15, 15)))
+
+
+def test_start_values_are_close_for_a_bright_spot():
+    scene = fixed("ideal", photons=5000.0, x0=60.0, y0=-40.0)
+    model = Model.from_scene(scene)
+    counts, _ = simulate(scene, 50, seed=34)
+    start = start_values(model.to_photons(counts), model).mean(0)
+    assert start[0] == pytest.approx(60.0, abs=15) and start[1] == pytest.approx(-40.0, abs=15)
+    # second moments include the pixel (a^2/12) and background residue: within 30%
+    assert start[2] == pytest.approx(130.0, rel=0.3) and start[4] == pytest.approx(5000, rel=0.2)
+
+
+def test_bad_counts_are_named():
+    model = Model.from_scene(load_scene("ideal"))
+    with pytest.raises(ValueError, match="counts"):
+        fit_lsq(np.zeros((2, 9, 9)), model)
+    nan = fit_mle(np.full((15, 15), np.nan), model).iloc[0]
+    assert nan["status"] == "refused" and "NaN or infinite" in nan["message"]
+    with pytest.raises(ValueError, match=r"counts.*complex"):
+        fit_mle(np.ones((15, 15)) + 1j, model)
+    noiseless = Model.from_scene(Scene.from_dict({"camera": {"kind": "emccd", "gain": 100.0}}))
+    below = fit_mle(np.arange(225.0).reshape(15, 15) - 1.0, noiseless).iloc[0]
+    assert below["status"] == "refused" and "below the offset" in below["message"]
+
+
+GAIN_SCENE = {
+    "geometry": {"roi": 11, "pixel_size": 100.0},
+    "emitter": {"s0x": 120.0, "s0y": 120.0},
+    "background": {"kind": "poisson", "mean": 5.0},
+    "camera": {
+        "kind": "emccd",
+        "gain": 100.0,
+        "readout_sd": 30.0,
+        "offset": 100.0,
+        "e_per_adu": 5.0,
+    },
+}
+
+
+@pytest.mark.parametrize("photons,pixels", [(2000.0, 9), (60.0, 1)])
+def test_gain_calibration_recovers_adu_per_photon(photons, pixels):
+    # 30 simulated movies of 500 frames; true M = gain / e_per_adu = 20 ADU per photon; the
+    # mean of the estimates within 5 standard errors of 20 (Eq. photonConv is unbiased to first
+    # order); at low SNR only the centre pixel is used
+    scene = Scene.from_dict(
+        {**GAIN_SCENE, "emitter": {**GAIN_SCENE["emitter"], "photons": photons}}
+    )
+    results = [calibrate_gain(simulate(scene, 500, seed=k)[0]) for k in range(30)]
+    m = np.array([r.adu_per_photon for r in results])
+    assert abs(m.mean() - 20.0) <= 5 * m.std(ddof=1) / np.sqrt(len(m))
+    assert all(len(r.pixel_estimates) == pixels for r in results)
+    assert all(r.centre == (5, 5) for r in results)
+
+
+def test_gain_calibration_bad_movies():
+    with pytest.raises(ValueError, match="movie"):
+        calibrate_gain(np.zeros((2, 11, 11)))
+    with pytest.raises(ValueError, match="movie"):
+        calibrate_gain(np.ones((10, 11, 11)))  # nothing brighter than the background
+
+
+def test_laplace_covariance_is_kept_with_the_sds():
+    scene = load_scene("emccd-typical")
+    counts, _ = simulate(scene, 2, seed=4)
+    fits = fit_mle(counts, Model.from_scene(scene))
+    cov = covariance(fits)
+    assert cov.shape == (2, 6, 6)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2))
+    sds = fits[[f"sd_{c}" for c in COLUMNS]].to_numpy()
+    np.testing.assert_allclose(np.sqrt(np.diagonal(cov, axis1=1, axis2=2)), sds, rtol=1e-12)
+
+
+def test_a_bad_roi_is_a_row_not_an_exception_for_the_stack():
+    # picasso fits the rest of a stack with a constant or saturated ROI; so do we, and say why
+    scene = load_scene("emccd-typical")
+    counts, _ = simulate(scene, 4, seed=4)
+    counts[1] = 500.0  # constant
+    counts[2, 7, 7] = scene.camera["saturation"]  # saturated
+    model = Model.from_scene(scene)
+    for fit in (fit_mle, fit_lsq):
+        fits = fit(counts, model)
+        assert fits["status"].tolist() == ["converged", "refused", "refused", "converged"]
+        assert "same value" in fits.loc[1, "message"] and "saturated" in fits.loc[2, "message"]
+        assert fits.loc[[1, 2], list(COLUMNS)].isna().all().all()
+        assert fits.loc[[0, 3], list(COLUMNS)].notna().all().all()
+
+
+def test_fit_tables_print_concatenate_and_save(tmp_path):
+    # repr() raised under pandas 2.3 (a NumPy array in attrs) and pd.concat of two results failed
+    import pandas as pd
+
+    scene = load_scene("ideal")
+    model = Model.from_scene(scene)
+    a = fit_mle(simulate(scene, 2, seed=1)[0], model)
+    b = fit_mle(simulate(scene, 3, seed=2)[0], model)
+    both = pd.concat([a, b], ignore_index=True)
+    assert len(both) == 5 and "x0" in repr(both) and not both.attrs
+    both.to_csv(tmp_path / "fits.csv", index=False)
+    back = pd.read_csv(tmp_path / "fits.csv")
+    np.testing.assert_allclose(covariance(back), covariance(both), rtol=1e-12)
