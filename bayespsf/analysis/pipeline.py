@@ -36,19 +36,31 @@ from bayespsf.analysis.localizations import localizations
 from bayespsf.analysis.misfit import mean_residuals, width_by_window
 from bayespsf.analysis.report import report_markdown
 from bayespsf.analysis.width_spread import width_spread
+from bayespsf.axial import check_calibration
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import fit_lsq, fit_mle
 from bayespsf.inference.gof import check_discrepancy
 from bayespsf.io import write_locs
+from bayespsf.io.run_record import check_folder, claim_folder, read_copies
 from bayespsf.model import Model
 from bayespsf.movie import FoundMolecules, Movie, Rules, find_molecules, iter_rois
 from bayespsf.movie.extract import open_movie
-from bayespsf.movie.pipeline import write as write_selection
+from bayespsf.movie.pipeline import SELECTION_FILES, selection_run, write_tables
 from bayespsf.parallel import joint_posteriors, sample_many
 from bayespsf.psf import PARAMETER_NAMES, DefocusCalibration
 
 if TYPE_CHECKING:
     from distributed import Client
+
+
+#: What ``analyze`` writes into its folder (with ``run.json`` and the files it copies).
+ANALYSIS_FILES = (
+    *SELECTION_FILES,
+    *("locs.hdf5", "locs.yaml", "locs.csv", "locs.parquet", "molecules.csv", "report.md"),
+    *("consistency.csv", "width_spread.csv", "width_by_window.csv", "posteriors"),
+    *("detections.png", "traces.png", "zscores.png", "width_precision.png", "gof_p.png"),
+    "residuals.png",
+)
 
 
 @dataclass
@@ -171,6 +183,8 @@ def analyze(
     z_range: tuple[float, float] = (-800.0, 800.0),
     files: dict[str, Path] | None = None,
     gof_discrepancy: str = "likelihood",
+    force: bool = False,
+    copies: dict[str, str | Path] | None = None,
 ) -> Analysis:
     """Analyse a movie of immobile molecules end to end: selection, posteriors, checks, files.
 
@@ -185,9 +199,11 @@ def analyze(
         The spot's SD in nm: the detector's template and the traces' aperture
         (``find_molecules``).
     out : str or Path
-        The folder every file goes into (made if missing). The posteriors' store is
-        ``out/posteriors``: a rerun with the same ``out`` continues, and a killed run loses
-        no finished ROI.
+        The folder every file goes into (made if missing), with the run record ``run.json``
+        (``bayespsf.io.run_record``: the movie's fingerprint, the camera, every setting
+        that changes the results, ``copies``). The posteriors' store is ``out/posteriors``:
+        a rerun of the same run continues, and a killed run loses no finished ROI; a folder
+        that holds another run's results is refused before anything is computed.
     roi : int, default 25
         Odd side in pixels of the cut around each molecule for detection, traces and the
         selection's fits (the paper's 25 x 25; its periphery gives the background).
@@ -232,6 +248,13 @@ def analyze(
         The goodness-of-fit test's discrepancy (``bayespsf.inference.gof.DISCREPANCIES``;
         ``"pearson"`` is calibrated at a background of a few photons per pixel, where the
         default is conservative).
+    force : bool, default False
+        Replace another run's results in ``out``: the files this run writes
+        (``ANALYSIS_FILES``), ``posteriors/`` and the files the folder's record lists are
+        removed before writing (nothing else in the folder); the same run starts afresh.
+    copies : dict of str to path, optional
+        Files to copy verbatim into ``out`` by their name there (the command's camera file,
+        as ``camera.toml``): part of the run's record, listed with ``files``.
 
     Returns
     -------
@@ -272,7 +295,9 @@ def analyze(
     Raises
     ------
     BayespsfInputError
-        An unknown ``gof_discrepancy``, no molecule passing the selection rules (naming
+        ``out`` is or lies under a file; ``out`` holds another run's results
+        (``bayespsf.io.run_record.RunConflict``, naming what differs); an unknown
+        ``gof_discrepancy``; no molecule passing the selection rules (naming
         ``selection.md``), or any error of the stages (``find_molecules``, ``sample_many``:
         sampler options, executor; ``z_posteriors``).
 
@@ -331,11 +356,22 @@ def analyze(
     check_discrepancy("gof_discrepancy", gof_discrepancy)
     if gof_discrepancy != "likelihood":
         provenance = {**(provenance or {}), "goodness-of-fit discrepancy": gof_discrepancy}
-    movie = open_movie(movie)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    movie, out, copied = open_movie(movie), Path(out), read_copies(copies)
+    run = {
+        **selection_run(movie, model, s0=s0, roi=roi, fit=fit, rules=rules),
+        "command": "analyze",
+    }
+    run.update(method=method, ess=ess, seed=seed, **{"model check": gof_discrepancy})
+    if z_calibration is not None:  # its terms, not the file it came from
+        check_calibration(z_calibration, model)  # before any work: its pixels are the model's
+        terms = {k: v for k, v in z_calibration.record().items() if k != "source"}
+        run.update({"z calibration": terms, "z range": list(z_range)})
+    check_folder(out, run, ANALYSIS_FILES, force=force, copies=copied)  # before the work
+    about = {"movie": str(movie.path)}  # recorded, not compared: a moved movie is the same
     found = find_molecules(movie, model, s0=s0, roi=roi, fit=fit, rules=rules, progress=progress)
-    paths = {**(files or {}), **write_selection(found, out)}
+    claimed = claim_folder(out, run, ANALYSIS_FILES, force=force, copies=copied, about=about)
+    paths = {**(files or {}), **claimed}
+    paths.update(write_tables(found, out))
     if not found.molecules["selected"].any():
         raise BayespsfInputError(
             "no molecule passed the selection rules: nothing to analyse (see "
@@ -447,4 +483,4 @@ def _figures(movie, found, frame_z, spread, gof_p, residuals, out: Path) -> dict
     return {path.name: path for path in made}
 
 
-__all__ = ["Analysis", "analyze", "valid_rois"]
+__all__ = ["ANALYSIS_FILES", "Analysis", "analyze", "valid_rois"]

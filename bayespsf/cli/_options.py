@@ -166,3 +166,27 @@ def add_out(parser: argparse.ArgumentParser, default: str, help: str = "output f
         Its help text (default ``"output folder"``).
     """
     parser.add_argument("--out", default=default, help=help)
+
+
+#: ``--force`` of the commands that write a folder of one run's results.
+FORCE_HELP = (
+    "replace the results of another run that --out holds (its files and those this command "
+    "writes; nothing else in the folder) instead of refusing"
+)
+
+
+def add_force(parser: argparse.ArgumentParser, help: str = FORCE_HELP) -> None:
+    """Add ``--force``: replace another run's results in ``--out`` (a flag, default off).
+
+    An output folder holds one run (its record ``run.json``, ``bayespsf.io.run_record``):
+    without ``--force`` a command refuses, before writing anything, a folder that holds
+    another run's results.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    help : str, optional
+        Its help text (default ``FORCE_HELP``).
+    """
+    parser.add_argument("--force", action="store_true", help=help)

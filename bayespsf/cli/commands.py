@@ -10,6 +10,7 @@ only when it runs, so that ``bayespsf --help`` loads no NumPy.
 from __future__ import annotations
 
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 from bayespsf.cli.parser import build_parser
@@ -37,6 +38,18 @@ def _output_folder(path: str, option: str = "--out", stem: bool = False):
     return out
 
 
+@contextmanager
+def _one_run(option: str = "--out"):
+    """Report a folder that holds another run's results (``RunConflict``) with the command's
+    own names: ``--out`` for the folder, ``--force`` to replace them."""
+    from bayespsf.io.run_record import RunConflict
+
+    try:
+        yield
+    except RunConflict as exc:
+        raise CommandError(exc.message(option, "--force")) from None
+
+
 def _scene_from(arg: str):
     """The scene ``arg`` names: a shipped scene's name or the path of a scene file."""
     from bayespsf import load_scene, shipped_scenes
@@ -55,6 +68,7 @@ def _scene_from(arg: str):
 def _truth_table(path: str, n: int, unit: str):
     """The true parameters ``(n, 6)`` from a truth table that ``bayespsf simulate`` wrote;
     its N and b must be in ``unit`` (the model's ``photon_unit_label``) where it states one."""
+    import numpy as np
     import pandas as pd
 
     from bayespsf.psf import PARAMETER_NAMES
@@ -63,18 +77,33 @@ def _truth_table(path: str, n: int, unit: str):
         truth = pd.read_csv(path)
     except (OSError, ValueError) as exc:
         raise CommandError(f"--truth {path}: cannot read it as a CSV table ({exc})") from exc
+    shape = (
+        f"a table of shape ({n}, 6): one row per ROI in the stack's order, columns "
+        f"{', '.join(PARAMETER_NAMES)}, each a finite number (the OUT.truth.csv of "
+        "bayespsf simulate)"
+    )
     missing = [name for name in PARAMETER_NAMES if name not in truth]
     if missing:
-        raise CommandError(f"--truth {path}: no column(s) {', '.join(missing)}")
+        raise CommandError(f"--truth {path}: no column(s) {', '.join(missing)}; expected {shape}")
     if len(truth) != n:
-        raise CommandError(f"--truth {path}: {len(truth)} rows for {n} ROIs")
+        raise CommandError(f"--truth {path}: {len(truth)} rows for {n} ROIs; expected {shape}")
+    values = truth[list(PARAMETER_NAMES)].apply(pd.to_numeric, errors="coerce").astype(float)
+    bad = ~np.isfinite(values.to_numpy())
+    if bad.any():
+        row, column = (int(i[0]) for i in np.nonzero(bad))
+        name, value = PARAMETER_NAMES[column], truth[PARAMETER_NAMES[column]].iloc[row]
+        value = repr(value) if isinstance(value, str) else "empty" if pd.isna(value) else value
+        raise CommandError(
+            f"--truth {path}: {name} in row {row} is {value}, not a finite number "
+            f"({int(bad.sum())} such value(s)); expected {shape}"
+        )
     stated = set(truth["photon_unit"]) if "photon_unit" in truth else {unit}
     if stated != {unit}:
         raise CommandError(
             f"--truth {path}: N and b in {', '.join(sorted(map(str, stated)))}, but the model's "
             f"are in {unit} (the scene's camera.photon_unit and quantum_efficiency)"
         )
-    return truth[list(PARAMETER_NAMES)].to_numpy(float)
+    return values.to_numpy(float)
 
 
 def _movie_model(args):
@@ -87,7 +116,7 @@ def _movie_model(args):
     check_sizes(args.roi, args.fit)
     movie = read_movie(args.movie)
     table = read_camera_file(args.camera)
-    scene = camera_scene(table, args.camera, args.fit, movie.pixel_size)
+    scene = camera_scene(table, args.camera, args.fit, movie.pixel_size, roi_name="--fit")
     emitter = scene.to_dict().get("emitter", {})
     s0 = args.psf_sd
     if s0 is None and {"s0x", "s0y"} <= set(table.get("emitter", {})):
@@ -102,13 +131,6 @@ def _movie_model(args):
 def _command_line(args) -> str:
     """The command as typed (``bayespsf calibrate ...``), for the provenance of its files."""
     return f"bayespsf {args.command} " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
-
-
-def _copy_camera_file(args, out):
-    """The camera file used, verbatim, into the output folder."""
-    path = out / "camera.toml"
-    path.write_text(Path(args.camera).read_text(encoding="utf-8"))
-    return path
 
 
 def _selfcheck(_args) -> int:
@@ -211,7 +233,12 @@ def _fit(args) -> int:
                 f"{scene.geometry['roi']}"
             )
     else:
-        scene = camera_scene(read_camera_file(args.camera), args.camera, rois.shape[1])
+        scene = camera_scene(
+            read_camera_file(args.camera),
+            args.camera,
+            rois.shape[1],
+            roi_name=f"the side of the ROIs in {args.rois}",
+        )
     model = Model.from_scene(scene, likelihood=args.likelihood)
     truths = None
     if args.truth is not None:
@@ -244,21 +271,20 @@ def _fit(args) -> int:
 
 def _detect(args) -> int:
     """``bayespsf detect``: a movie's molecules, their traces and the paper's selection."""
-    from bayespsf.movie.pipeline import find_molecules, write
+    from bayespsf.io.run_record import check_folder, read_copies
+    from bayespsf.movie.pipeline import SELECTION_FILES, find_molecules, selection_run, write
 
     out = _output_folder(args.out)
     movie, model, s0 = _movie_model(args)
-    found = find_molecules(
-        movie,
-        model,
-        s0=s0,
-        roi=args.roi,
-        fit=args.fit,
-        false_positives=args.false_positives,
-        projection=args.projection,
-    )
-    paths = write(found, out)
-    paths["camera.toml"] = _copy_camera_file(args, out)
+    settings = dict(s0=s0, roi=args.roi, fit=args.fit, false_positives=args.false_positives)
+    settings["projection"] = args.projection
+    copies = {"camera.toml": args.camera}  # the camera file used, verbatim
+    with _one_run():  # refused before the work, as write would refuse it after it
+        run = selection_run(movie, model, **settings)  # what write records: found.run
+        check_folder(out, run, SELECTION_FILES, force=args.force, copies=read_copies(copies))
+    found = find_molecules(movie, model, **settings)
+    with _one_run():
+        paths = write(found, out, force=args.force, copies=copies, about={"movie": args.movie})
     selected = int(found.molecules["selected"].sum())
     print(f"{movie!r}: {len(found.molecules)} candidate molecules, {selected} selected")
     print("wrote " + ", ".join(str(p) for p in paths.values()))
@@ -276,30 +302,31 @@ def _analyze(args) -> int:
     settings = {} if args.min_valid_frames is None else {"min_valid_frames": args.min_valid_frames}
     rules = Rules(**settings, skip=tuple(args.skip_rule))
     command = _command_line(args)
-    out.mkdir(parents=True, exist_ok=True)
-    camera_path = _copy_camera_file(args, out)
+    camera_text = Path(args.camera).read_text(encoding="utf-8")
     z_calibration = None
     if args.z_calibration is not None:
         z_calibration = read_z_calibration(args.z_calibration)
-    result = analyze(
-        movie,
-        model,
-        s0=s0,
-        out=out,
-        roi=args.roi,
-        fit=args.fit,
-        rules=rules,
-        method=args.method,
-        ess=args.ess,
-        seed=args.seed,
-        workers=None if args.scheduler else args.workers,
-        executor=args.scheduler,
-        provenance={"command": command, "camera file": camera_path.read_text()},
-        z_calibration=z_calibration,
-        z_range=tuple(args.z_range),
-        files={"camera.toml": camera_path},
-        gof_discrepancy=args.gof_discrepancy,
-    )
+    with _one_run():  # a folder of another run is refused before anything is written
+        result = analyze(
+            movie,
+            model,
+            s0=s0,
+            out=out,
+            roi=args.roi,
+            fit=args.fit,
+            rules=rules,
+            method=args.method,
+            ess=args.ess,
+            seed=args.seed,
+            workers=None if args.scheduler else args.workers,
+            executor=args.scheduler,
+            provenance={"command": command, "camera file": camera_text},
+            z_calibration=z_calibration,
+            z_range=tuple(args.z_range),
+            copies={"camera.toml": args.camera},  # the camera file used, verbatim
+            gof_discrepancy=args.gof_discrepancy,
+            force=args.force,
+        )
     check = result.consistency.set_index("parameter")
     print(
         f"{movie!r}: {int(result.molecules['selected'].sum())} molecules selected, "
@@ -330,7 +357,8 @@ def _calibrate_z(args) -> int:
             f"--frames-per-step {args.frames_per_step}"
         )
     z = zstack_positions(args.z_start, args.z_step, steps, args.frames_per_step)
-    rois, bead = bead_rois(movie, model, s0=s0, fit=args.fit, roi=args.roi)
+    pick = None if args.bead is None else tuple(args.bead)
+    rois, bead = bead_rois(movie, model, s0=s0, fit=args.fit, roi=args.roi, bead=pick)
     widths = step_widths(rois, z, model, seed=args.seed, workers=args.workers)
     command = _command_line(args)
     source = {
@@ -339,6 +367,7 @@ def _calibrate_z(args) -> int:
         "camera file": Path(args.camera).read_text(encoding="utf-8"),
         "bead x": float(bead["x"].iloc[0]),
         "bead y": float(bead["y"].iloc[0]),
+        "beads found": int(bead["beads"].iloc[0]),
     }
     calibration = calibrate(
         widths, args.curve, higher_order=not args.no_higher_order, source=source
@@ -355,6 +384,12 @@ def _calibrate_z(args) -> int:
         )
     for problem in calibration.problems:
         print(f"warning: {problem}")
+    beads = source["beads found"]
+    print(
+        f"bead at x {source['bead x']:.1f}, y {source['bead y']:.1f} (pixels)"
+        + (f", the brightest of {beads} beads found" if beads > 1 and pick is None else "")
+        + (f", of {beads} beads found" if beads > 1 and pick is not None else "")
+    )
     print(f"wrote {out}")
     return 0
 

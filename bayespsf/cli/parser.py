@@ -16,6 +16,7 @@ from bayespsf.cli._options import (
     METHOD_PER_ROI_HELP,
     ROI_PAPER_HELP,
     add_camera,
+    add_force,
     add_geometry,
     add_method,
     add_movie,
@@ -170,7 +171,8 @@ def _add_detect(commands) -> None:
         "detection on the mean projection with a stated false-positive rate, each molecule's "
         "trace, bleaching steps and drift, a fit of each frame before bleaching, and the "
         "selection rules of DeSantis et al., Opt. Express 18 (2010). Writes candidates.csv, "
-        "molecules.csv, frames.csv and selection.md into --out.",
+        "molecules.csv, frames.csv, selection.md, camera.toml and run.json into --out; a "
+        "folder that holds another run's results is refused (--force replaces them).",
     )
     add_movie(detect)
     add_camera(detect, CAMERA_HELP)
@@ -184,6 +186,7 @@ def _add_detect(commands) -> None:
     )
     detect.add_argument("--projection", choices=("mean", "median"), default="mean")
     add_out(detect, "bayespsf-detect")
+    add_force(detect)
 
 
 def _add_analyze(commands) -> None:
@@ -196,8 +199,9 @@ def _add_analyze(commands) -> None:
         "molecule; each molecule's joint posterior over its frames; a goodness-of-fit p-value "
         "per frame. Writes into --out: locs.hdf5 + locs.yaml (picasso), locs.csv "
         "(ThunderSTORM), locs.parquet, molecules.csv, consistency.csv, width_spread.csv, "
-        "width_by_window.csv, report.md with its figures, the selection's tables and "
-        "posteriors/ (a rerun continues there).",
+        "width_by_window.csv, report.md with its figures, the selection's tables, run.json and "
+        "posteriors/ (a rerun of the same run continues there; a folder that holds another "
+        "run's results is refused, --force replaces them).",
     )
     add_movie(analyze)
     add_camera(analyze)
@@ -243,6 +247,7 @@ def _add_analyze(commands) -> None:
         "at a background of a few photons per pixel, where likelihood is conservative)",
     )
     add_out(analyze, "bayespsf-analyze")
+    add_force(analyze)
 
 
 def _add_calibrate_z(commands) -> None:
@@ -267,6 +272,15 @@ def _add_calibrate_z(commands) -> None:
     calibrate_z.add_argument("--curve", choices=("huang", "polynomial"), default="huang")
     calibrate_z.add_argument(
         "--no-higher-order", action="store_true", help="hold A = B = 0 (three terms per axis)"
+    )
+    calibrate_z.add_argument(
+        "--bead",
+        type=float,
+        nargs=2,
+        metavar=("X", "Y"),
+        default=None,
+        help="the bead to calibrate from, at camera pixel X Y (needed where several beads of "
+        "comparable brightness are in the stack; default the only or clearly brightest one)",
     )
     add_geometry(calibrate_z)
     add_seed(calibrate_z)

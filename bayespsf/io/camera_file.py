@@ -74,7 +74,12 @@ def read_camera_file(path: str | os.PathLike) -> dict:
 
 
 def camera_scene(
-    table: Mapping, path: str | os.PathLike, roi: int, pixel_size: float | None = None
+    table: Mapping,
+    path: str | os.PathLike,
+    roi: int,
+    pixel_size: float | None = None,
+    *,
+    roi_name: str = "the ROIs' side",
 ) -> Scene:
     """The scene of a camera file's tables for ROIs of side ``roi``.
 
@@ -88,6 +93,9 @@ def camera_scene(
         The side of the ROIs in pixels (the scene's ``[geometry] roi``).
     pixel_size : float, optional
         The pixel size in nm (a movie's metadata), used where the file gives none.
+    roi_name : str, default "the ROIs' side"
+        What gives ``roi``, to name in messages: ``"--fit"`` for the movie commands, whose
+        message then offers that flag too.
 
     Returns
     -------
@@ -97,8 +105,9 @@ def camera_scene(
     Raises
     ------
     BayespsfInputError
-        If neither the file nor ``pixel_size`` gives a pixel size; the scene's own checks
-        raise ``SceneError`` for values out of range.
+        If neither the file nor ``pixel_size`` gives a pixel size, or the file states a
+        ``[geometry] roi`` other than ``roi`` (naming both); the scene's own checks raise
+        ``SceneError`` for values out of range.
     """
     table = {**table, "geometry": dict(table.get("geometry", {}))}
     geometry = table["geometry"]
@@ -106,6 +115,13 @@ def camera_scene(
         geometry["pixel_size"] = pixel_size
     if "pixel_size" not in geometry:
         raise BayespsfInputError(f"{path}: no [geometry] pixel_size (nm)")
+    stated = geometry.get("roi", roi)
+    if isinstance(stated, bool) or stated != roi:
+        flag = f", or give {roi_name} {stated!r}" if roi_name.startswith("--") else ""
+        raise BayespsfInputError(
+            f"{path}: [geometry] roi = {stated!r}, but {roi_name} is {roi}: set [geometry] "
+            f"roi = {roi} in {path} or remove that key ({roi_name} then gives it){flag}"
+        )
     geometry["roi"] = roi
     return Scene.from_dict(table)
 

@@ -9,7 +9,8 @@ bleaching (``frame_fits``: widths for the selection rules), and the paper's sele
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import fit_mle
+from bayespsf.io import run_record
 from bayespsf.model import Model
 from bayespsf.movie.detect import detect_movie
 from bayespsf.movie.extract import RoiStack, check_sizes, iter_rois, open_movie, photon_model
@@ -49,6 +51,8 @@ class FoundMolecules:
         removed``, ``frames removed``, ``molecules left`` and ``frames left``.
     rules : Rules
         The selection rules applied.
+    run : dict
+        What identifies the run that found them (``selection_run``), for ``write``'s record.
 
     See Also
     --------
@@ -61,6 +65,7 @@ class FoundMolecules:
     frames: pd.DataFrame
     report: pd.DataFrame
     rules: Rules
+    run: dict = field(default_factory=dict)
 
     def report_markdown(self) -> str:
         """The selection report as markdown (``select.report_markdown``) and the number of
@@ -163,6 +168,59 @@ def frame_fits(
     return pd.concat(parts, ignore_index=True)
 
 
+def selection_run(
+    movie: Movie | str | Path,
+    model: Model,
+    *,
+    s0: float,
+    roi: int = 25,
+    fit: int = 15,
+    false_positives: float = 0.01,
+    projection: str = "mean",
+    rules: Rules | None = None,
+) -> dict:
+    """What identifies a ``find_molecules`` run (``write`` records it in its folder,
+    ``bayespsf.io.run_record``, as ``bayespsf.analyze`` its own): movie, camera, settings.
+
+    Parameters
+    ----------
+    movie, model, s0, roi, fit, false_positives, projection, rules
+        As ``find_molecules``.
+
+    Returns
+    -------
+    dict
+        ``command`` (``"detect"``), ``movie`` (per file its ``file_fingerprint``, then the
+        movie's shape, data type and channel; not its path: a moved movie is the same),
+        ``camera`` (the model for ``fit`` x ``fit`` ROIs, its CIC and saturation), ``psf
+        sd``, ``roi``, ``fit``, ``false positives``, ``projection``, ``selection rules``.
+
+    Raises
+    ------
+    BayespsfInputError
+        Even or inconsistent ``roi`` and ``fit``, or a movie file that cannot be read.
+    """
+    movie = open_movie(movie)
+    check_sizes(roi, fit)
+    files = movie.path if isinstance(movie.path, tuple) else (movie.path,)
+    camera = [repr(model)]
+    if isinstance(model, Model):
+        fitting = model.for_roi(fit)
+        camera = [repr(fitting), fitting.clock_induced_charge, fitting.saturation]
+    shape = [*movie.shape, str(movie.dtype), movie.metadata.get("channel")]
+    return {
+        "command": "detect",
+        "movie": {"files": [run_record.file_fingerprint(f) for f in files], "shape": shape},
+        "camera": camera,
+        "psf sd": s0,
+        "roi": roi,
+        "fit": fit,
+        "false positives": false_positives,
+        "projection": projection,
+        "selection rules": asdict(Rules() if rules is None else rules),
+    }
+
+
 def find_molecules(
     movie: Movie | str | Path,
     model: Model,
@@ -244,11 +302,8 @@ def find_molecules(
 
     Notes
     -----
-    The stages run in the order of the module docstring: detection on a temporal projection,
-    each accepted candidate's trace with its bleaching steps and drift, a maximum-likelihood
-    fit of every frame's central ROI before bleaching, and the selection rules of DeSantis,
-    DeCenzo, Li & Wang, Opt. Express 18 (2010), section "Data acquisition and selection".
-    Every stage's table is kept, so a user can stop at any of them and look.
+    The stages run in the order of the module docstring; the selection rules are those of
+    DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), "Data acquisition and selection".
 
     Examples
     --------
@@ -276,7 +331,8 @@ def find_molecules(
     """
     movie = open_movie(movie)
     rules = Rules() if rules is None else rules
-    check_sizes(roi, fit)
+    settings = dict(s0=s0, roi=roi, fit=fit, false_positives=false_positives, rules=rules)
+    run = selection_run(movie, model, **settings, projection=projection)  # checks roi, fit
     if roi > min(movie.shape[1:]):
         raise BayespsfInputError(
             f"roi ({roi}) is larger than the movie's frames ({movie.shape[1]} x {movie.shape[2]}): "
@@ -344,15 +400,15 @@ def find_molecules(
     unit = photon_model(model).photon_unit_label
     for table in (candidates, molecules, frames):
         table["photon_unit"] = unit
-    return FoundMolecules(candidates, molecules, frames, report, rules)
+    return FoundMolecules(candidates, molecules, frames, report, rules, run)
 
 
-def _first_columns(table: pd.DataFrame, first) -> pd.DataFrame:
-    return table[[*first, *(c for c in table.columns if c not in first)]]
+SELECTION_FILES = ("candidates.csv", "molecules.csv", "frames.csv", "selection.md")
 
 
-def write(found: FoundMolecules, out: str | Path) -> dict[str, Path]:
-    """Write ``candidates.csv``, ``molecules.csv``, ``frames.csv`` and ``selection.md``.
+def write_tables(found: FoundMolecules, out: str | Path) -> dict[str, Path]:
+    """Write ``SELECTION_FILES``, without a run record (``write`` and ``bayespsf.analyze``
+    claim the folder first).
 
     Parameters
     ----------
@@ -369,15 +425,69 @@ def write(found: FoundMolecules, out: str | Path) -> dict[str, Path]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     first = ("molecule", "x", "y", "bleach_frame", "selected", "rejected_by")
-    paths = {
-        name: out / name
-        for name in ("candidates.csv", "molecules.csv", "frames.csv", "selection.md")
-    }
+    paths = {name: out / name for name in SELECTION_FILES}
     found.candidates.to_csv(paths["candidates.csv"], index=False)
-    _first_columns(found.molecules, first).to_csv(paths["molecules.csv"], index=False)
+    columns = [*first, *(c for c in found.molecules.columns if c not in first)]
+    found.molecules[columns].to_csv(paths["molecules.csv"], index=False)
     found.frames.to_csv(paths["frames.csv"], index=False)
     paths["selection.md"].write_text(found.report_markdown())
     return paths
 
 
-__all__ = ["FoundMolecules", "find_molecules", "fit_model", "frame_fits", "write"]
+def write(
+    found: FoundMolecules,
+    out: str | Path,
+    *,
+    force: bool = False,
+    copies: Mapping[str, str | Path] | None = None,
+    about: Mapping | None = None,
+) -> dict[str, Path]:
+    """Write ``candidates.csv``, ``molecules.csv``, ``frames.csv``, ``selection.md`` and the
+    run record ``run.json``, refusing a folder that holds another run's results.
+
+    Parameters
+    ----------
+    found : FoundMolecules
+        From ``find_molecules``.
+    out : str or Path
+        The folder (made if missing).
+    force : bool, default False
+        Replace another run's results in ``out``: the files this function writes and those
+        the folder's record lists are removed first (nothing else in the folder).
+    copies : mapping of str to path, optional
+        Files to copy verbatim into ``out``, by their name there (the command's camera file,
+        as ``camera.toml``); their bytes are part of the run's record.
+    about : mapping, optional
+        Kept in the record, not compared (the command's movie path).
+
+    Returns
+    -------
+    dict of str to Path
+        The files' paths by name (``run.json`` and ``copies`` included).
+
+    Raises
+    ------
+    BayespsfInputError
+        ``out`` is or lies under a file, a file of ``copies`` cannot be read, or
+        (``RunConflict``, naming what differs) ``out`` holds another run's results: its
+        record is not ``found.run`` (``selection_run``; a hash of the tables when empty).
+    """
+    tables = "".join(t.to_csv() for t in (found.candidates, found.molecules, found.frames))
+    run = found.run or {"command": "detect", "tables": run_record.bytes_digest(tables.encode())}
+    copied = run_record.read_copies(copies)
+    paths = run_record.claim_folder(
+        out, run, SELECTION_FILES, force=force, copies=copied, about=about
+    )
+    return {**paths, **write_tables(found, out)}
+
+
+__all__ = [
+    "SELECTION_FILES",
+    "FoundMolecules",
+    "find_molecules",
+    "fit_model",
+    "frame_fits",
+    "selection_run",
+    "write",
+    "write_tables",
+]

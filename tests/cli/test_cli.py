@@ -278,3 +278,63 @@ def test_fit_settings_that_would_never_end_are_one_line(tmp_path):
         result = _run("fit", "rois.npy", "--scene", "ideal", option, value, cwd=tmp_path)
         assert result.returncode == 1 and result.stderr.startswith("bayespsf: "), result.stderr
         assert "Traceback" not in result.stderr
+
+
+def test_a_truth_table_of_the_wrong_shape_or_values_names_truth_and_the_shape(tmp_path):
+    # text in a truth table ended in numpy's bare "ValueError: could not convert string to
+    # float", and an empty cell ran on, its NaN truth giving meaningless ranks
+    import pandas as pd
+
+    assert _run("simulate", "ideal", "-n", "2", "--out", "sim/a", cwd=tmp_path).returncode == 0
+    truth = pd.read_csv(tmp_path / "sim" / "a.truth.csv")
+    shape = (
+        r"expected a table of shape \(2, 6\): one row per ROI in the stack's order, columns "
+        r"x0, y0, s_x, s_y, N, b, each a finite number"
+    )
+    for name, table, words in (
+        ("text", truth.assign(s_x=["wide", 130.0]), "s_x in row 0 is 'wide', not a finite number"),
+        ("empty", truth.assign(N=[1000.0, None]), "N in row 1 is empty, not a finite number"),
+        ("rows", pd.concat([truth, truth]), "4 rows for 2 ROIs"),
+        ("columns", truth.drop(columns=["b"]), "no column"),
+    ):
+        table.to_csv(tmp_path / f"{name}.csv", index=False)
+        fit = ["fit", str(tmp_path / "sim" / "a.npy"), "--scene", "ideal", "--out", "out"]
+        expected = rf"^bayespsf: --truth \S*{name}\.csv: {words}.*{shape}"
+        with pytest.raises(SystemExit, match=expected):
+            cli.main([*fit[:-1], str(tmp_path / "out"), "--truth", str(tmp_path / f"{name}.csv")])
+        assert not (tmp_path / "out").exists()
+
+
+def test_a_camera_file_roi_that_disagrees_is_refused_naming_both(tmp_path):
+    # camera_scene replaced a stated [geometry] roi by the ROIs' (or --fit's) without a word
+    import numpy as np
+
+    from bayespsf import load_scene, simulate
+
+    counts, _ = simulate(load_scene("emccd-typical"), 1, seed=0)  # 15 x 15 ROIs
+    np.save(tmp_path / "rois.npy", counts)
+    camera = tmp_path / "camera.toml"
+    camera.write_text(
+        "[geometry]\npixel_size = 100.0\nroi = 11\n[camera]\nkind = 'emccd'\ngain = 200.0\n"
+        "readout_sd = 50.0\noffset = 100.0\ne_per_adu = 12.0\n"
+    )
+    rois = str(tmp_path / "rois.npy")
+    with pytest.raises(SystemExit) as refused:
+        cli.main(["fit", rois, "--camera", str(camera), "--out", str(tmp_path / "out")])
+    assert str(refused.value) == (
+        f"bayespsf: {camera}: [geometry] roi = 11, but the side of the ROIs in {rois} is 15: "
+        f"set [geometry] roi = 15 in {camera} or remove that key (the side of the ROIs in "
+        f"{rois} then gives it)"
+    )
+    np.save(tmp_path / "movie.npy", np.full((80, 64, 64), 100, np.uint16))
+    with pytest.raises(SystemExit) as refused:
+        cli.main(
+            ["detect", str(tmp_path / "movie.npy"), "--camera", str(camera), "--psf-sd", "120"]
+        )
+    assert str(refused.value) == (
+        f"bayespsf: {camera}: [geometry] roi = 11, but --fit is 15: set [geometry] roi = 15 in "
+        f"{camera} or remove that key (--fit then gives it), or give --fit 11"
+    )
+    camera.write_text(camera.read_text().replace("roi = 11", "roi = 15"))  # agreeing: fine
+    fit = ["fit", rois, "--camera", str(camera), "--workers", "1", "--method", "laplace"]
+    assert cli.main([*fit, "--out", str(tmp_path / "out")]) == 0
