@@ -17,8 +17,11 @@ step. Calibration, in three steps:
 
 Stacks come from ``bayespsf.simulation.simulate_zstack`` (a scene with ``[axial]``: the bead
 at each step) or from a user's movie (``bead_rois``: the movie reader, the detector on its
-mean projection, and the ROIs of the brightest bead). ``bayespsf.io.z_calibration`` saves and
-loads the result.
+mean projection, and the ROIs of one bead: the brightest, unless another is of comparable
+brightness, when the caller picks). The result's ``source`` records the pixel size and the
+camera's kind of the model the widths were measured with (``step_widths``), which
+``z_posterior`` checks against the model it is used with. ``bayespsf.io.z_calibration`` saves
+and loads the result.
 """
 
 from __future__ import annotations
@@ -41,6 +44,8 @@ if TYPE_CHECKING:
     from bayespsf.movie import Movie
 
 MIN_STEPS = 6  # a five-term curve per axis needs more steps than terms
+COMPARABLE = 0.5  # a second bead with this share of the brightest's photons: ask which
+PICK_DISTANCE = 3.0  # pixels from a requested (x, y) to the bead it names
 
 
 def bead_rois(
@@ -50,8 +55,9 @@ def bead_rois(
     s0: float,
     fit: int | None = None,
     roi: int = 25,
+    bead: tuple[float, float] | str | None = None,
 ) -> tuple[np.ndarray, pd.DataFrame]:
-    """The ROIs of a z-stack movie's brightest bead, and its detection row.
+    """The ROIs of one bead of a z-stack movie, and its detection row.
 
     Parameters
     ----------
@@ -65,19 +71,26 @@ def bead_rois(
         Odd side in pixels of the ROIs returned; default the model's ROI side.
     roi : int, default 25
         Odd side in pixels of the cut around the bead (its border must lie inside the frames).
+    bead : (float, float), "brightest" or None, optional
+        Which bead: ``(x, y)`` in camera pixels (picasso's convention, as the error that lists
+        the beads gives them), the accepted bead within ``PICK_DISTANCE`` pixels of it;
+        ``"brightest"``, the brightest; None (default), the brightest where it is the only
+        bead or no other reaches ``COMPARABLE`` of its photons, else an error that lists them.
 
     Returns
     -------
     counts : numpy.ndarray, shape (frames, fit, fit)
         The bead's central ROIs in every frame, in the movie's data type (ADU).
     bead : pandas.DataFrame
-        Its row of ``detect_movie``'s table (``molecule`` set to 0).
+        Its row of ``detect_movie``'s table (``molecule`` set to 0), with ``beads`` (how many
+        beads detection accepted) and ``rank`` (this one's by photons, 1 the brightest).
 
     Raises
     ------
     BayespsfInputError
         No bead accepted on the mean projection at least ``roi // 2`` pixels from the edges,
-        or any error of ``detect_movie`` or ``cut_rois``.
+        several beads of comparable brightness and no ``bead`` to pick one, a ``bead`` that
+        is no accepted bead's position, or any error of ``detect_movie`` or ``cut_rois``.
 
     See Also
     --------
@@ -94,11 +107,52 @@ def bead_rois(
     if found.empty:
         raise BayespsfInputError(
             f"no bead was detected on the stack's mean projection at least {roi // 2} pixels "
-            "from its edges"
+            f"from its edges: check the bead's SD (--psf-sd, {s0:g} nm given), the camera file "
+            "(--camera: its offset and gain turn counts into photons) and the pixel size "
+            f"({model.pixel_size:g} nm: the camera file's [geometry] pixel_size, else the "
+            "stack's metadata), or cut less "
+            f"around the bead (--roi, {roi} pixels) if it lies near an edge"
         )
-    bead = found.sort_values("amplitude").iloc[[-1]].assign(molecule=0)
-    stack = cut_rois(movie, bead, roi=roi, fit=fit)
-    return stack.central(fit), bead
+    found = found.sort_values("amplitude", ascending=False).reset_index(drop=True)
+    found = found.assign(beads=len(found), rank=np.arange(1, len(found) + 1))
+    row = _pick_bead(found, bead)
+    chosen = found.iloc[[row]].assign(molecule=0)
+    stack = cut_rois(movie, chosen, roi=roi, fit=fit)
+    return stack.central(fit), chosen
+
+
+def _pick_bead(found: pd.DataFrame, bead) -> int:
+    """The row of ``found`` (accepted beads, brightest first) that ``bead`` names."""
+    listed = "; ".join(
+        f"x {r.x:.1f}, y {r.y:.1f}: {r.amplitude:.3g} photons" for r in found.head(8).itertuples()
+    ) + ("; ..." if len(found) > 8 else "")
+    if bead is None:
+        if len(found) > 1 and found["amplitude"].iloc[1] >= COMPARABLE * found["amplitude"].iloc[0]:
+            raise BayespsfInputError(
+                f"{len(found)} beads on the stack's mean projection, and more than one of "
+                f"comparable brightness (within {1 / COMPARABLE:g}x of the brightest: {listed}); "
+                "which one calibrates is the caller's choice: crop the stack to one bead, or "
+                "pick one from Python (bead_rois(..., bead=(x, y)) or bead='brightest')"
+            )
+        return 0
+    if isinstance(bead, str):
+        if bead != "brightest":
+            raise BayespsfInputError(f"bead must be (x, y), 'brightest' or None, got {bead!r}")
+        return 0
+    try:
+        x, y = (float(v) for v in bead)
+    except (TypeError, ValueError):
+        raise BayespsfInputError(
+            f"bead must be (x, y) in camera pixels, 'brightest' or None, got {bead!r}"
+        ) from None
+    distance = np.hypot(found["x"].to_numpy() - x, found["y"].to_numpy() - y)
+    nearest = int(np.argmin(distance))
+    if not distance[nearest] <= PICK_DISTANCE:
+        raise BayespsfInputError(
+            f"bead ({x:g}, {y:g}): no accepted bead within {PICK_DISTANCE:g} pixels of it; the "
+            f"stack's beads (x, y in camera pixels): {listed}"
+        )
+    return nearest
 
 
 def step_widths(
@@ -132,7 +186,8 @@ def step_widths(
     pandas.DataFrame
         One row per step in z order: ``z`` (nm), ``frames``, ``s_x``, ``s_x_sd``, ``s_y``,
         ``s_y_sd`` (the joint posterior's mean and SD over the step's frames, nm; NaN where
-        it has none) and ``method`` (the joint posterior's).
+        it has none) and ``method`` (the joint posterior's); its ``attrs`` hold the model's
+        ``pixel_size`` (nm) and ``camera_kind``, which ``calibrate`` records in its source.
 
     Raises
     ------
@@ -170,6 +225,9 @@ def step_widths(
                 joint[column].to_numpy() if column in joint else np.nan
             )
     table["method"] = joint["joint_method"].to_numpy()
+    table.attrs.update(
+        pixel_size=float(model.pixel_size), camera_kind=str(model.camera.to_dict()["kind"])
+    )
     return table
 
 
@@ -219,16 +277,18 @@ def fit_curve(
     span to either side) and keeps the best.
     """
     if curve not in CURVES:
-        raise BayespsfInputError(f"curve must be one of {sorted(CURVES)}, got {curve!r}")
+        raise BayespsfInputError(f"curve must be one of {sorted(CURVES)} (--curve), got {curve!r}")
     z, width, sd = (finite_array(n, v) for n, v in (("z", z), ("width", width), ("sd", sd)))
     free = 5 if higher_order else 3
     if len(z) < max(MIN_STEPS, free + 1):
         raise BayespsfInputError(
             f"a {curve} curve with {free} terms needs at least {max(MIN_STEPS, free + 1)} steps "
-            f"with widths; got {len(z)}"
+            f"with widths; got {len(z)} (a stack of more steps: the stack's frames over "
+            "--frames-per-step"
+            + ("; or three terms per axis: --no-higher-order)" if higher_order else ")")
         )
     if np.any(sd <= 0) or np.any(width <= 0):
-        raise BayespsfInputError("every step needs a width > 0 and an SD > 0")
+        raise BayespsfInputError("width, sd: every step needs a width > 0 and an SD > 0")
     kind = CURVES[curve]
 
     def residuals(terms):
@@ -249,7 +309,10 @@ def fit_curve(
         if best is None or result.cost < best.cost:
             best = result
     if best is None:
-        raise BayespsfInputError(f"no start of the {curve} curve could be fitted to these widths")
+        raise BayespsfInputError(
+            f"no start of the {curve} curve could be fitted to these widths (try the other "
+            "curve, --curve, or three terms per axis, --no-higher-order)"
+        )
     jac = best.jac
     covariance = np.zeros((5, 5))
     try:
@@ -283,6 +346,27 @@ def _starts(z, width, curve: str) -> np.ndarray:
     return np.array([[w0, c + shift, d, 0.0, 0.0] for shift in (0.0, -span / 4, span / 4)])
 
 
+def _steps_without_widths(steps: pd.DataFrame, usable, needed: int) -> str:
+    """Why too few steps have widths to fit a curve to."""
+    methods = steps.loc[~usable, "method"] if "method" in steps else pd.Series(dtype=object)
+    counts = ", ".join(f"{m} {n}" for m, n in methods.value_counts().items())
+    frames = steps.loc[~usable, "frames"] if "frames" in steps else pd.Series(dtype=float)
+    few = bool(len(frames)) and bool((frames < 2).all())
+    return (
+        f"{int((~usable).sum())} of {len(steps)} steps have no widths"
+        + (f" (their joint posterior's method: {counts})" if counts else "")
+        + f", so {int(usable.sum())} are left to fit, fewer than the {needed} a curve needs: "
+        + (
+            "a step's widths are the joint posterior over its frames, which needs at least 2 "
+            "usable frames per step (take the stack with 2 or more frames per step, "
+            "--frames-per-step)"
+            if few
+            else "the bead's fits failed at those steps (is the bead in every frame, and the "
+            "camera file, --camera, the stack's?)"
+        )
+    )
+
+
 def calibrate(
     steps: pd.DataFrame, curve: str = "huang", higher_order: bool = True, source: dict | None = None
 ) -> DefocusCalibration:
@@ -298,7 +382,9 @@ def calibrate(
     higher_order : bool, default True
         Fit the terms ``A`` and ``B``; False holds A = B = 0.
     source : dict, optional
-        Where the stack came from, kept in the result (beside ``steps_left_out``).
+        Where the stack came from, kept in the result (beside ``steps_left_out``, and the
+        ``pixel_size`` and ``camera_kind`` of ``steps.attrs`` where ``step_widths`` put them;
+        keys given here take precedence).
 
     Returns
     -------
@@ -342,7 +428,7 @@ def calibrate(
     ...     "s_y": s_y + rng.normal(0, 2.0, z.size), "s_y_sd": 2.0,
     ... })
     >>> result = calibrate(steps, "huang", higher_order=False)
-    >>> result.fits[["w0", "c", "d"]].round(0)
+    >>> result.fits[["w0", "c", "d"]].round(0)  # doctest: +NORMALIZE_WHITESPACE
              w0      c      d
     axis
     x     119.0 -196.0  392.0
@@ -355,6 +441,9 @@ def calibrate(
         raise BayespsfInputError(f"steps: no column {', '.join(missing)}")
     usable = np.isfinite(steps[["s_x", "s_x_sd", "s_y", "s_y_sd"]]).all(axis=1)
     used = steps[usable]
+    needed = max(MIN_STEPS, (5 if higher_order else 3) + 1)
+    if len(used) < needed and not usable.all():
+        raise BayespsfInputError(_steps_without_widths(steps, usable, needed))
     rows, covariance, curves = [], {}, {}
     for axis in ("x", "y"):
         fit = fit_curve(used["z"], used[f"s_{axis}"], used[f"s_{axis}_sd"], curve, higher_order)
@@ -373,7 +462,8 @@ def calibrate(
         covariance[axis] = fit["covariance"]
         curves[axis] = CURVES[curve](*fit["terms"])
     fits = pd.DataFrame(rows).set_index("axis")
-    source = {"steps_left_out": int((~usable).sum()), **(source or {})}
+    recorded = {k: steps.attrs[k] for k in ("pixel_size", "camera_kind") if k in steps.attrs}
+    source = {"steps_left_out": int((~usable).sum()), **recorded, **(source or {})}
     return DefocusCalibration(
         curve,
         Defocus(curves["x"], curves["y"]),

@@ -48,6 +48,7 @@ import pandas as pd
 
 from bayespsf._validate import as_generator, probability, scalar_in_range
 from bayespsf.axial.bounds import THETA_NAMES
+from bayespsf.axial.match import check_calibration
 from bayespsf.axial.push import check_z_range, symmetry_plane
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import start_values
@@ -347,8 +348,9 @@ def z_posterior(
     BayespsfInputError
         ``counts`` that are not one ROI of the model's shape, a ``defocus`` of another type,
         an ``ess`` outside [10, 1e6], a bad ``z_range`` or one outside the curves' domain,
-        ``calibration_uncertainty`` without a ``DefocusCalibration``, or no z in ``z_range``
-        with a converged fit of the ROI.
+        ``calibration_uncertainty`` without a ``DefocusCalibration``, a
+        ``DefocusCalibration`` made at another pixel size or camera kind than the model's
+        (``check_calibration``), or no z in ``z_range`` with a converged fit of the ROI.
 
     See Also
     --------
@@ -398,6 +400,8 @@ def z_posterior(
         raise BayespsfInputError(
             f"defocus must be a Defocus or a DefocusCalibration, got {type(defocus).__name__}"
         )
+    if calibration is not None:
+        check_calibration(calibration, model)  # made at the model's pixel size and camera
     if not (isinstance(ess, int | float) and np.isfinite(ess) and 10 <= ess <= 1e6):
         raise BayespsfInputError(f"ess must be a number in [10, 1e6], got {ess!r}")
     rng = as_generator(seed)

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import pandas as pd
 
 from bayespsf._runtime import progress_bar
+from bayespsf.axial.match import check_calibration
 from bayespsf.axial.posterior import z_posterior
 from bayespsf.axial.push import check_z_range
 from bayespsf.errors import BayespsfInputError
@@ -100,7 +101,8 @@ def z_posteriors(
     ------
     BayespsfInputError
         ``counts`` that are not a stack of the model's ROIs, a bad ``z_range``, a
-        ``calibration`` of another type, or bad ``workers`` or ``executor``.
+        ``calibration`` of another type or made at another pixel size or camera kind than the
+        model's (``check_calibration``), or bad ``workers`` or ``executor``.
 
     See Also
     --------
@@ -116,6 +118,8 @@ def z_posteriors(
             "calibration must be a DefocusCalibration or a Defocus, got "
             f"{type(calibration).__name__}"
         )
+    if isinstance(calibration, DefocusCalibration):
+        check_calibration(calibration, model)  # before any ROI runs
     if counts.ndim != 3:
         raise BayespsfInputError(f"counts must be a stack (n, roi, roi), got {counts.shape}")
     seeds = [molecule_seed(seed, i) for i in range(len(counts))]

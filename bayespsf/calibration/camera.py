@@ -156,13 +156,15 @@ def provisional_adu_per_photon(movie, dark: DarkCalibration, excess: float) -> f
     if usable.sum() < 0.5 * mean.size:
         raise BayespsfInputError(
             "the movie's pixels lie at the dark frames' offset: no background light to "
-            "calibrate against (are the dark frames from this camera and setting?)"
+            "calibrate against (are the dark frames, --dark, from this camera and setting?)"
         )
     ratio = (var[usable] - dark.readout_sd**2) / (excess * above[usable])
     value = float(np.median(ratio))
     if not value > 0:
         raise BayespsfInputError(
-            "the movie's pixels vary no more than the dark frames: no photon noise to calibrate"
+            "the movie's pixels vary no more than the dark frames: no photon noise to calibrate "
+            "(are the dark frames, --dark, from this camera and setting, and is the movie one of "
+            "light?)"
         )
     return value
 
@@ -227,28 +229,40 @@ def calibrate_camera(
     dark_calibration, gain_from_molecules, bayespsf.io.read_camera_file
     """
     if kind not in EXCESS:
-        raise BayespsfInputError(f"kind must be one of {', '.join(EXCESS)}, got {kind!r}")
+        raise BayespsfInputError(f"kind must be one of {', '.join(EXCESS)} (--kind), got {kind!r}")
     check_sizes(roi, fit)  # before any frame is read
+    if fit == roi:
+        raise BayespsfInputError(
+            f"fit ({fit}) must be smaller than roi ({roi}): the ROI's periphery outside the "
+            "fit gives the background of Eq. photonConv (--fit, --roi)"
+        )
     if quantum_efficiency is not None:
         photon_units.check(quantum_efficiency, "incident")
     if readout_sd is not None and not (np.isfinite(readout_sd) and readout_sd >= 0):
         raise BayespsfInputError(
-            f"readout_sd must be a number >= 0 (electrons), got {readout_sd!r}"
+            f"readout_sd must be a number >= 0 (electrons; --readout-sd), got {readout_sd!r}"
         )
     if readout_sd is not None and dark is not None:
-        raise BayespsfInputError("readout_sd: the dark frames measure the readout; give one")
+        raise BayespsfInputError(
+            "readout_sd: the dark frames measure the readout; give one of them (--dark or "
+            "--readout-sd), not both"
+        )
     if not (np.isfinite(e_per_adu) and e_per_adu > 0):
-        raise BayespsfInputError(f"e_per_adu must be a number > 0, got {e_per_adu!r}")
+        raise BayespsfInputError(f"e_per_adu must be a number > 0 (--e-per-adu), got {e_per_adu!r}")
     movie = open_movie(movie)
     dark_movie = None if dark is None else open_movie(dark)
     if dark_movie is not None and dark_movie.shape[1:] != movie.shape[1:]:
         raise BayespsfInputError(
             f"dark frames {dark_movie.shape[1:]} and movie frames {movie.shape[1:]} differ in "
-            "shape: the dark frames must come from the same camera region"
+            "shape: the dark frames (--dark) must come from the same camera region"
         )
+    stated = pixel_size is not None
     pixel_size = movie.pixel_size if pixel_size is None else pixel_size
     if pixel_size is None:
-        raise BayespsfInputError("pixel_size: the movie's metadata give none; state it (nm)")
+        raise BayespsfInputError(
+            "pixel_size: the movie's metadata give none; state it (nm): --pixel-size, or "
+            "pixel_size= from Python"
+        )
     excess = EXCESS[kind]
     if dark_movie is not None:
         first = dark_calibration(dark_movie)
@@ -270,13 +284,10 @@ def calibrate_camera(
         camera = SCMOS(m0, first.offset, first.readout_sd**2, likelihood="exact")
     found = find_molecules(movie, Model(MIN_ROI, pixel_size, camera), s0=s0, roi=roi, fit=fit)
     chosen = found.molecules[found.molecules["selected"]]
+    if len(chosen) < 2:
+        raise BayespsfInputError(_too_few_molecules(found, len(chosen), s0, pixel_size, stated))
     frames = found.frames
     frames = frames[frames["before_bleach"] & frames["molecule"].isin(chosen["molecule"])]
-    if len(chosen) < 2:
-        raise BayespsfInputError(
-            f"{len(chosen)} molecule(s) passed the selection rules; the gain needs at least 2 "
-            "immobile single molecules (see `bayespsf detect` and its selection report)"
-        )
     gain = gain_from_molecules(movie, chosen, frames, roi=roi, fit=fit, excess=excess)
     if dark_movie is None:  # the final offset: the pixels no candidate's ROI touches
         background = away_from(found.candidates, movie.shape[1:], roi // 2)
@@ -297,6 +308,43 @@ def calibrate_camera(
         float(e_per_adu),
         pixel_size,
         None if quantum_efficiency is None else float(quantum_efficiency),
+    )
+
+
+def _too_few_molecules(found, selected: int, s0, pixel_size: float, stated: bool) -> str:
+    """Why fewer than 2 molecules can calibrate the ADU per photon, and what would help."""
+    candidates = found.candidates
+    accepted = int((candidates["status"] == "accepted").sum())
+    left_out = found.molecules.loc[~found.molecules["selected"].astype(bool), "rejected_by"]
+    reasons = ", ".join(f"{rule} {n}" for rule, n in left_out.value_counts().items())
+    helps = (
+        f"if the movie holds spots, check --psf-sd (the spot's SD, {s0:g} nm given) and "
+        f"--pixel-size ({pixel_size:g} nm, "
+        + ("as given" if stated else "from the movie's metadata")
+        + "), and --roi and --fit; `bayespsf detect` on the movie shows what was found and why "
+        "each candidate was left out (its selection report)"
+    )
+    if selected == 0:
+        if accepted == 0:
+            what = (
+                "detection found no spot on the movie's mean projection"
+                if candidates.empty
+                else f"detection accepted none of {len(candidates)} candidate spots"
+            )
+        else:
+            what = (
+                f"{accepted} spot(s) were detected but none passed the selection rules (left "
+                f"out by: {reasons})"
+            )
+        return (
+            f"no immobile molecule was found to calibrate the ADU per photon against: {what}. "
+            "The ADU per photon comes from the frames of immobile single molecules (Eq. "
+            "photonConv): give a movie of them (dark frames or background alone cannot give "
+            f"it); {helps}"
+        )
+    return (
+        f"{selected} molecule(s) passed the selection rules; the gain needs at least 2 "
+        f"immobile single molecules (left out by: {reasons}); {helps}"
     )
 
 

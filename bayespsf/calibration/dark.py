@@ -77,7 +77,10 @@ class DarkCalibration:
         """The ``[camera]`` entries this calibration gives: ``offset`` (ADU) and
         ``readout_sd`` in electrons (the ADU SD times ``e_per_adu``)."""
         if not np.isfinite(e_per_adu) or e_per_adu <= 0:
-            raise BayespsfInputError(f"e_per_adu must be a number > 0, got {e_per_adu!r}")
+            raise BayespsfInputError(
+                f"e_per_adu must be a number > 0 (the camera's electrons per ADU; "
+                f"--e-per-adu), got {e_per_adu!r}"
+            )
         return {"offset": self.offset, "readout_sd": self.readout_sd * float(e_per_adu)}
 
 
@@ -103,7 +106,8 @@ def dark_calibration(
     Raises
     ------
     BayespsfInputError
-        Fewer than 2 frames, frames outside the movie, or a movie that cannot be read.
+        Fewer than 2 frames, frames outside the movie, a movie that cannot be read, or dark
+        frames whose median pixel holds the same count in every frame (a readout of 0 ADU).
 
     See Also
     --------
@@ -118,6 +122,13 @@ def dark_calibration(
     over pixels, and its readout SD the median per-pixel variance corrected by the median of
     ``chi2_k / k`` (``k`` = frames - 1). An ADC that rounds to whole ADU adds 1/12 ADU^2 to
     every variance; it is reported, not removed.
+
+    A readout of 0 is an error, not a result: the cameras these frames calibrate (EMCCD,
+    sCMOS, CCD: ``calibrate_camera``'s kinds) all add readout noise, and their ADC's rounding
+    adds 1/12 ADU^2 more, so dark frames whose median pixel never changes are not raw dark
+    frames of a working camera (an average, one frame repeated, a processed or clipped image).
+    Only an ideal photon counter (``bayespsf.cameras.Photon``) reads no noise, and it needs no
+    dark frames.
 
     Examples
     --------
@@ -143,13 +154,15 @@ def dark_calibration(
     count = len(span)
     if count < 2:
         raise BayespsfInputError(
-            f"dark frames: {count} frame(s); a variance needs at least 2 (use 20 or more)"
+            f"dark frames: {count} frame(s); a variance needs at least 2 (use 20 or more; --dark)"
         )
     mean, variance = mean_and_variance(movie, frames=span)
     # a pixel's sample variance is sigma^2 chi2_k / k (k = frames - 1): its median is
     # sigma^2 times the chi2 median over k, which the median over pixels must be divided by
     dof = count - 1
     readout = float(np.sqrt(np.median(variance) / (stats.chi2.median(dof) / dof)))
+    if not readout > 0:
+        raise BayespsfInputError(_no_variance(variance, count))
     pixels = mean.size
     return DarkCalibration(
         offset=float(stats.trim_mean(mean, 0.1, axis=None)),
@@ -159,6 +172,19 @@ def dark_calibration(
         offset_map=mean,
         variance_map=variance,
         frames=count,
+    )
+
+
+def _no_variance(variance: np.ndarray, count: int) -> str:
+    """Why dark frames whose median pixel never changes are not a camera's dark frames."""
+    constant = int(np.count_nonzero(variance == 0))
+    return (
+        f"dark frames: {constant} of {variance.size} pixels hold the same count in all {count} "
+        "frames, so the readout noise reads 0 ADU; the dark frames of a working camera vary "
+        "from frame to frame by its readout noise. Check "
+        "that the dark frames (--dark) are the camera's raw frames, not an average, a copy of "
+        "one frame, a background-subtracted or clipped image; a readout far below 1 ADU shows "
+        "only over more frames (give 20 or more)"
     )
 
 

@@ -192,10 +192,13 @@ def gain_from_molecules(
     check_sizes(fit, centre)
     if fit == roi:
         raise BayespsfInputError(
-            f"fit ({fit}) must be smaller than roi ({roi}): the periphery gives the background"
+            f"fit ({fit}) must be smaller than roi ({roi}): the periphery gives the background "
+            "(--fit, --roi)"
         )
     if not (np.isfinite(excess) and excess > 0):
-        raise BayespsfInputError(f"excess must be a number > 0 (2: EMCCD), got {excess!r}")
+        raise BayespsfInputError(
+            f"excess must be a number > 0 (2: EMCCD, 1: CCD or sCMOS; --kind), got {excess!r}"
+        )
     for name, table, columns in (
         ("molecules", molecules, ("molecule", "x", "y")),
         ("frames", frames, ("molecule", "frame")),
@@ -209,7 +212,8 @@ def gain_from_molecules(
     if len(chosen) < 2:
         raise BayespsfInputError(
             f"gain_from_molecules needs at least 2 molecules with >= {MIN_FRAMES} frames each; "
-            f"got {len(chosen)}"
+            f"got {len(chosen)} (the frames before each molecule's bleaching step: give a longer "
+            "movie, or one whose molecules bleach later)"
         )
     sums = _moments(movie, chosen, use, roi, fit, block)
     rows = [_one_molecule(mid, *sums[mid], roi, fit, centre, excess) for mid in chosen["molecule"]]
@@ -279,7 +283,14 @@ def _combine(per_molecule: pd.DataFrame, excess: float) -> GainEstimate:
     m, w = m_all[~outlier], 1.0 / se_all[~outlier] ** 2
     n = len(m)
     if n < 2:
-        raise BayespsfInputError("gain_from_molecules: fewer than 2 molecules agree")
+        each = ", ".join(f"{m_all[k]:.4g} +- {se_all[k]:.2g}" for k in np.argsort(m_all)[:10]) + (
+            " ..." if len(m_all) > 10 else ""
+        )
+        raise BayespsfInputError(
+            f"gain_from_molecules: fewer than 2 molecules agree within {OUTLIER_Z:g} of their "
+            f"SEs (ADU per photon of each: {each}): moving or blinking molecules inflate their "
+            "pixels' variance; give a movie with more immobile single molecules"
+        )
     mean = float(np.sum(w * m) / np.sum(w))
     scatter = np.sum(w * (m - mean) ** 2) / (n - 1)  # Birge's ratio squared
     se = float(np.sqrt(scatter / np.sum(w)))

@@ -72,7 +72,7 @@ def pixel_cumulants(
     if n < MIN_FRAMES:
         raise BayespsfInputError(
             f"the movie has {n} frame(s); the offset from the movie's own cumulants needs at "
-            f"least {MIN_FRAMES} (or give dark frames)"
+            f"least {MIN_FRAMES} (or give dark frames: --dark)"
         )
     shift = None
     sums = None
@@ -82,7 +82,8 @@ def pixel_cumulants(
         if bad.any():
             frame = span[start + int(np.flatnonzero(bad.any(axis=(1, 2)))[0])]
             raise BayespsfInputError(
-                f"frame {frame} has NaN or infinite counts; the cumulants need finite ones"
+                f"frame {frame} has NaN or infinite counts; the cumulants need finite ones "
+                "(a camera gives finite counts: is the movie a processed image?)"
             )
         if shift is None:
             shift = data[0].copy()
@@ -140,7 +141,9 @@ class MovieOffset:
 
 def _check_excess(excess) -> tuple[float, float, float]:
     if excess not in CUMULANT_FACTORS:
-        raise BayespsfInputError(f"excess must be 2 (EMCCD) or 1 (CCD, sCMOS), got {excess!r}")
+        raise BayespsfInputError(
+            f"excess must be 2 (EMCCD) or 1 (CCD, sCMOS; --kind), got {excess!r}"
+        )
     return CUMULANT_FACTORS[excess]
 
 
@@ -152,7 +155,9 @@ def _background(cumulants: PixelCumulants, mask) -> tuple[np.ndarray, ...]:
         )
     if keep.sum() < 100:
         raise BayespsfInputError(
-            f"{int(keep.sum())} background pixels; the offset from the movie needs at least 100"
+            f"{int(keep.sum())} background pixels; the offset from the movie needs at least "
+            "100 (pixels no molecule's ROI touches: give dark frames, --dark, or a movie with "
+            "fewer molecules or a smaller --roi)"
         )
     return tuple(k[keep] for k in (cumulants.k1, cumulants.k2, cumulants.k3, cumulants.k4))
 
@@ -162,7 +167,7 @@ def _require_photon_noise(*cumulants: float) -> None:
     if not all(c > 0 for c in cumulants):
         raise BayespsfInputError(
             "the movie's background pixels have no photon noise to calibrate against (their "
-            "third or fourth cumulant is not positive): give dark frames"
+            "third or fourth cumulant is not positive): give dark frames (--dark)"
         )
 
 
@@ -230,7 +235,8 @@ def offset_from_cumulants(
                 f"of {lam:.3g} photoelectrons reads {variance:.4g} +- {variance_se:.2g} ADU^2, "
                 f"not the readout's {readout_adu**2:.4g} ADU^2 (a sub-Poisson, drifting or "
                 "structured background, or an ADU per photoelectron further off than its SE), "
-                "so the offset from its cumulants would be biased: give dark frames"
+                "so the offset from its cumulants would be biased: give dark frames (--dark), "
+                "or check the declared readout (--readout-sd, electrons)"
             )
         _require_photon_noise(lam)
         return MovieOffset(
@@ -241,7 +247,7 @@ def offset_from_cumulants(
             f"the readout noise cannot be measured from this movie's background: its variance "
             f"reads {variance:.3g} +- {variance_se:.2g} ADU^2, under the photon noise of "
             f"{lam:.3g} photoelectrons per pixel. State the camera's readout noise (--readout-sd "
-            "in electrons, from its specification) or give dark frames"
+            "in electrons, from its specification) or give dark frames (--dark)"
         )
     _require_photon_noise(lam)
     readout = float(np.sqrt(variance))

@@ -6,7 +6,9 @@ Layout (every number in nm, except the dimensionless A and B)::
     curve = "huang"                      # or "polynomial"
     created = "2026-11-25T05:00:00+00:00"
     bayespsf = "0.1.0"
-    [source]                             # free-form provenance (the stack, the command)
+    [source]                             # provenance (the stack, the command), and:
+    pixel_size = 100.0                   # the model's pixel size and camera kind the widths
+    camera_kind = "emccd"                # were measured with (bayespsf.axial.calibrate)
     [x]                                  # and [y]: one table per axis
     w0 = 130.0
     c = -200.0
@@ -21,6 +23,10 @@ Layout (every number in nm, except the dimensionless A and B)::
     z = [...]
     s_x = [...]
     ...
+
+``pixel_size`` and ``camera_kind`` of ``[source]`` are checked against the model a calibration
+is used with (``bayespsf.axial.match.check_calibration``): the curves hold for the optics and
+pixels of their bead stack, and another pixel size or camera is a named error.
 """
 
 from __future__ import annotations
@@ -125,8 +131,8 @@ def read_z_calibration(path: str | os.PathLike) -> DefocusCalibration:
     Raises
     ------
     BayespsfInputError
-        If the file is missing or not TOML, or a key is missing or a value bad, named with
-        the file.
+        If the file is missing or not TOML, or a key is missing or a value bad (a
+        ``[source] pixel_size`` that is not a number > 0 included), named with the file.
 
     See Also
     --------
@@ -173,7 +179,18 @@ def read_z_calibration(path: str | os.PathLike) -> DefocusCalibration:
             }
         )
     steps = pd.DataFrame(doc.get("steps", {}))
-    source = {**doc.get("source", {}), "file": str(path), "created": doc.get("created")}
+    recorded = doc.get("source", {})
+    if not isinstance(recorded, dict):
+        raise BayespsfInputError(f"{where}: source must be a table [source]")
+    pixel_size = recorded.get("pixel_size", 1.0)
+    if isinstance(pixel_size, bool) or not (
+        isinstance(pixel_size, int | float) and np.isfinite(pixel_size) and pixel_size > 0
+    ):
+        raise BayespsfInputError(
+            f"{where}: [source] pixel_size must be the stack's pixel size in nm (> 0), got "
+            f"{pixel_size!r}"
+        )
+    source = {**recorded, "file": str(path), "created": doc.get("created")}
     return DefocusCalibration(
         curve,
         Defocus(curves["x"], curves["y"]),

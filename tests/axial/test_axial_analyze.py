@@ -1,11 +1,16 @@
 """`bayespsf analyze --z-calibration` puts each frame's z posterior into the
 localisation tables (picasso's z and lpz, ThunderSTORM's z [nm]) and records the calibration."""
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from test_analysis_pipeline import CAMERA  # the paper-movie scene's camera, as a camera file
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
+from test_analysis_pipeline import CAMERA
 
 from bayespsf import Scene, cli, load_scene
 from bayespsf.axial import calibrate

@@ -4,11 +4,15 @@ trip from a simulated stack to the z of simulated molecules."""
 from __future__ import annotations
 
 import copy
+import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import tifffile
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
 from test_analysis_pipeline import CAMERA as PAPER_CAMERA
 
 from bayespsf import cli, load_scene, simulate
