@@ -3,10 +3,13 @@ of a pixel, from the camera law or estimated from the image itself."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage, optimize, special, stats
 
 from bayespsf import psf
+from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
 
 MASK_SCORE = 3.0  # the least score whose neighbourhood is left out of the background
@@ -131,3 +134,214 @@ def template(psf_sd, pixel_size, image_shape=None) -> tuple[np.ndarray, np.ndarr
     spot = psf.expected_counts([0.0, 0.0, psf_sd, psf_sd, 1.0, 0.0], side, a)
     fractions = spot.sum(axis=0)
     return fractions, fractions
+
+
+@dataclass(frozen=True)
+class PixelLaw:
+    """A background pixel's law in detected photons, for the exact null of the score.
+
+    Per frame: ``n ~ Poisson(lam)`` photoelectrons; an EM register (``amplified``) turns each
+    into an exponential number of gain units of mean 1 (``Gamma(n, G) / G``); readout adds
+    ``Normal(0, readout_var)``; the detector sees the mean of ``frames`` such frames. Its
+    cumulant generating function per frame is ``lam kappa(theta) + readout_var theta**2 / 2``
+    with ``kappa(theta) = theta / (1 - theta)`` (EMCCD, ``theta < 1``; Basden, Haniff & Mackay,
+    MNRAS 345 (2003) 985: the compound Poisson of exponentials) or ``exp(theta) - 1``
+    (Poisson).
+    """
+
+    amplified: bool
+    readout_var: float
+    frames: int
+
+    def variance(self, lam):
+        """Variance of the ``frames``-frame mean at ``lam`` photons per pixel per frame."""
+        return ((2.0 if self.amplified else 1.0) * lam + self.readout_var) / self.frames
+
+    def kappa(self, theta, order: int):
+        """``kappa`` (order 0) and its first two derivatives at ``theta``."""
+        if self.amplified:
+            return theta / (1.0 - theta) if order == 0 else order / (1.0 - theta) ** (order + 1)
+        return np.expm1(theta) if order == 0 else np.exp(theta)
+
+
+def pixel_law(camera, frames: int) -> PixelLaw:
+    """The ``PixelLaw`` of a camera (or Model) for a mean of ``frames`` frames: EMCCDs are
+    amplified, other cameras Poisson; the readout variance in photons² is the camera law's
+    variance at no light (its median over an sCMOS map)."""
+    from bayespsf.cameras import EMCCD
+    from bayespsf.movie.extract import photon_model
+
+    model = photon_model(camera)
+    readout = float(np.median(model.photon_variance(np.zeros((1, 1)))))
+    return PixelLaw(isinstance(model.camera, EMCCD), readout, int(frames))
+
+
+def null_thresholds(law: PixelLaw, spot, lam, alpha: float) -> np.ndarray:
+    """The score ``t`` exceeded with probability ``alpha`` by a background pixel of ``lam``
+    photons (one per value of ``lam``), from the saddlepoint approximation of the score's law.
+
+    On a flat background of ``lam`` photons and the law's variance ``v``, the score is
+    ``T = Σ c_i (x_i - lam) / sqrt(v)`` with ``c = g / ||g||``, a weighted sum of independent
+    pixels, whose cumulant generating function ``K(u)`` follows from the law's (``PixelLaw``).
+    Its upper tail at the saddlepoint ``K'(û) = t`` is Robinson's formula
+    ``P(T > t) ≈ exp(K(û) - û t + ẑ²/2) Q(ẑ)``, ``ẑ = û sqrt(K''(û))``: the exponentially
+    tilted law (mean ``t``) taken as normal (Robinson, J. R. Stat. Soc. B 44 (1982) 91;
+    Daniels, Int. Stat. Rev. 55 (1987) 37). It is accurate in relative terms far into the
+    tail, where the normal law of the central limit theorem is not (EMCCD pixels at a few
+    photons are exponential-like, and ``alpha`` is of order ``1e-9`` on a large image). Against
+    Monte Carlo of 2.4e7 scores (EMCCD and ideal cameras, 1 to 10 photons, 1 and 5 frames)
+    the observed over the stated rate was 0.9 to 1.05 at ``alpha`` 1e-3 and 1e-4, 0.7 to 1.1
+    at 1e-5 (low where the tail is heaviest: safe); on backgrounds far below the readout
+    noise it errs high (safe), up to a factor of 3, where the Lugannani–Rice formula fails
+    (negative tails). An upper bound on it is Chernoff's, ``exp(K(û) - û t)``.
+    """
+    g = np.outer(*spot).ravel()
+    c = g / np.sqrt(np.sum(g**2))
+    return np.array([_threshold(law, c, float(x), alpha) for x in np.atleast_1d(lam)])
+
+
+def _threshold(law: PixelLaw, c: np.ndarray, lam: float, alpha: float) -> float:
+    gauss = float(stats.norm.isf(alpha))
+    v = law.variance(lam)
+    if lam <= 0 or v <= 0 or gauss < 1.0:
+        return gauss
+    k = law.frames
+    a = c / np.sqrt(v)  # T = Σ a_i (x_i - lam)
+    total = a.sum()
+
+    def cumulants(u):
+        theta = a * u / k
+        k0 = (
+            k * (lam * law.kappa(theta, 0) + law.readout_var * theta**2 / 2).sum() - u * lam * total
+        )
+        k1 = (a * (lam * law.kappa(theta, 1) + law.readout_var * theta)).sum() - lam * total
+        k2 = (a**2 * (lam * law.kappa(theta, 2) + law.readout_var)).sum() / k
+        return k0, k1, k2
+
+    def log_tail(u):  # log P(T > K'(u)) - log alpha, Robinson's formula
+        k0, t, k2 = cumulants(u)
+        z = u * np.sqrt(k2)
+        mills = np.sqrt(np.pi / 2.0) * special.erfcx(z / np.sqrt(2.0))
+        return k0 - u * t + np.log(mills) - 0.5 * np.log(2.0 * np.pi) - np.log(alpha)
+
+    high = (k / a.max()) * (1.0 - 1e-12) if law.amplified else 2.0 * gauss
+    while not law.amplified and log_tail(high) > 0:
+        high *= 2.0
+    u = optimize.brentq(log_tail, 1e-3, high, xtol=1e-10, rtol=1e-10)
+    return float(cumulants(u)[1])
+
+
+def check_signal(image: np.ndarray, saturated, unit: str, what: str = "the image") -> None:
+    """Refuse an image without signal, naming why: every pixel equal (saturated, all zero or
+    constant), or most pixels at the ADC's full scale (``saturated``: a mask, or None)."""
+    flat = image.ravel()
+    share = 0.0 if saturated is None else float(np.mean(saturated))
+    if flat.size and np.all(flat == flat[0]):
+        value = float(flat[0])
+        if share == 1.0:
+            why = (
+                "every pixel is saturated (at the ADC's full scale, or the camera's declared "
+                "saturation): lower the EM gain, the exposure or the excitation"
+            )
+        elif value == 0.0:
+            why = "an all-zero image: a blank or unconnected camera, or frames never filled"
+        else:
+            why = "a constant image carries no spot and no noise: not a camera's counts"
+        raise BayespsfInputError(f"{what}: every pixel is {value:g} {unit}: {why}")
+    if share > 0.5:
+        raise BayespsfInputError(
+            f"{what}: {np.count_nonzero(saturated)} of {saturated.size} pixels ({share:.0%}) are "
+            "saturated (at the ADC's full scale in some frame): lower the EM gain, the "
+            "exposure or the excitation, or declare the camera's saturation ([camera] "
+            "saturation) if this is not it"
+        )
+
+
+def check_background(back, tolerance: float, source: str) -> None:
+    """Refuse a background whose median lies more than ``tolerance`` photons below 0."""
+    level = float(np.median(back))
+    if level < -tolerance:
+        raise BayespsfInputError(
+            f"background: {level:.4g} photons per pixel ({source}, median), more than "
+            f"{tolerance:.3g} below 0 (the noise allows no less): the counts were converted "
+            "with too large an offset, or are not above one; check the camera's offset "
+            "([camera] offset in the camera file) or give a background >= 0"
+        )
+
+
+def check_offset(image: np.ndarray, camera, what: str) -> None:
+    """Refuse counts (ADU) whose median lies below the camera's offset by more than five
+    readout SDs of one frame (and one ADU): the offset is wrong or was already subtracted."""
+    _, offset = camera.photons_per_adu()
+    offset = float(np.median(offset))
+    readout = float(np.sqrt(np.median(camera.variance(np.zeros((1, 1))))))
+    step = max(1, int(np.sqrt(image.size / 1e5)))  # a median of ~1e5 pixels is enough
+    median = float(np.median(image[::step, ::step]))
+    if median < offset - max(5.0 * readout, 1.0):
+        raise BayespsfInputError(
+            f"{what}: its median count {median:.6g} ADU lies {offset - median:.6g} ADU below "
+            f"the camera's offset {offset:g} ADU (more than 5 readout SDs of {readout:.3g} "
+            "ADU): is the offset right ([camera] offset in the camera file, the camera's "
+            "offset=), or was it already subtracted from the movie?"
+        )
+
+
+def threshold_map(law, spot, back, alpha):
+    """The exact-tail threshold at each pixel's background: computed on a grid of background
+    levels (geometric, 2 % apart at most) and interpolated in log background."""
+    lam = np.maximum(np.asarray(back, dtype=np.float64), 0.0)
+    low, high = float(lam.min()), float(lam.max())
+    if high <= 0:
+        return float(stats.norm.isf(alpha))
+    low = max(low, 1e-3 * high)
+    n = int(np.clip(np.ceil(np.log(high / low) / np.log(1.02)) + 1, 1, 64))
+    grid = np.geomspace(low, high, n) if n > 1 else np.array([high])
+    levels = null_thresholds(law, spot, grid, alpha)
+    if n == 1 or not lam.ndim:
+        return float(levels[0]) if not lam.ndim else np.full(lam.shape, levels[0])
+    return np.interp(np.log(np.maximum(lam, low)), np.log(grid), levels)
+
+
+def spot_variance(law, var, back):
+    """Each window pixel's variance with ``spot`` photons on it: the camera law's at background
+    plus spot (``law``), else the background's noise ``var`` times ``1 + spot / background``,
+    which bounds it for a Poisson or EMCCD pixel (readout does not grow with the light)."""
+    var = np.asarray(var, dtype=np.float64)
+    back = np.asarray(back, dtype=np.float64)
+
+    def at(win_r, win_c, spot):
+        b = back[win_r[:, :, None], win_c[:, None, :]] if back.ndim else back
+        if law is not None:
+            return law.variance(np.maximum(b, 0.0) + spot)
+        v = var[win_r[:, :, None], win_c[:, None, :]] if var.ndim else var
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(b > 0, v * (1.0 + spot / b), v + 2.0 * spot)
+
+    return at
+
+
+def at_type_maximum(image):
+    """Pixels at the largest value of an integer image's type (an ADC's full scale), or None."""
+    dtype = getattr(image, "dtype", None)
+    if dtype is None or np.dtype(dtype).kind not in "iu":
+        return None
+    return np.asarray(image) == np.iinfo(dtype).max
+
+
+def saturation_level(dtype, camera) -> float | None:
+    """The count at which the movie saturates: the camera's declared ``saturation`` (a Model's,
+    if > 0) or the largest value of an integer data type, whichever is lower; None for float
+    data without a declared saturation."""
+    declared = getattr(camera, "saturation", 0.0) or 0.0
+    levels = [float(declared)] if declared > 0 else []
+    if np.dtype(dtype).kind in "iu":
+        levels.append(float(np.iinfo(dtype).max))
+    return min(levels) if levels else None
+
+
+def checked_map(name: str, value, shape) -> np.ndarray:
+    """A scalar or ``shape`` array of finite values."""
+    arr = finite_array(name, value)
+    if arr.ndim and arr.shape != shape:
+        raise BayespsfInputError(f"{name} must be a number or an array {shape}, got {arr.shape}")
+    return arr

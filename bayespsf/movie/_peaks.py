@@ -51,3 +51,105 @@ def _subpixel(score: np.ndarray, rows: np.ndarray, cols: np.ndarray):
             delta = (fl - fh) / (2.0 * (fl - 2.0 * fm + fh))
         offsets.append(np.clip(np.nan_to_num(delta), -0.499, 0.499))
     return offsets[0], offsets[1]
+
+
+ELONGATION_CHI2 = float(-2.0 * np.log(1e-3))  # chi-square (2 d.o.f.) with tail 0.001: 13.8
+CENTRE_STEPS = 8  # fixed-point steps of the spot's centre (each at least halves its error)
+
+
+def saturated_near(mask, rows: np.ndarray, cols: np.ndarray, half: int) -> np.ndarray:
+    """The number of pixels of ``mask`` (saturated in some frame) within ``half`` pixels (in
+    rows and in columns) of each peak; zeros where there is no mask."""
+    if mask is None or not rows.size:
+        return np.zeros(rows.size, dtype=np.int64)
+    counts = ndimage.uniform_filter(mask.astype(np.float64), 2 * half + 1, mode="constant")
+    return np.rint(counts[rows, cols] * (2 * half + 1) ** 2).astype(np.int64)
+
+
+def elongation(residual, variance, rows, cols, dy, dx, psf_sd: float, pixel_size: float):
+    """``(elongation, elongated)`` of each peak, from the second moments of its spot.
+
+    In a square window of half-side ``h = max(1, round(3 psf_sd / a))`` pixels around the peak
+    pixel, with ``X``, ``Y`` the pixel offsets from the spot's centre, ``r`` the
+    background-removed photons and ``m`` the pixel-integrated template at that centre, two
+    anisotropy components ``e = Σ r w (q - q̄)``, for ``q = X² - Y²`` and ``q = 2 X Y`` with
+    ``q̄ = Σ m w q / Σ m w``, vanish in expectation for one round spot, of the template's
+    width or not (``q̄`` removes the window's own asymmetry about the centre). With
+    ``w = m / var`` they are the locally most powerful statistics for an elliptical spot
+    against a round one (the derivatives of the Gaussian by its anisotropy are ``m`` times
+    ``X² - Y²`` and ``X Y``); ``var`` is each pixel's variance with the spot on it
+    (``variance``: a callable of the window and the spot's photons, ``spot_variance``). They
+    are linear in the pixels, so their covariance is ``C = Σ var w² (q - q̄)(q' - q̄')``, and
+    ``elongated`` where ``e' C⁻¹ e > ELONGATION_CHI2`` (13.8: a round spot is flagged with
+    probability 0.001). The centre is where ``Σ r w X`` and ``Σ r w Y`` vanish, reached from
+    the score's sub-pixel peak by ``CENTRE_STEPS`` fixed-point steps: a centre off by ``δ``
+    biases ``e`` by about ``δ²`` times the flux, which would flag every bright spot.
+    ``elongation``: the ratio of major to minor SD of the unweighted (``w = 1``) moments,
+    ``sqrt((σ² + A/2) / (σ² - A/2))``, ``A = |e| / Σ r`` and ``σ²`` the template's own second
+    moment in the window; two equal spots ``d`` pixels apart give ``A ≈ d²/4``. NaN and False
+    where the window leaves the image or holds no photons.
+    """
+    from bayespsf import psf
+
+    a = float(pixel_size)
+    h = max(1, round(3.0 * psf_sd / a))
+    height, width = residual.shape
+    ratio = np.full(rows.size, np.nan)
+    flagged = np.zeros(rows.size, dtype=bool)
+    k = np.flatnonzero((rows >= h) & (cols >= h) & (rows < height - h) & (cols < width - h))
+    if not k.size:
+        return ratio, flagged
+    offsets = np.arange(-h, h + 1)
+    win_r, win_c = rows[k, None] + offsets, cols[k, None] + offsets
+    r = residual[win_r[:, :, None], win_c[:, None, :]]
+    flux = r.sum(axis=(1, 2))
+    good = flux > 0
+    sd, zero = np.full(k.size, float(psf_sd)), np.zeros(k.size)
+
+    def spot(cx, cy):  # the template at (cx, cy) and each pixel's variance with the spot
+        params = np.column_stack([cx * a, cy * a, sd, sd, np.ones(k.size), zero])
+        m = psf.expected_counts(params, 2 * h + 1, a)
+        scale = np.maximum(flux / m.sum(axis=(1, 2)), 0.0)[:, None, None]
+        return m, variance(win_r, win_c, scale * m)
+
+    cx, cy = dx[k].astype(np.float64), dy[k].astype(np.float64)
+    for _ in range(CENTRE_STEPS):  # the centre where the weighted first moments vanish
+        m, var = spot(cx, cy)
+        w = r * m / var
+        total = w.sum(axis=(1, 2))
+        ok = good & (total > 0)
+        safe = np.where(ok, total, 1.0)
+        step_x = (w * (offsets[None, None, :] - cx[:, None, None])).sum(axis=(1, 2)) / safe
+        step_y = (w * (offsets[None, :, None] - cy[:, None, None])).sum(axis=(1, 2)) / safe
+        cx = np.clip(np.where(ok, cx + step_x, cx), -1.0, 1.0)
+        cy = np.clip(np.where(ok, cy + step_y, cy), -1.0, 1.0)
+    m, var = spot(cx, cy)
+    X = offsets[None, None, :] - cx[:, None, None]
+    Y = offsets[None, :, None] - cy[:, None, None]
+    qs = [np.broadcast_to(q, m.shape) for q in (X**2 - Y**2, 2.0 * X * Y)]
+    e, cov = _anisotropy(r, m, m / var, qs, var)
+    good &= np.linalg.det(cov) > 0
+    chi2 = np.zeros(k.size)
+    solved = np.linalg.solve(cov[good], e[good][..., None])[..., 0]
+    chi2[good] = np.einsum("ki,ki->k", e[good], solved)
+    flagged[k] = good & (chi2 > ELONGATION_CHI2)
+    e, _ = _anisotropy(r, m, np.ones_like(m), qs, var)
+    sigma2 = ((m * (X**2 + Y**2)).sum(axis=(1, 2))) / (2.0 * m.sum(axis=(1, 2)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spread = np.hypot(e[:, 0], e[:, 1]) / flux
+        major, minor = sigma2 + spread / 2, sigma2 - spread / 2
+        ratio[k] = np.where(good, np.where(minor > 0, np.sqrt(major / minor), np.inf), np.nan)
+    return ratio, flagged
+
+
+def _anisotropy(r, m, w, qs, var):
+    """``e = Σ r w (q - q̄)`` (one column per ``q``) with ``q̄ = Σ m w q / Σ m w``, and their
+    covariance ``Σ var w² (q - q̄)(q' - q̄')``."""
+    axes = (1, 2)
+    centred = [q - ((m * w * q).sum(axis=axes) / (m * w).sum(axis=axes))[:, None, None] for q in qs]
+    e = np.stack([(r * w * c).sum(axis=axes) for c in centred], axis=-1)
+    cov = np.empty((len(r), 2, 2))
+    for i, ci in enumerate(centred):
+        for j, cj in enumerate(centred):
+            cov[:, i, j] = (var * w**2 * ci * cj).sum(axis=axes)
+    return e, cov

@@ -14,14 +14,25 @@ probability ``Q(Q⁻¹(P_FA) - sqrt(d²))``), sec. 4.5 (generalised matched filt
 variances) and sec. 7.4 (unknown amplitude: the GLRT). ``T`` is computed at every pixel by
 one correlation (``scipy.ndimage.correlate``).
 
-The threshold. With ``n`` pixels and ``t = Φ⁻¹(1 - false_positives / n)``, the expected number
-of background pixels whose ``T`` exceeds ``t`` is ``false_positives`` (linearity of
-expectation); every false candidate is such a pixel, so ``false_positives`` bounds the
-expected number of false candidates per image, and the probability of any (Bonferroni). As
-``T`` is smooth, exceedances cluster and the number of false local maxima is lower (measured
-in ``tests/movie/test_movie_detect.py``). The Gaussian law is the central-limit approximation of a
-sum over the template's pixels: skewed counts (EMCCD, low background, single frames) put more
-mass in the tail than the Gaussian (docs/movies.md gives the measured rates).
+The threshold. With ``n`` pixels, ``t`` is set so that a background pixel's ``T`` exceeds it
+with probability ``false_positives / n``: the expected number of background pixels above ``t``
+is then ``false_positives`` (linearity of expectation); every false candidate is such a pixel,
+so ``false_positives`` bounds the expected number of false candidates per image, and the
+probability of any (Bonferroni). Given the camera (``detect_movie``, ``detect_frames``: a mean
+projection or single frames, noise from the camera law), ``t`` comes from the law of ``T``
+under that camera: the saddlepoint approximation of a weighted sum of EMCCD or Poisson pixels
+(``_noise.null_thresholds``), at each pixel's background. Without it, ``t = Φ⁻¹(1 -
+false_positives / n)``, the central-limit approximation, which skewed counts (EMCCD, a few
+photons per pixel, single frames) exceed in the far tail: one 4096 × 4096 EMCCD frame at 3
+photons per pixel gave 9 false candidates against a stated 0.01 (docs/movies.md).
+
+Flags. ``saturated`` counts the pixels of the spot's template window at the ADC's full scale
+(the camera's declared ``saturation`` or an integer type's largest value) in some frame;
+``elongated`` marks a spot whose second moments reject one round spot
+(``_peaks.elongation``): two molecules closer than the detector resolves (1-2 pixels: one
+candidate), a moving or an astigmatic spot. Flagged candidates keep their status; a
+projection, a frame or counts that cannot be a camera's (below its offset, constant, mostly
+saturated) are refused with the numbers.
 """
 
 from __future__ import annotations
@@ -37,16 +48,26 @@ from scipy import stats
 from bayespsf import psf
 from bayespsf._validate import finite_array, scalar_in_range
 from bayespsf.errors import BayespsfInputError
+from bayespsf.movie._metadata import check_pixel_size, resolve_pixel_size
 from bayespsf.movie._noise import (
+    at_type_maximum,
     camera_noise_variance,
+    check_background,
+    check_offset,
+    check_signal,
+    checked_map,
     estimate_background,
     estimate_noise_variance,
     matched_filter,
+    pixel_law,
+    saturation_level,
+    spot_variance,
     template,
+    threshold_map,
 )
-from bayespsf.movie._peaks import STATUSES, find_peaks
+from bayespsf.movie._peaks import STATUSES, elongation, find_peaks, saturated_near
 from bayespsf.movie.extract import frame_span, open_movie, photon_model
-from bayespsf.movie.project import project
+from bayespsf.movie.project import project_with_saturation
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -65,7 +86,10 @@ __all__ = [
     "iter_detect_frames",
 ]
 
-_NAMES = "molecule x y row col score amplitude background status threshold noise_var noise_source"
+_NAMES = (
+    "molecule x y row col score amplitude background status threshold noise_var noise_source "
+    "saturated elongation elongated"
+)
 COLUMNS = tuple(_NAMES.split())
 
 
@@ -121,19 +145,27 @@ def detect(
         - ``background``: photons per pixel at the peak;
         - ``status``: one of ``STATUSES`` (``accepted``, ``rejected: edge``,
           ``rejected: neighbour``);
-        - ``threshold``: ``t``, the same in every row;
+        - ``threshold``: ``t`` at the peak (the same in every row without a camera);
         - ``noise_var``: noise variance at the peak, photons²;
-        - ``noise_source``: ``given``, ``camera`` or ``estimated``.
+        - ``noise_source``: ``given``, ``camera`` or ``estimated``;
+        - ``saturated``: pixels of the spot's window at the ADC's full scale (in an integer
+          image, its type's maximum);
+        - ``elongation``: major over minor SD of the spot's second moments (1: round);
+        - ``elongated``: True where they reject one round spot (p < 0.001): e.g. two
+          molecules 1-2 pixels apart, seen as one candidate.
 
         ``attrs["detection"]`` holds the settings, the number of pixels above the threshold,
-        the background's source and the counts by status.
+        the ``null`` law of the threshold, the background's source, the counts by status and
+        the number of ``saturated_pixels``.
 
     Raises
     ------
     BayespsfInputError
-        An image that is not 2-D of at least 3 x 3 finite values, or without noise; a
-        ``noise_var`` or ``background`` of the wrong shape, or a noise variance <= 0; a
-        ``false_positives`` outside (0, number of pixels); a bad ``roi`` or ``pixel_size``.
+        An image that is not 2-D of at least 3 x 3 finite values, constant (named: all zero,
+        saturated), mostly saturated or without noise; a ``noise_var`` or ``background`` of
+        the wrong shape, a noise variance <= 0, a background below 0 beyond the noise; a
+        ``false_positives`` outside (0, number of pixels); a bad ``roi``; a ``pixel_size``
+        outside 1 nm to 10 µm.
 
     See Also
     --------
@@ -144,11 +176,8 @@ def detect(
 
     Notes
     -----
-    The test and its threshold are stated in the module docstring: the generalised
-    likelihood-ratio test of a spot of known shape and unknown amplitude against background
-    only reduces to the prewhitened matched filter ``T``, N(0, 1) under the null, and the
-    threshold ``t = Φ⁻¹(1 - false_positives / n)`` over ``n`` pixels bounds the expected
-    number of false candidates per image by ``false_positives``.
+    The test, its threshold and the flags are stated in the module docstring; here ``T`` is
+    taken as N(0, 1) under the null, ``t = Φ⁻¹(1 - false_positives / n)`` over ``n`` pixels.
 
     Positions are refined by fitting a Gaussian through the score at the peak pixel and its
     two neighbours along each axis (a parabola through ``log T``; a parabola through ``T``
@@ -188,10 +217,19 @@ def _detect(
     false_positives=0.01,
     roi=25,
     min_distance=None,
+    *,
+    law=None,
+    saturated=None,
 ) -> pd.DataFrame:
+    """``detect``; ``law`` (a ``PixelLaw``): the threshold from the camera law's exact tail;
+    ``saturated``: pixels at the ADC's full scale in some frame (default: in an integer image,
+    those at its type's maximum)."""
+    if saturated is None:
+        saturated = at_type_maximum(image)
     image = finite_array("image", image)
     if image.ndim != 2 or min(image.shape) < 3:
         raise BayespsfInputError(f"image must be 2-D (h, w) with h, w >= 3, got {image.shape}")
+    check_pixel_size(pixel_size, "pixel_size=")
     spot = template(psf_sd, pixel_size, image.shape)
     roi, _ = psf.check_geometry(roi, pixel_size)
     min_distance = (
@@ -200,56 +238,66 @@ def _detect(
     fp = scalar_in_range("false_positives", false_positives, 0.0, image.size, low_inclusive=False)
     if fp >= image.size:
         raise BayespsfInputError(f"false_positives must be below the {image.size} pixels")
-    threshold = float(stats.norm.isf(fp / image.size))
+    fp_p = fp / image.size  # per pixel
+    gaussian = float(stats.norm.isf(fp_p))
+    check_signal(image, saturated, "photons")
     estimate = None
     if noise_var is None or background is None:
         estimate = estimate_noise_variance(image)
         if estimate <= 0:
-            raise BayespsfInputError("the image has no noise (adjacent pixels are equal)")
-    if background is None:
-        back = estimate_background(image, spot, 3 * roi, threshold, estimate)
+            raise BayespsfInputError(
+                "the image has no noise (adjacent pixels are equal): give noise_var, or an "
+                "image of counts with their noise"
+            )
+    if background is None:  # pixels left out: those above the threshold (the law's, if any)
+        level = gaussian if law is None else threshold_map(law, spot, np.median(image), fp_p)
+        back = estimate_background(image, spot, 3 * roi, level, estimate)
         back_source = f"local mean ({3 * roi} px)"
     else:
-        back, back_source = _map("background", background, image.shape), "given"
+        back, back_source = checked_map("background", background, image.shape), "given"
     if noise_var is None:
         var, source = estimate, "estimated"
     elif callable(noise_var):  # the camera law at the background (detect_movie)
         var, source = noise_var(back), "camera"
     else:
-        var, source = _map("noise_var", noise_var, image.shape), "given"
+        var, source = checked_map("noise_var", noise_var, image.shape), "given"
     if np.any(var <= 0):
         raise BayespsfInputError("noise_var must be > 0 photons²")
+    if law is None:  # the image's own noise, else five readout SDs of one frame (ADU check)
+        tolerance = 3.0 * float(np.sqrt(np.median(var)))
+    else:
+        tolerance = 5.0 * float(np.sqrt(law.readout_var)) + 1e-9
+    check_background(back, tolerance, back_source)
+    threshold = gaussian if law is None else threshold_map(law, spot, back, fp_p)
     score, amplitude = matched_filter(image - back, var, spot)
     rows, cols, status, dy, dx = find_peaks(score, threshold, roi, min_distance)
-    table = pd.DataFrame(
-        {
-            "molecule": np.arange(rows.size),
-            "x": cols + dx,
-            "y": rows + dy,
-            "row": rows,
-            "col": cols,
-            "score": score[rows, cols],
-            "amplitude": amplitude[rows, cols],
-            "background": np.broadcast_to(back, image.shape)[rows, cols],
-            "status": status,
-            "threshold": threshold,
-            "noise_var": np.broadcast_to(var, image.shape)[rows, cols],
-            "noise_source": source,
-        }
+    shape = elongation(
+        image - back, spot_variance(law, var, back), rows, cols, dy, dx, psf_sd, pixel_size
     )
+    threshold = np.broadcast_to(threshold, image.shape)
+
+    def at(values):  # a map's (or a number's) values at the peaks
+        return np.broadcast_to(values, image.shape)[rows, cols]
+
+    values = (np.arange(rows.size), cols + dx, rows + dy, rows, cols, at(score), at(amplitude))
+    values += (at(back), status, at(threshold), at(var), source)
+    values += (saturated_near(saturated, rows, cols, len(spot[0]) // 2), *shape)
+    table = pd.DataFrame(dict(zip(COLUMNS, values, strict=True)))
     table.attrs["detection"] = {
         "psf_sd": float(psf_sd),
         "pixel_size": float(pixel_size),
         "false_positives": fp,
         "pixels": int(image.size),
         "pixels_above": int(np.count_nonzero(score > threshold)),
-        "threshold": threshold,
+        "threshold": float(np.median(threshold)),
+        "null": "gaussian" if law is None else "camera law (saddlepoint)",
         "noise_source": source,
         "noise_var": float(np.median(var)),
         "background_source": back_source,
         "roi": roi,
         "min_distance": float(min_distance),
         "counts": {s: int(np.count_nonzero(status == s)) for s in STATUSES},
+        "saturated_pixels": 0 if saturated is None else int(np.count_nonzero(saturated)),
     }
     return table
 
@@ -277,8 +325,9 @@ def detect_movie(
     camera : Camera or Model, optional
         Converts counts (ADU) to photons (``Model.to_photons``) and, for a mean projection,
         gives the noise variance from the camera law at the background level divided by the
-        number of frames (``camera_noise_variance``). Without it the movie is taken to be in
-        photons and the noise is estimated from the projection.
+        number of frames (``camera_noise_variance``) and the threshold from its exact tail.
+        Without it the movie is taken to be in photons and the noise is estimated from the
+        projection.
     projection : {"mean", "median"}, default "mean"
         The projection (``bayespsf.movie.project``, memory bounded).
     frames : slice or range, optional
@@ -297,7 +346,8 @@ def detect_movie(
     ------
     BayespsfInputError
         An unknown ``projection``, frames that are not consecutive frames of the movie, no
-        pixel size from the arguments or the movie, or any error of ``detect``.
+        pixel size from the arguments or the movie, counts below the camera's offset beyond
+        its readout noise, or any error of ``detect``.
 
     See Also
     --------
@@ -308,15 +358,18 @@ def detect_movie(
     if projection not in ("mean", "median"):
         raise BayespsfInputError(f"projection must be 'mean' or 'median', got {projection!r}")
     span = frame_span(movie, frames)
-    image = project(movie, projection, frames=span)
+    level = saturation_level(movie.dtype, camera)
+    image, counts = project_with_saturation(movie, projection, level, frames=span)
     table = _detect_photons(
         image,
-        len(span) if projection == "mean" else None,
+        len(span) if projection == "mean" or len(span) == 1 else None,
         movie,
         psf_sd,
         pixel_size,
         camera,
         options,
+        None if counts is None else counts > 0,
+        f"{movie.path}: the {projection} projection of frames {span.start}-{span.stop - 1}",
     )
     table.attrs["detection"].update(projection=projection, frames=[span.start, span.stop])
     return table
@@ -353,9 +406,14 @@ def iter_detect_frames(
     """
     movie = open_movie(movie)
     span = frame_span(movie, frames)
+    level = saturation_level(movie.dtype, camera)
     for first, data in movie.blocks(block, span.start, span.stop):
         for i, frame in enumerate(data):
-            table = _detect_photons(frame, 1, movie, psf_sd, pixel_size, camera, options)
+            mask = None if level is None else frame >= level
+            what = f"{movie.path}: frame {first + i}"
+            table = _detect_photons(
+                frame, 1, movie, psf_sd, pixel_size, camera, options, mask, what
+            )
             table.insert(0, "frame", first + i)
             yield table
 
@@ -407,21 +465,23 @@ def detect_frames(movie: Movie | str | Path, **options) -> pd.DataFrame:
     return table
 
 
-def _detect_photons(image, frames, movie, psf_sd, pixel_size, camera, options):
-    """``detect`` on a frame or projection in ADU: converted with ``camera`` (if any), the
-    noise from the camera law over ``frames`` frames (if a camera, a mean and no noise_var)."""
-    if pixel_size is None:
-        pixel_size = getattr(camera, "pixel_size", None) or movie.pixel_size
-        if pixel_size is None:
-            raise BayespsfInputError(
-                "pixel_size: the movie's metadata has none; give pixel_size (nm)"
-            )
+def _detect_photons(image, frames, movie, psf_sd, pixel_size, camera, options, saturated, what):
+    """``detect`` on a frame or projection (``what``) in ADU: checked against the camera
+    (``check_signal``, ``check_offset``), converted with ``camera`` (if any), the noise from
+    the camera law over ``frames`` frames and the threshold from its exact tail (if a camera,
+    a mean or one frame, and no noise_var)."""
+    pixel_size = resolve_pixel_size(pixel_size, camera, movie)
     options = {"noise_var": None, "background": None} | options
+    law = None
     if camera is not None:
         model = photon_model(camera)
+        template(psf_sd, pixel_size, image.shape)  # the spot's size is named first
+        check_signal(image, saturated, "ADU", what)
+        check_offset(image, model.camera, what)
         image = model.to_photons(image)
         if frames is not None and options["noise_var"] is None:
             options["noise_var"] = lambda back: camera_noise_variance(model, back, frames)
+            law = pixel_law(model, frames)
     return _detect(
         image,
         psf_sd,
@@ -429,12 +489,6 @@ def _detect_photons(image, frames, movie, psf_sd, pixel_size, camera, options):
         options.pop("noise_var"),
         options.pop("background"),
         **options,
+        law=law,
+        saturated=saturated,
     )
-
-
-def _map(name: str, value, shape) -> np.ndarray:
-    """A scalar or ``shape`` array of finite values."""
-    arr = finite_array(name, value)
-    if arr.ndim and arr.shape != shape:
-        raise BayespsfInputError(f"{name} must be a number or an array {shape}, got {arr.shape}")
-    return arr

@@ -167,9 +167,21 @@ def molecule_pixels(molecules) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise BayespsfInputError("molecules: the table has no rows")
     if len(np.unique(ids)) != len(ids):
         raise BayespsfInputError("molecules: the molecule ids must be unique")
-    x = finite_array("molecules.x", molecules["x"].to_numpy())
-    y = finite_array("molecules.y", molecules["y"].to_numpy())
+    x, y = (_numbers(molecules, name) for name in ("x", "y"))
     return ids, np.floor(y + 0.5).astype(np.int64), np.floor(x + 0.5).astype(np.int64)
+
+
+def _numbers(molecules: pd.DataFrame, name: str) -> np.ndarray:
+    """A column of positions as finite floats: text (which NumPy would parse) is refused."""
+    values = molecules[name].to_numpy()
+    text = [v for v in values if isinstance(v, str | bytes)] if values.dtype.kind in "OSU" else []
+    if text:
+        raise BayespsfInputError(
+            f"molecules.{name}: positions must be numbers (camera pixels), got text such as "
+            f"{text[0]!r} in {len(text)} row(s); convert the column (pandas.to_numeric) or "
+            "read the table with numeric columns"
+        )
+    return finite_array(f"molecules.{name}", values)
 
 
 def open_movie(movie) -> Movie:

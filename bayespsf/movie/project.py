@@ -190,3 +190,49 @@ def blocks(
             yield movie.frames(part.start, part.stop, rows=rows)
         else:
             yield np.stack([movie.frames(f, f + 1, rows=rows)[0] for f in part])
+
+
+def project_with_saturation(
+    movie: Movie, kind: str, level: float | None, frames: slice | range | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """``project(movie, kind, frames)`` and, in the same pass over the frames, the number of
+    frames in which each pixel reaches ``level`` (the ADC's full scale).
+
+    Parameters
+    ----------
+    movie : Movie
+        As ``project``.
+    kind : {"mean", "median", "max", "std"}
+        As ``project``.
+    level : float or None
+        Counts at or above it are saturated; None: no count (``counts`` is None).
+    frames : slice or range, optional
+        As ``project``.
+
+    Returns
+    -------
+    image : numpy.ndarray
+        ``(h, w)``, float64: the projection.
+    counts : numpy.ndarray or None
+        ``(h, w)``, int64: the frames in which each pixel is at or above ``level``.
+    """
+    if level is None:
+        return project(movie, kind, frames), None
+    tally = _Tally(movie, level)
+    return project(tally, kind, frames), tally.counts
+
+
+class _Tally:
+    """A movie whose reads count, pixel by pixel, the frames at or above ``level``."""
+
+    def __init__(self, movie, level: float):
+        self.movie, self.level = movie, level
+        self.shape, self.dtype = movie.shape, movie.dtype
+        self.counts = np.zeros(movie.shape[1:], dtype=np.int64)
+
+    def frames(self, start: int, stop: int, rows: slice | None = None) -> np.ndarray:
+        data = self.movie.frames(start, stop, rows=rows)
+        self.counts[slice(None) if rows is None else rows] += np.count_nonzero(
+            data >= self.level, axis=0
+        )
+        return data

@@ -201,9 +201,21 @@ class Movie:
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def frame(self, i: int) -> np.ndarray:
-        """Frame ``i`` (negative counts from the end) as an array ``(h, w)``."""
-        i = range(self.n_frames)[i]
-        return self.frames(i, i + 1)[0]
+        """Frame ``i``, from 0 to ``n_frames - 1``, as an array ``(h, w)``.
+
+        A negative index is refused, not counted from the end (``movie[-1]`` indexes as an
+        array does): ``FrameIndexError``, a ``BayespsfInputError`` and an ``IndexError``,
+        naming the index and the movie's frames.
+        """
+        if isinstance(i, bool) or not isinstance(i, int | np.integer):
+            raise FrameIndexError(f"frame index must be a whole number, got {i!r}")
+        if not 0 <= i < self.n_frames:
+            raise FrameIndexError(
+                f"frame {int(i)} is not a frame of {self.path}: its {self.n_frames} frames are "
+                f"0 to {self.n_frames - 1}"
+                + (" (a negative index is not counted from the end)" if i < 0 else "")
+            )
+        return self.frames(int(i), int(i) + 1)[0]
 
     def blocks(
         self, size: int, start: int = 0, stop: int | None = None
@@ -219,8 +231,13 @@ class Movie:
     def __getitem__(self, key) -> np.ndarray:
         key = key if isinstance(key, tuple) else (key,)
         head, rest = key[0], key[1:]
-        if isinstance(head, int | np.integer):
-            return self.frame(int(head))[rest]
+        if isinstance(head, int | np.integer):  # as an array: negative from the end
+            if not -self.n_frames <= head < self.n_frames:
+                raise FrameIndexError(
+                    f"index {int(head)} is out of range for the {self.n_frames} frames of "
+                    f"{self.path} (-{self.n_frames} to {self.n_frames - 1})"
+                )
+            return self.frame(int(head) % self.n_frames)[rest]
         if not isinstance(head, slice):
             raise TypeError(f"index a movie's frames with an integer or a slice, not {head!r}")
         span = range(self.n_frames)[head]
@@ -260,6 +277,11 @@ class Movie:
     def __reduce__(self):  # reopened from the files, not copied (dask's distributed workers)
         files = list(self.path) if isinstance(self.path, tuple) else self.path
         return _reopen, (files, self._channel)
+
+
+class FrameIndexError(BayespsfInputError, IndexError):
+    """A frame index outside the movie (an ``IndexError`` too, so that iterating over a
+    movie's frames ends at its last one)."""
 
 
 def _reopen(path, channel):

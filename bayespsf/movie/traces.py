@@ -24,6 +24,7 @@ import pandas as pd
 from bayespsf import psf
 from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
+from bayespsf.movie._metadata import resolve_pixel_size
 from bayespsf.movie.extract import iter_rois, molecule_pixels, open_movie, photon_model
 from bayespsf.movie.steps import PENALTY, bleach_steps
 
@@ -155,14 +156,7 @@ def traces(
 
 
 def _pixel_size(camera, pixel_size, movie) -> float:
-    if pixel_size is None:
-        pixel_size = camera.pixel_size if isinstance(camera, Model) else movie.pixel_size
-    if pixel_size is None:
-        raise BayespsfInputError(
-            "pixel_size: the movie's metadata has none; give pixel_size (nm) or a Model"
-        )
-    psf.pixel_centres(1, pixel_size)  # validates it
-    return float(pixel_size)
+    return resolve_pixel_size(pixel_size, camera if isinstance(camera, Model) else None, movie)
 
 
 def drift(frames, position) -> tuple[float, float]:

@@ -26,7 +26,7 @@ def _check(movie, data):
     assert movie.shape == data.shape and len(movie) == movie.n_frames == len(data)
     assert movie.dtype == data.dtype
     np.testing.assert_array_equal(movie.frames(), data)
-    np.testing.assert_array_equal(movie.frame(-1), data[-1])
+    np.testing.assert_array_equal(movie[-1], data[-1])
     np.testing.assert_array_equal(movie.frames(3, 7, rows=slice(2, 5)), data[3:7, 2:5])
     np.testing.assert_array_equal(movie.to_dask(frames_per_chunk=5).compute(), data)
 
