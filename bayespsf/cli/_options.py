@@ -38,6 +38,12 @@ METHOD_PER_ROI_HELP = (
 METHOD_BATCHED_HELP = "posterior method (default auto: the batched engine, emcee where it fails)"
 
 
+PIXEL_SIZE_HELP = (
+    "the pixel size at the sample, nm (default: the camera file's [geometry] pixel_size, else "
+    "the movie's metadata)"
+)
+
+
 def add_movie(
     parser: argparse.ArgumentParser, help: str = MOVIE_HELP, metavar: str | None = None
 ) -> None:
@@ -69,6 +75,19 @@ def add_camera(parser, help: str = CAMERA_AS_FOR_DETECT, required: bool = True) 
         Whether the command needs it (default True; False inside a required group).
     """
     parser.add_argument("--camera", required=required, help=help)
+
+
+def add_pixel_size(parser: argparse.ArgumentParser, help: str = PIXEL_SIZE_HELP) -> None:
+    """Add ``--pixel-size``, the pixel size at the sample in nm (a float, default None).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    help : str, optional
+        Its help text (default ``PIXEL_SIZE_HELP``).
+    """
+    parser.add_argument("--pixel-size", type=float, default=None, help=help)
 
 
 def add_psf_sd(

@@ -116,7 +116,14 @@ def _movie_model(args):
     check_sizes(args.roi, args.fit)
     movie = read_movie(args.movie)
     table = read_camera_file(args.camera)
-    scene = camera_scene(table, args.camera, args.fit, movie.pixel_size, roi_name="--fit")
+    stated = table.get("geometry", {}).get("pixel_size")
+    if args.pixel_size is not None and stated is not None and stated != args.pixel_size:
+        raise CommandError(
+            f"--pixel-size {args.pixel_size:g} nm, but {args.camera} states [geometry] "
+            f"pixel_size = {stated:g} nm: give one of them"
+        )
+    fallback = movie.pixel_size if args.pixel_size is None else args.pixel_size
+    scene = camera_scene(table, args.camera, args.fit, fallback, roi_name="--fit")
     emitter = scene.to_dict().get("emitter", {})
     s0 = args.psf_sd
     if s0 is None and {"s0x", "s0y"} <= set(table.get("emitter", {})):

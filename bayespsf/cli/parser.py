@@ -21,6 +21,7 @@ from bayespsf.cli._options import (
     add_method,
     add_movie,
     add_out,
+    add_pixel_size,
     add_psf_sd,
     add_seed,
     add_workers,
@@ -177,6 +178,7 @@ def _add_detect(commands) -> None:
     add_movie(detect)
     add_camera(detect, CAMERA_HELP)
     add_psf_sd(detect)
+    add_pixel_size(detect)
     add_geometry(detect, ROI_PAPER_HELP)
     detect.add_argument(
         "--false-positives",
@@ -206,6 +208,7 @@ def _add_analyze(commands) -> None:
     add_movie(analyze)
     add_camera(analyze)
     add_psf_sd(analyze)
+    add_pixel_size(analyze)
     add_geometry(analyze)
     analyze.add_argument(
         "--min-valid-frames",
@@ -264,6 +267,7 @@ def _add_calibrate_z(commands) -> None:
     add_movie(calibrate_z, "the z-stack: .tif/.ome.tif or .npy", metavar="STACK")
     add_camera(calibrate_z)
     add_psf_sd(calibrate_z, "the bead's in-focus SD in nm (the detector's template)")
+    add_pixel_size(calibrate_z)
     calibrate_z.add_argument("--z-start", type=float, required=True, help="first step's z, nm")
     calibrate_z.add_argument("--z-step", type=float, required=True, help="z per step, nm")
     calibrate_z.add_argument(
@@ -313,9 +317,7 @@ def _add_calibrate(commands) -> None:
         help="emccd (excess noise 2) or scmos, also a CCD (excess 1)",
     )
     add_psf_sd(calibrate, required=True)
-    calibrate.add_argument(
-        "--pixel-size", type=float, default=None, help="nm (default: the movie's metadata)"
-    )
+    add_pixel_size(calibrate, "nm (default: the movie's metadata)")
     calibrate.add_argument(
         "--e-per-adu",
         type=float,

@@ -3,11 +3,14 @@
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from bayespsf import cli
+from bayespsf import cli, load_scene, simulate_movie
 from bayespsf.cameras import EMCCD
 from bayespsf.cli import selfcheck
+from bayespsf.io import CAMERA_KEYS
+from bayespsf.movie import read_movie
 
 
 def test_selfcheck_moments_are_exact():
@@ -338,3 +341,27 @@ def test_a_camera_file_roi_that_disagrees_is_refused_naming_both(tmp_path):
     camera.write_text(camera.read_text().replace("roi = 11", "roi = 15"))  # agreeing: fine
     fit = ["fit", rois, "--camera", str(camera), "--workers", "1", "--method", "laplace"]
     assert cli.main([*fit, "--out", str(tmp_path / "out")]) == 0
+
+
+def test_pixel_size_flag_stands_in_for_metadata_and_disagreeing_values_are_refused(tmp_path):
+    """``--pixel-size`` gives the pixel size where the camera file gives none (a movie without
+    metadata), and one that disagrees with the camera file's is refused, naming both."""
+    scene = load_scene("paper-movie").replace(
+        movie={"frames": 80, "height": 48, "width": 48, "molecules": 1, "dark_frames": 0}
+    )
+    made = simulate_movie(scene, seed=1, out=tmp_path / "m")
+    frames = read_movie(made.files["movie"])
+    plain = tmp_path / "plain.npy"
+    np.save(plain, np.stack([frames.frame(i) for i in range(len(frames))]))
+    camera = {k: v for k, v in scene.to_dict()["camera"].items() if k in CAMERA_KEYS["emccd"]}
+    lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
+    (tmp_path / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
+    base = ["detect", str(plain), "--camera", str(tmp_path / "camera.toml"), "--psf-sd", "120"]
+    with pytest.raises(SystemExit, match="pixel_size"):  # no metadata, no flag: named
+        cli.main([*base, "--out", str(tmp_path / "a")])
+    assert cli.main([*base, "--pixel-size", "79", "--out", str(tmp_path / "b")]) == 0
+    stated = tmp_path / "stated.toml"
+    stated.write_text((tmp_path / "camera.toml").read_text() + "[geometry]\npixel_size = 79.0\n")
+    base[3] = str(stated)
+    with pytest.raises(SystemExit, match=r"--pixel-size 100 nm, but .* pixel_size = 79 nm"):
+        cli.main([*base, "--pixel-size", "100", "--out", str(tmp_path / "c")])
