@@ -8,6 +8,9 @@ from scipy import special
 from bayespsf.cameras.base import Camera
 from bayespsf.errors import BayespsfInputError
 
+# the likelihood tiers a scene may name for a photon counter: both are its one Poisson law
+TIERS = ("exact", "poisson")
+
 
 def poisson_log_pmf(k, lam):
     """``k log lam - lam - log k!`` for ``k >= 0`` (real ``k`` through ``gammaln``), ``lam >= 0``.

@@ -58,6 +58,7 @@ from bayespsf.cameras.photon import poisson_log_pmf, poisson_score
 from bayespsf.errors import BayespsfInputError
 
 _LIKELIHOODS = ("exact", "huang")
+TIERS = _LIKELIHOODS  # public: the tiers a scene's camera.likelihood may name
 _FISHER_METHODS = ("exact", "approx")
 _MIN_READOUT_SD = 0.01  # photoelectrons; smaller (but nonzero) readout is rejected
 _LATTICE_TOL = 1e-9

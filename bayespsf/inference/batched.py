@@ -24,7 +24,8 @@ Three methods use it, cheapest first:
     importance sampling where its k-hat passes, otherwise the chain
     (``bayespsf.sample_posterior``'s emcee run), which the callers run one ROI at a time.
 
-Draws of all the ROIs being worked on are scored together, ``MAX_SCORED`` at a time, in one
+Draws of all the ROIs being worked on are scored together, ``MAX_SCORED`` at a time (fewer
+for ROIs larger than 31 x 31, so that a call holds at most ``SCORED_PIXELS`` pixels), in one
 vectorised ``Model.log_posterior`` call (``which`` names each draw's ROI): the cost of a stack is
 a few dozen array passes, not a Python loop of small calls. Each ROI keeps its own random
 streams, spawned from its seed exactly as ``sample_posterior`` spawns them, so a ROI's
@@ -38,6 +39,7 @@ from dataclasses import asdict
 
 import numpy as np
 
+from bayespsf.inference.gof import pearson_fit
 from bayespsf.inference.importance import (
     CHAINS,
     KHAT_MAX,
@@ -50,6 +52,8 @@ from bayespsf.psf import PARAMETER_NAMES
 PILOT = 64  # Laplace draws scored to judge the Laplace (auto)
 LAPLACE_WEIGHT_SD = 0.05  # the largest pilot weight SD at which auto uses the Laplace
 MAX_SCORED = 4096  # draws per log-posterior call: ~7 MB per array of a 15 x 15 ROI
+SCORED_PIXELS = 2**22  # ... and pixels per call (32 MB per array; 401 x 401: 26 draws, not
+# 4096 in 5.3 GB arrays, which ran for hours swapping)
 MAX_DRAWS_PER_ESS = 50  # an importance run scores at most this many draws per unit of ESS
 
 
@@ -80,15 +84,16 @@ def random_streams(seed: int):
 
 def score(model, stack, draws: list[np.ndarray]) -> list[np.ndarray]:
     """Log posterior of ``draws[i]`` (k_i, 6) given ROI ``stack[i]``, all ROIs' draws scored
-    together, ``MAX_SCORED`` per call."""
+    together, ``MAX_SCORED`` per call (fewer for large ROIs: ``SCORED_PIXELS``)."""
     sizes = [len(z) for z in draws]
     if not sizes or sum(sizes) == 0:
         return [np.empty(0) for _ in draws]
     z = np.concatenate(draws)
     which = np.repeat(np.arange(len(draws)), sizes)
     out = np.empty(len(z))
-    for first in range(0, len(z), MAX_SCORED):
-        part = slice(first, first + MAX_SCORED)
+    step = min(MAX_SCORED, max(1, SCORED_PIXELS // model.roi**2))
+    for first in range(0, len(z), step):
+        part = slice(first, first + step)
         out[part] = model.log_posterior(z[part], stack, which=which[part])
     return np.split(out, np.cumsum(sizes)[:-1])
 
@@ -100,7 +105,8 @@ def cheap_posteriors(stack, model, fits, seeds, settings) -> list[dict]:
     ``fits`` are their ``fit_mle`` rows (Laplace included), ``seeds`` their seeds. Returns one
     dict per ROI: ``draws`` (k, 6) equally weighted parameter draws, or None where the chain
     is needed, and ``info`` (what ran and why: ``method``, ``why``, ``ess``, ``khat``,
-    ``weight_sd``, ``draws_scored``, the settings).
+    ``weight_sd``, ``draws_scored``, the settings; with draws, the goodness of fit at the MLE,
+    ``bayespsf.inference.gof.pearson_fit``).
     """
     n = len(stack)
     ok = fits["converged"].to_numpy(bool)
@@ -127,6 +133,11 @@ def cheap_posteriors(stack, model, fits, seeds, settings) -> list[dict]:
             todo = _laplace(stack, model, todo, laplace, streams, settings, out)
         if settings.method in ("importance", "auto") and todo.size:
             _importance(stack, model, todo, laplace, streams, settings, out)
+    made = [i for i in range(n) if out[i]["draws"] is not None]  # all at a converged MLE
+    if made:
+        theta = fits[list(PARAMETER_NAMES)].to_numpy(float)[made]
+        for i, fit in zip(made, pearson_fit(model, stack[made], theta, "mle"), strict=True):
+            out[i]["info"].update(fit)
     return out
 
 

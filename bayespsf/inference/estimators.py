@@ -427,7 +427,7 @@ def fit_mle(
     bound = np.full((len(fit), 6), np.nan)
     if crlb and ok.any():
         with np.errstate(invalid="ignore"):  # a negative diagonal (not invertible): NaN
-            bound[ok] = _in_blocks(lambda p: stack_mle.crlb(model, p), params[ok])
+            bound[ok] = _in_blocks(lambda p: stack_mle.crlb(model, p), params[ok], roi=model.roi)
     cov = np.full((len(fit), 6, 6), np.nan)
     if laplace and ok.any():
         cov[ok], definite = _laplace(model, stack[fit][ok], params[ok])
@@ -455,19 +455,18 @@ def fit_mle(
     return _frame(rows, model)
 
 
-def _in_blocks(function, *arrays):
-    """``function`` over blocks of ``stack_mle.BLOCK`` ROIs (bounded memory), concatenated."""
-    n = len(arrays[0])
-    parts = [
-        function(*(a[first : first + stack_mle.BLOCK] for a in arrays))
-        for first in range(0, n, stack_mle.BLOCK)
-    ]
+def _in_blocks(function, *arrays, roi: int):
+    """``function`` over blocks of ``stack_mle.block_rois(roi)`` ROIs (bounded memory)."""
+    n, step = len(arrays[0]), stack_mle.block_rois(roi)
+    parts = [function(*(a[first : first + step] for a in arrays)) for first in range(0, n, step)]
     return np.concatenate(parts) if parts else np.empty((0, 6))
 
 
 def _laplace(model, stack, params):
     """Inverse observed information per ROI and whether it is positive definite."""
-    info = _in_blocks(lambda c, p: stack_mle.observed_information(model, c, p), stack, params)
+    info = _in_blocks(
+        lambda c, p: stack_mle.observed_information(model, c, p), stack, params, roi=model.roi
+    )
     cov = np.full_like(info, np.nan)
     definite = np.zeros(len(info), dtype=bool)
     for i, matrix in enumerate(info):

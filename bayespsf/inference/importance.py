@@ -68,10 +68,14 @@ def psis(log_ratio: np.ndarray) -> tuple[np.ndarray, float]:
     """Normalised Pareto-smoothed importance weights of ``log_ratio`` and their k-hat."""
     from arviz_stats.base.array import array_stats
 
-    # arviz_stats smooths exp(-value) (its input is a log-likelihood in PSIS-LOO): negate
-    log_w, khat = array_stats.psislw(-np.asarray(log_ratio, dtype=np.float64))
-    w = np.exp(log_w - log_w.max())
-    return w / w.sum(), float(khat)
+    # arviz_stats smooths exp(-value) (its input is a log-likelihood in PSIS-LOO): negate.
+    # Ratios spanning more than the double range (a proposal far too wide: a 401 x 401 ROI
+    # without background) overflow its tail fit; k-hat or the weights are then not finite,
+    # which the callers read as a failed run (``ImportanceRun``), so the warnings are noise
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        log_w, khat = array_stats.psislw(-np.asarray(log_ratio, dtype=np.float64))
+        w = np.exp(log_w - log_w.max())
+        return w / w.sum(), float(khat)
 
 
 def first_batch(ess: float) -> int:
@@ -110,6 +114,9 @@ class ImportanceRun:
         self.weights, self.khat = psis(log_ratio)
         self.achieved = 1.0 / np.sum(self.weights * self.weights)
         scored = len(log_ratio)
+        if not (np.isfinite(self.khat) and np.isfinite(self.achieved)):  # overflowed: failed
+            self.khat, self.achieved, self.done = np.inf, 0.0, True
+            return
         if self.achieved >= self.ess or self.khat > KHAT_MAX or scored >= self.max_draws:
             self.done = True
             return

@@ -133,8 +133,7 @@ class Posterior:
     # ------------------------------------------------------------------------------ reading
 
     def _attr(self, key):
-        value = self.tree.attrs.get(key)
-        return None if value is None else json.loads(value)
+        return json_attribute(self.tree.attrs, key, "the posterior")
 
     @property
     def info(self) -> dict:
@@ -351,7 +350,9 @@ class Posterior:
             For a missing, empty, truncated or damaged file, a directory, a NetCDF3 file, or
             a NetCDF without the six parameters' draws (real numbers, dims ``(chain,
             draw)``, at least one draw) in a ``posterior`` group, naming the file and what it
-            is not.
+            is not; a named pipe, socket or device (refused before it is opened); or one of
+            the attributes in ``JSON_ATTRIBUTES`` that is not a JSON table (damaged after it
+            was written), naming the file and the attribute.
         """
         path = Path(path)
         what = _not_a_result_file(path)
@@ -373,10 +374,62 @@ class Posterior:
                 f"of {', '.join(PARAMETER_NAMES)} with dims (chain, draw) in its 'posterior' "
                 "group)"
             )
+        for key in JSON_ATTRIBUTES:  # now, not as a JSON traceback in info or summary()
+            json_attribute(tree.attrs, key, str(path))
         return cls(tree)
 
 
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"  # NetCDF4 files are HDF5 files
+# the attributes a result file holds as JSON tables (``from_draws``; ``sample_many`` adds
+# ``summary_row``); ``tau`` and ``truth`` map parameters to numbers
+JSON_ATTRIBUTES = ("tau", "sampler", "camera", "geometry", "truth", "summary_row")
+
+
+def json_attribute(attrs, key: str, where: str) -> dict | None:
+    """The JSON table stored in the attribute ``key`` of a result file (None where absent).
+
+    Parameters
+    ----------
+    attrs : Mapping
+        A result file's root attributes (``Posterior.tree.attrs``).
+    key : str
+        The attribute, one of ``JSON_ATTRIBUTES``.
+    where : str
+        What the attributes belong to (a file's path), for the message.
+
+    Returns
+    -------
+    dict or None
+        The decoded table; None where the attribute is absent.
+
+    Raises
+    ------
+    BayespsfInputError
+        Naming ``where`` and ``key``: the attribute is not a JSON table (a file truncated or
+        edited after it was written), or ``tau`` or ``truth`` holds something other than
+        numbers.
+    """
+    value = attrs.get(key)
+    if value is None:
+        return None
+    try:
+        table = json.loads(value)
+    except (TypeError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
+        why = f"not valid JSON ({exc})"
+    else:
+        numbers = key not in ("tau", "truth") or (
+            isinstance(table, dict)
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in table.values())
+        )
+        if isinstance(table, dict) and numbers:
+            return table
+        what = "a table of numbers per parameter" if key in ("tau", "truth") else "a JSON table"
+        why = f"not {what} (got {str(value)[:60]!r})"
+    raise BayespsfInputError(
+        f"{where}: its attribute {key!r} is damaged: {why}. The file was changed after "
+        "bayespsf wrote it; sample this molecule again (in a store, delete the file and rerun: "
+        "the run resumes and samples it again)"
+    )
 
 
 def _not_a_result_file(path: Path) -> str:
@@ -386,6 +439,8 @@ def _not_a_result_file(path: Path) -> str:
         return "no such result file"
     if path.is_dir():
         return "is a directory, not a result file (.nc)"
+    if not path.is_file():  # opening a named pipe nobody writes to would wait forever
+        return "not a regular file (a named pipe, socket or device), not a result file (.nc)"
     with path.open("rb") as file:
         head = file.read(8)
     if not head:

@@ -40,10 +40,18 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import diagnostics as diagnosis
 from bayespsf.inference.batched import as_posterior, cheap_posteriors, laplace_in_z, random_streams
 from bayespsf.inference.estimators import fit_mle, start_values
+from bayespsf.inference.gof import pearson_fit
 from bayespsf.inference.importance import IndependenceMove
 from bayespsf.inference.posterior import Posterior
-from bayespsf.inference.settings import MOVES, Settings, check_settings
+from bayespsf.inference.settings import (
+    MOVES,
+    Settings,
+    check_chain_work,
+    check_settings,
+    check_walkers_fit,
+)
 from bayespsf.model import Model
+from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.scene import Scene
 
 
@@ -228,7 +236,11 @@ def sample_posterior(
         Draws of ``x0 y0 s_x s_y`` (nm), ``N`` (photons) and ``b`` (photons per pixel), one
         chain per walker, with ``info``: the settings, ``method`` (what ran), ``requested``,
         ``converged``, ``mle_converged``, and for a chain ``steps``, ``burn``, ``thin``,
-        ``acceptance``, ``stuck_walkers`` and ``stopped``. ``info["stopped"]`` says why the
+        ``acceptance``, ``stuck_walkers`` and ``stopped``; and, whatever ran, the goodness of
+        fit ``chi2``, ``chi2_dof``, ``chi2_p`` and ``chi2_at`` (Pearson's chi-square at the
+        MLE, or the posterior mean where the MLE did not converge or ``start`` was given:
+        ``bayespsf.inference.gof.pearson_fit``; a small ``chi2_p`` says the model does not
+        describe the ROI, however narrow the posterior). ``info["stopped"]`` says why the
         chain ended: ``converged``, ``max_steps``, ``max_seconds``, or ``stalled``
         (``bayespsf.inference.diagnostics.stalled``: the autocorrelation time grows with the
         chain, or the walkers do not move, so running on would not converge). A run that did
@@ -240,7 +252,10 @@ def sample_posterior(
     ------
     BayespsfInputError
         If ``counts`` is not one valid ROI of the model's shape (``Model.roi_problems``
-        names the problem), a setting is out of range (``check_settings``), ``start`` has
+        names the problem), a setting is out of range (``check_settings``), ``walkers`` so
+        many that the chain cannot be held in memory (``check_walkers_fit``), a chain that
+        may run for hours on large ROIs without ``max_seconds`` (``check_chain_work``; before
+        the chain, where the chain-free methods did not serve), ``start`` has
         not the shape ``(walkers, 6)``, or the likelihood tier gives some pixel zero density
         at every parameter value tried.
 
@@ -285,6 +300,7 @@ def sample_posterior(
         max_seconds=max_seconds,
     )
     walkers, ess, max_steps = settings.walkers, settings.ess, settings.max_steps
+    check_walkers_fit(walkers, model.roi)
     streams = random_streams(settings.seed)
     proposal, fit, fits, fallback = None, None, None, None
     if method != "mcmc":
@@ -296,6 +312,7 @@ def sample_posterior(
             fallback = cheap["info"]["why"]
         else:
             fallback = "chain: a start was given, so there is no Laplace proposal"
+    check_chain_work(settings, model.roi)  # before the chain: hours on a large ROI, unbounded
     if start is None:
         z0, fit, proposal = _start(c, model, walkers, np.random.default_rng(streams["start"]), fits)
         mle_ok = bool(fit["converged"])
@@ -362,6 +379,14 @@ def sample_posterior(
     draws = sampler.get_chain(discard=burn, thin=thin)  # (draws, walkers, 6) in z
     params = model.from_unconstrained(draws)
     acceptance = float(np.mean(sampler.acceptance_fraction))
+    if fit is not None and mle_ok:  # the goodness of fit at the MLE, else the posterior mean
+        (gof,) = pearson_fit(
+            model, c[None], fit[list(PARAMETER_NAMES)].to_numpy(float)[None], "mle"
+        )
+    else:
+        (gof,) = pearson_fit(
+            model, c[None], params.reshape(-1, 6).mean(axis=0)[None], "posterior mean"
+        )
     return Posterior.from_draws(
         np.moveaxis(params, 1, 0),  # (walkers, draws, 6): walkers are the chains
         tau=tau,
@@ -379,6 +404,7 @@ def sample_posterior(
             **report,
             "requested": settings.method,
             **({} if fallback is None else {"why": fallback}),
+            **gof,
         },
         counts=c,
         model=model,

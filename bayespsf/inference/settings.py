@@ -1,5 +1,6 @@
 """The sampler's settings, checked by name before any work (a NaN, infinite, zero or negative
-``ess`` or budget would never end or never start a run)."""
+``ess`` or budget would never end or never start a run, and an ensemble too large for the
+machine's memory would end in NumPy's ``MemoryError``)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bayespsf.errors import BayespsfInputError
+from bayespsf.scene.memory import refuse_beyond_memory
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,9 @@ class Settings:
 MOVES = ("laplace-de", "de-snooker", "stretch")
 METHODS = ("mcmc", "auto", "laplace", "importance")
 MAX_ESS = 1e7  # an ESS target beyond this is a typo (the chain would need ~1e9 draws)
+# a chain's most pixel evaluations (max_steps x walkers x roi^2) without a wall-clock budget:
+# at 20-40 ns each (measured: photon and EMCCD table tiers) half an hour to an hour per ROI
+MAX_CHAIN_WORK = 1e11
 
 
 def _whole(name: str, value, low: int, high: float = math.inf) -> int:
@@ -122,4 +127,72 @@ def check_settings(
     )
 
 
-__all__ = ["MAX_ESS", "METHODS", "MOVES", "Settings", "check_settings"]
+def check_walkers_fit(walkers: int, roi: int, chunk: int = Settings.chunk) -> None:
+    """Refuse an ensemble whose chain cannot be held in memory, before any work.
+
+    Parameters
+    ----------
+    walkers : int
+        The ensemble size (checked by ``check_settings``).
+    roi : int
+        The ROI side in pixels.
+    chunk : int
+        Steps of the chain's first chunk.
+
+    Raises
+    ------
+    BayespsfInputError
+        Naming ``walkers``: every step scores all walkers in one vectorised call, which holds
+        several arrays of ``walkers x roi x roi`` values (at least four: the expected image,
+        the camera law's terms), and the chain keeps ``chunk`` steps of ``walkers x 7``.
+    """
+    needed = 8.0 * walkers * (4 * roi * roi + 7 * chunk)
+    refuse_beyond_memory(
+        needed,
+        f"walkers = {walkers} on {roi} x {roi} ROIs",
+        "use fewer walkers (the default, 32, is enough for six parameters; more walkers do not "
+        "make a posterior more exact, a longer chain or a higher ess does)",
+    )
+
+
+def check_chain_work(settings: Settings, roi: int) -> None:
+    """Refuse, before it starts, a chain that may run for hours on large ROIs without a budget.
+
+    Parameters
+    ----------
+    settings : Settings
+        The run's settings (``walkers``, ``max_steps``, ``max_seconds``).
+    roi : int
+        The ROI side in pixels.
+
+    Raises
+    ------
+    BayespsfInputError
+        Where ``max_seconds`` is not given and ``max_steps x walkers x roi^2`` exceeds
+        ``MAX_CHAIN_WORK`` (1e11 pixel evaluations): every step scores every walker on every
+        pixel, so a 401 x 401 ROI costs 0.1-0.2 s per step and a chain that does not converge
+        runs its 50 000 steps for 2-3 hours. The message names ``max_seconds`` and the
+        ``max_steps`` that fits the bound. The default settings pass up to 249 x 249 ROIs.
+    """
+    work = float(settings.max_steps) * settings.walkers * roi * roi
+    if settings.max_seconds is None and work > MAX_CHAIN_WORK:
+        fits = int(MAX_CHAIN_WORK // (settings.walkers * roi * roi))
+        raise BayespsfInputError(
+            f"a chain on {roi} x {roi} ROIs may run max_steps = {settings.max_steps} steps of "
+            f"walkers = {settings.walkers}: {work:.2g} pixel evaluations, about "
+            f"{work * 3e-8 / 3600:.2g} hours per ROI at 30 ns each, with no wall-clock budget; "
+            "give max_seconds (--max-seconds on the command line), a budget per ROI, or "
+            f"max_steps <= {fits} (or use smaller ROIs)"
+        )
+
+
+__all__ = [
+    "MAX_CHAIN_WORK",
+    "MAX_ESS",
+    "METHODS",
+    "MOVES",
+    "Settings",
+    "check_chain_work",
+    "check_settings",
+    "check_walkers_fit",
+]

@@ -29,6 +29,15 @@ STATIONARY = 1e-4  # ... and where no step lowers -log L, the decrement that sti
 MAX_ITERATIONS = 200
 METRIC_FLOOR = 1e-6  # expected photons per pixel (the EMCCD Fisher table's lower end)
 BLOCK = 1024  # ROIs per array pass: the Jacobian of a block of 15 x 15 ROIs is 11 MB
+BLOCK_PIXELS = 2**20  # ... and at most this many pixels per pass (its Jacobian: 48 MB)
+
+
+def block_rois(roi: int) -> int:
+    """ROIs per array pass for ROIs of ``roi`` x ``roi`` pixels: ``BLOCK`` up to 31 x 31,
+    fewer above (at least one), so that a pass holds at most ``BLOCK_PIXELS`` pixels (1024
+    ROIs of 401 x 401 pixels would hold a 7.9 GB Jacobian). A ROI's fit does not depend on
+    its block."""
+    return int(min(BLOCK, max(1, BLOCK_PIXELS // (roi * roi))))
 
 
 def box(roi: int) -> tuple[np.ndarray, np.ndarray]:
@@ -181,8 +190,9 @@ def maximise(model, counts: np.ndarray, starts: np.ndarray, held=None):
     held = np.zeros(6, dtype=bool) if held is None else np.asarray(held, dtype=bool)
     params, logl = np.empty((n, 6)), np.empty(n)
     converged, message = np.zeros(n, dtype=bool), np.empty(n, dtype=object)
-    for first in range(0, n, BLOCK):
-        block = slice(first, min(first + BLOCK, n))
+    step = block_rois(counts.shape[-1])
+    for first in range(0, n, step):
+        block = slice(first, min(first + step, n))
         params[block], logl[block], converged[block], message[block] = _maximise_block(
             model, counts[block], starts[block], held
         )

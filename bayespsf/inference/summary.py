@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
+from bayespsf.inference.gof import FIT_KEYS
 from bayespsf.psf import PARAMETER_NAMES
 
 QUANTILES = (0.025, 0.05, 0.16, 0.25, 0.5, 0.75, 0.84, 0.95, 0.975)
@@ -45,7 +46,8 @@ def draws_row(
 
     ``independent`` are the near-independent draws that ranks are taken from (default
     ``flat``: draws that are independent already, as importance and Laplace draws are);
-    ``tau`` and ``ess`` per parameter (default 1 and ``info["ess"]``).
+    ``tau`` and ``ess`` per parameter (default 1 and ``info["ess"]``). The goodness of fit
+    in ``info`` (``bayespsf.inference.gof.FIT_KEYS``) ends the row where present.
     """
     method = info.get("method", "mcmc")
     converged = bool(info.get("converged", False))
@@ -79,6 +81,7 @@ def draws_row(
         if truth is not None:
             row[f"{name}_truth"] = float(truth[k])
             row[f"{name}_rank"] = int(np.sum(spaced[pick, k] < truth[k])) if ranked else np.nan
+    row |= {key: info[key] for key in FIT_KEYS if key in info}  # the goodness of fit
     return row
 
 

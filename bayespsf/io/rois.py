@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -36,7 +37,8 @@ def read_rois(path: str | os.PathLike) -> np.ndarray:
     Raises
     ------
     BayespsfInputError
-        Naming the file and the problem: missing, a directory, unreadable or damaged, unknown
+        Naming the file and the problem: missing, a directory, not a regular file (a named
+        pipe, socket or device: refused before it is opened), unreadable or damaged, unknown
         extension, no images, TIFF pages of different shapes (named), wrong number of
         dimensions, non-square or even-sized ROIs, complex, boolean or non-finite values.
 
@@ -77,17 +79,49 @@ def read_rois(path: str | os.PathLike) -> np.ndarray:
 
 
 def checked_path(path, suffixes: tuple[str, ...], what: str, extensions: str) -> Path:
-    """``path`` as a ``Path`` that exists, is a file and ends in one of ``suffixes``;
-    ``what`` and ``extensions`` name the expected kind of file in the messages."""
+    """``path`` as a ``Path`` that exists, is a regular file and ends in one of ``suffixes``;
+    ``what`` and ``extensions`` name the expected kind of file in the messages.
+
+    Anything else is refused before it is opened: opening a named pipe that nobody writes to
+    waits forever, and a device or socket is no stored file either."""
     path = Path(path)
     if not path.exists():
         raise BayespsfInputError(f"{path}: no such file")
     if path.is_dir():
         raise BayespsfInputError(f"{path} is a directory, not {what} ({extensions})")
+    if not path.is_file():
+        raise BayespsfInputError(
+            f"{path} is {special_file_kind(path)}, not a regular file: {what} is read from a "
+            f"file on disk ({extensions}); copy the data to one and give its path"
+        )
     suffix = path.suffix.lower()
     if suffix not in suffixes:
         raise BayespsfInputError(f"{path}: unknown file type {suffix!r} (use {extensions})")
     return path
+
+
+def special_file_kind(path: Path) -> str:
+    """What a path that exists but is neither a directory nor a regular file is, in words.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        An existing path.
+
+    Returns
+    -------
+    str
+        ``"a named pipe (FIFO)"``, ``"a socket"``, ``"a character device"``,
+        ``"a block device"`` or ``"a special file"``.
+    """
+    mode = path.stat().st_mode
+    kinds = (
+        (stat.S_ISFIFO, "a named pipe (FIFO)"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+    )
+    return next((words for test, words in kinds if test(mode)), "a special file")
 
 
 @contextmanager

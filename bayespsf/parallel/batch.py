@@ -79,7 +79,8 @@ def _sample_one(task):
             counts, model, seed=seed, truth=truth, scene=scene, progress=False, **options
         )
     except BayespsfInputError as error:  # e.g. a ROI outside the likelihood tier's support
-        return index, None, _outcome_row(index, seed, "failed", str(error))
+        row = _outcome_row(index, seed, "failed", str(error))  # and why the chain was tried
+        return index, None, row | ({"why": verdict["why"]} if "why" in verdict else {})
     info = dict(post.info, **verdict, seconds=time.perf_counter() - started)  # the posterior's
     if check and checked is None:
         checked = _model_checks(counts[None], model, [seed], check)[0]
@@ -226,7 +227,10 @@ def sample_many(
     ------
     BayespsfInputError
         Before any sampling: an unknown or out-of-range sampler option, ``seed`` or
-        ``check``, counts that are not a real stack ``(n >= 1, roi, roi)``, ``truths`` not
+        ``check``, ``walkers`` so many that a chain cannot be held in memory, with
+        ``method="mcmc"`` a chain that may run for hours per ROI without ``max_seconds``
+        (``check_chain_work``; under ``auto`` a ROI left to such a chain is ``failed``, with
+        that message), counts that are not a real stack ``(n >= 1, roi, roi)``, ``truths`` not
         ``(n, 6)``, both ``executor`` and ``workers``, an unknown executor or an address no
         scheduler answers at, a store made for another run, or one in use by another run
         (a store is locked while a run uses it).
@@ -262,11 +266,14 @@ def sample_many(
         raise BayespsfInputError(
             f"unknown sampler option(s) {unknown}; sample_many takes {list(SAMPLER_OPTIONS)}"
         )
-    from bayespsf.inference.settings import check_settings
+    from bayespsf.inference.settings import check_chain_work, check_settings, check_walkers_fit
 
     check = _check_kind(check)
     options.setdefault("method", "auto")
     settings = check_settings(seed=seed, **options)  # a bad setting fails here, not in workers
+    check_walkers_fit(settings.walkers, model.roi)  # the ROIs left to the chain need them
+    if settings.method == "mcmc":  # every ROI runs a chain (else only those left to it)
+        check_chain_work(settings, model.roi)
     stack = model.check_shape(counts)
     if stack.ndim != 3:
         raise BayespsfInputError(f"counts must be a stack (n, roi, roi), got shape {stack.shape}")

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
+from bayespsf.inference.posterior import json_attribute
 
 if TYPE_CHECKING:
     from bayespsf.inference import Posterior
@@ -153,7 +154,7 @@ class Store:
             if path.exists():
                 tree = xr.open_datatree(path)
                 try:
-                    rows[index] = json.loads(tree.attrs["summary_row"])
+                    rows[index] = json_attribute(tree.attrs, "summary_row", str(path))
                 finally:
                     tree.close()
         return rows

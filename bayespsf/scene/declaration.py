@@ -23,6 +23,7 @@ import numpy as np
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import Defocus
+from bayespsf.scene.key import SceneError
 from bayespsf.scene.schema import (
     _PRIOR_ARGS,
     _PRIOR_KINDS,
@@ -32,19 +33,9 @@ from bayespsf.scene.schema import (
     Key,
     _describe_when,
     _drop_inapplicable,
+    check_likelihood,
     default_prior,
 )
-
-
-class SceneError(BayespsfInputError):
-    """A scene key is unknown, unused by its kind, of the wrong type or out of range.
-
-    Attributes
-    ----------
-    args : tuple of str
-        ``(message,)``: what is wrong, naming the key (``section.key``) and its allowed range.
-    """
-
 
 TOP_LEVEL = ("name", "description")
 MAX_SCENE_CHARACTERS = 65536  # tomllib's time grows with the square of a dotted key's depth
@@ -315,10 +306,11 @@ class Scene:
         True
         """
         path = Path(path)
+        if path.exists() and not path.is_file():  # a directory, or a pipe: reading would wait
+            kind = "a directory" if path.is_dir() else "not a regular file (a pipe or device)"
+            raise SceneError(f"{path} is {kind}, not a scene file (.toml)")
         try:
             text = path.read_text(encoding="utf-8")
-        except IsADirectoryError:
-            raise SceneError(f"{path} is a directory, not a scene file (.toml)") from None
         except OSError as exc:
             raise SceneError(f"cannot read scene file {path}: {exc.strerror}") from exc
         except UnicodeDecodeError as exc:
@@ -389,8 +381,8 @@ class Scene:
         Notes
         -----
         Keys that no longer apply after the change (e.g. ``background.sd`` when the kind becomes
-        'poisson') are dropped, and priors that were the defaults of the old geometry are
-        re-derived from the new one.
+        'poisson', or a ``camera.likelihood`` tier the new camera kind lacks) are dropped, and
+        priors that were the defaults of the old geometry are re-derived from the new one.
         """
         d = self.to_dict()
         old_geometry = dict(d["geometry"])
@@ -467,6 +459,7 @@ def _check_consistency(d: Mapping) -> None:
     cam = d["camera"]
     if cam["kind"] == "emccd" and cam["gain"] < 1.0:
         raise SceneError(f"camera.gain must be >= 1 for an EMCCD, got {cam['gain']:g}")
+    check_likelihood(cam)
     if "axial" in d:
         _check_axial(d)
 

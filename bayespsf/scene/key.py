@@ -1,10 +1,23 @@
-"""One scene key (``Key``): its type, default, unit, allowed range and meaning."""
+"""One scene key (``Key``): its type, default, unit, allowed range and meaning; and the
+error a scene that breaks a key's rule raises (``SceneError``)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
+
+from bayespsf.errors import BayespsfInputError
+
+
+class SceneError(BayespsfInputError):
+    """A scene key is unknown, unused by its kind, of the wrong type or out of range.
+
+    Attributes
+    ----------
+    args : tuple of str
+        ``(message,)``: what is wrong, naming the key (``section.key``) and its allowed range.
+    """
 
 
 @dataclass(frozen=True)
@@ -87,4 +100,4 @@ def when_is(section_key: str, *values: str) -> Callable[[Mapping], bool]:
     return lambda section: section.get(section_key) in values
 
 
-__all__ = ["Key", "when_is"]
+__all__ = ["Key", "SceneError", "when_is"]

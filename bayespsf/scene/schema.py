@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from bayespsf.scene import units as photon_units
-from bayespsf.scene.key import Key, when_is
+from bayespsf.scene.key import Key, SceneError, when_is
 from bayespsf.scene.optional import AXIAL, MOVIE
 
 _PRIOR_KINDS = ("uniform", "log-uniform", "normal", "half-normal")
@@ -298,6 +298,48 @@ def _describe_when(section: str, key: Key) -> str:
     return "only with other settings"
 
 
+def likelihood_tiers(kind: str) -> tuple[str, ...]:
+    """The likelihood tiers a scene's ``camera.likelihood`` may name for its camera ``kind``.
+
+    Parameters
+    ----------
+    kind : str
+        ``camera.kind``: ``"photon"``, ``"emccd"`` or ``"scmos"``.
+
+    Returns
+    -------
+    tuple of str
+        The camera law's tiers (``bayespsf.cameras``: ``emccd.TIERS``, ``scmos.TIERS``;
+        ``"exact"`` and ``"poisson"``, one law, for a photon counter); none for another kind.
+    """
+    from bayespsf.cameras import emccd, photon, scmos  # on use: the camera laws load SciPy
+
+    return {"photon": photon.TIERS, "emccd": emccd.TIERS, "scmos": scmos.TIERS}.get(kind, ())
+
+
+def check_likelihood(camera: Mapping) -> None:
+    """Refuse a ``camera.likelihood`` that is not one of its camera kind's tiers.
+
+    Parameters
+    ----------
+    camera : Mapping
+        A scene's normalised ``[camera]`` table (``kind`` and ``likelihood``).
+
+    Raises
+    ------
+    SceneError
+        Naming ``camera.likelihood``, the tiers allowed for ``camera.kind`` and the value
+        given (``''``, the camera's default, is always allowed).
+    """
+    tiers = likelihood_tiers(camera["kind"])
+    if camera["likelihood"] not in ("", *tiers):
+        raise SceneError(
+            f"camera.likelihood must be '' (the camera's default) or one of "
+            f"{', '.join(map(repr, tiers))} for camera.kind = {camera['kind']!r}, "
+            f"got {camera['likelihood']!r}"
+        )
+
+
 def default_prior(name: str, geometry: Mapping) -> dict:
     """The weak, proper default prior of each parameter (uniform/log-uniform over wide ranges).
 
@@ -374,7 +416,11 @@ def schema_markdown() -> str:
 
 def _drop_inapplicable(section: str, values: dict, keep: set) -> dict:
     """Drop keys (other than ``keep``) whose 'when' fails, until none fails (they cascade:
-    camera.kind decides register, which decides stages)."""
+    camera.kind decides register, which decides stages), and a ``camera.likelihood`` tier
+    that the camera's kind lacks (it takes the new kind's default)."""
+    tier = values.get("likelihood", "") if section == "camera" else ""
+    if tier and "likelihood" not in keep and tier not in likelihood_tiers(values.get("kind")):
+        values = {k: v for k, v in values.items() if k != "likelihood"}
     keys = {k.name: k for k in SCHEMA[section]}
     while True:
         drop = [

@@ -15,7 +15,10 @@ scene only); block ``k`` draws from ``Generator(PCG64(SeedSequence(seed, spawn_k
 Whole blocks are always simulated, so image ``i`` depends on ``seed`` and ``i`` only: the same
 seed gives the same images for any ``n`` (a shorter run is a prefix of a longer one), in chunks
 of any size (``simulate_chunks``, for runs larger than memory) and on any machine. The
-working memory is one block.
+working memory is one block: at most 1024 images and ``2**22`` pixels (32 MB per array), so a
+ROI of 401 x 401 pixels is simulated 26 images at a time, not 1024 (1.3 GB per array, and the
+work of 1024 images for one). A run whose counts cannot fit in the machine's memory is refused
+by name before anything is allocated (``bayespsf.scene.memory``).
 """
 
 from __future__ import annotations
@@ -30,11 +33,15 @@ from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.psf.defocus import Defocus
 from bayespsf.scene import Scene
 from bayespsf.scene import units as photon_units
+from bayespsf.scene.memory import refuse_beyond_memory
 from bayespsf.simulation import camera_effects as cx
 from bayespsf.simulation import effects as fx
 
 _PHOTONS_PER_BLOCK = 2**22  # bounds the photon-by-photon path's memory (~200 MB of arrays)
+_PIXELS_PER_BLOCK = 2**22  # bounds a block's arrays (32 MB each); ROIs up to 63 x 63 get 1024
 _MAX_BLOCK = 1024
+_PIXELS_PER_CHUNK = 2**24  # simulate_chunks' default chunk: 16 384 images of up to 31 x 31
+_MAX_CHUNK = 16_384
 
 
 def background_effect(scene: Scene) -> fx.BackgroundPhotons | None:
@@ -230,11 +237,13 @@ def describe(scene: Scene) -> str:
 
 
 def block_size(scene: Scene) -> int:
-    """Images per random-number block: 1024, fewer when photons are binned one by one."""
+    """Images per random-number block: 1024, fewer when photons are binned one by one or a
+    block of 1024 ROIs would exceed ``2**22`` pixels (ROIs larger than 63 x 63)."""
+    largest = int(np.clip(_PIXELS_PER_BLOCK // scene.geometry["roi"] ** 2, 1, _MAX_BLOCK))
     if photon_path(scene) != "photons":
-        return _MAX_BLOCK
+        return largest
     mean = scene.emitter["photons"] * (1.0 + scene.emitter["photon_jitter"])
-    return int(np.clip(_PHOTONS_PER_BLOCK // max(mean, 1.0), 1, _MAX_BLOCK))
+    return int(np.clip(_PHOTONS_PER_BLOCK // max(mean, 1.0), 1, largest))
 
 
 def simulate(scene: Scene, n: int, seed: int) -> tuple[np.ndarray, pd.DataFrame]:
@@ -261,7 +270,9 @@ def simulate(scene: Scene, n: int, seed: int) -> tuple[np.ndarray, pd.DataFrame]
     Raises
     ------
     BayespsfInputError
-        If ``scene`` is not a ``Scene`` or ``n`` or ``seed`` is not an integer >= 0.
+        If ``scene`` is not a ``Scene``, ``n`` or ``seed`` is not an integer >= 0, or the
+        ``n`` images cannot fit in the machine's memory (refused before anything is
+        allocated, naming ``n``).
 
     See Also
     --------
@@ -286,6 +297,12 @@ def simulate(scene: Scene, n: int, seed: int) -> tuple[np.ndarray, pd.DataFrame]
     ['x0', 'y0', 's_x', 's_y', 'N', 'b']
     """
     roi = _check_run(scene, n, seed, 1)
+    refuse_beyond_memory(
+        8.0 * n * (roi * roi + 8),  # the counts and the truth table
+        f"n = {n} images of {roi} x {roi} pixels",
+        "simulate fewer images (n; -n on the command line), or stream them in chunks with "
+        "bayespsf.simulation.simulate_chunks",
+    )
     counts = np.empty((n, roi, roi))
     truths = []
     start = 0
@@ -299,7 +316,7 @@ def simulate(scene: Scene, n: int, seed: int) -> tuple[np.ndarray, pd.DataFrame]
 
 
 def simulate_chunks(
-    scene: Scene, n: int, seed: int, chunk_size: int = 16_384
+    scene: Scene, n: int, seed: int, chunk_size: int | None = None
 ) -> Iterator[tuple[np.ndarray, pd.DataFrame]]:
     """Yield ``(counts, truth)`` for consecutive chunks of at most ``chunk_size`` images.
 
@@ -315,7 +332,8 @@ def simulate_chunks(
     seed : int
         Non-negative integer; image ``i`` depends on ``seed`` and ``i`` only.
     chunk_size : int, optional
-        Most images per chunk (>= 1).
+        Most images per chunk (>= 1). Default: 16 384, fewer where a chunk would exceed
+        ``2**24`` pixels (128 MB of counts; ROIs larger than 31 x 31).
 
     Yields
     ------
@@ -327,13 +345,22 @@ def simulate_chunks(
     Raises
     ------
     BayespsfInputError
-        If ``scene`` is not a ``Scene`` or an integer argument is out of range.
+        If ``scene`` is not a ``Scene``, an integer argument is out of range, or a chunk
+        cannot fit in the machine's memory (naming ``chunk_size``).
 
     See Also
     --------
     simulate : all images at once.
     """
+    roi = scene.geometry["roi"] if isinstance(scene, Scene) else 1
+    if chunk_size is None:
+        chunk_size = int(np.clip(_PIXELS_PER_CHUNK // roi**2, 1, _MAX_CHUNK))
     roi = _check_run(scene, n, seed, chunk_size)
+    refuse_beyond_memory(
+        8.0 * min(n, chunk_size) * (roi * roi + 8),
+        f"chunk_size = {chunk_size} images of {roi} x {roi} pixels",
+        "use a smaller chunk_size",
+    )
     steps = build_pipeline(scene)
     block = block_size(scene)
     columns = list(PARAMETER_NAMES)

@@ -33,6 +33,7 @@ from bayespsf.scene import (
     default_prior,
     schema_markdown,
 )
+from bayespsf.scene.schema import likelihood_tiers
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs" / "scenes.md"
@@ -224,6 +225,8 @@ def scene_dicts(draw):
                 value = psf
             elif section == "camera" and key.name == "gain" and normal["kind"] == "emccd":
                 value = draw(st.floats(1.0, 1e5))
+            elif section == "camera" and key.name == "likelihood":  # a tier of the camera kind
+                value = draw(st.sampled_from(("", *likelihood_tiers(normal["kind"]))))
             else:
                 value = draw(_value(section, key))
             # a choice other than the default must be given; any other key may be left out
