@@ -11,6 +11,12 @@ or sampled removes that cost; it is restored after.
 
 **Timing** for the self-check and the benchmarks (never for tests): the best of a few calls, and
 the machine a result was measured on.
+
+**Memory** a run's arrays need, checked against the machine's before they are allocated: a size
+that cannot fit (an ensemble of 10^12 walkers, 10^9 images of 401 x 401 pixels) is refused by
+name with the size it asks for, instead of ending in NumPy's ``MemoryError`` or the system's
+out-of-memory killer after part of the work. The estimates are lower bounds from the arrays'
+shapes (8 bytes per value); the limit is the machine's physical memory.
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ from collections.abc import Callable
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
+
+from bayespsf.errors import BayespsfInputError
 
 
 @functools.cache
@@ -90,3 +98,66 @@ def machine() -> str:
         f"{platform.machine()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}, numpy {np.__version__}"
     )
+
+
+def physical_memory() -> int | None:
+    """The machine's physical memory in bytes (None where the system does not report it).
+
+    Returns
+    -------
+    int or None
+        ``SC_PAGE_SIZE * SC_PHYS_PAGES`` (``os.sysconf``).
+    """
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):  # not a POSIX system, or it does not say
+        return None
+
+
+def refuse_beyond_memory(needed: float, what: str, fix: str) -> None:
+    """Refuse, before allocating, work whose arrays need more than the machine's memory.
+
+    Parameters
+    ----------
+    needed : float
+        A lower bound on the bytes the work holds at once (estimated from its shapes).
+    what : str
+        The setting and what it asks for, e.g. ``"walkers = 10000000"``.
+    fix : str
+        What to do instead, naming the option.
+
+    Raises
+    ------
+    BayespsfInputError
+        If ``needed`` exceeds ``physical_memory()``: such arrays cannot be held, and NumPy
+        would end the run in ``MemoryError`` (or the system's out-of-memory killer).
+    """
+    memory = physical_memory()
+    if memory is not None and needed > memory:
+        raise BayespsfInputError(
+            f"{what} needs at least {in_bytes(needed)} of memory at once, more than this "
+            f"machine's {in_bytes(memory)}: {fix}"
+        )
+
+
+def in_bytes(size: float) -> str:
+    """A number of bytes in words, to three figures.
+
+    Parameters
+    ----------
+    size : float
+        Bytes (>= 0).
+
+    Returns
+    -------
+    str
+        E.g. ``"512 bytes"``, ``"1.29 GB"``, ``"14.4 PB"`` (decimal units).
+    """
+    units = ("bytes", "kB", "MB", "GB", "TB", "PB", "EB")
+    k = 0
+    while size >= 999.5 and k < len(units) - 1:
+        size, k = size / 1000.0, k + 1
+    return f"{size:.3g} {units[k]}"
+
+
+__all__ = ["in_bytes", "physical_memory", "refuse_beyond_memory"]

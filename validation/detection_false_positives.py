@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import finish, study
+from _common import finish, saved_figure, study
 
 from bayespsf.cameras import EMCCD
 from bayespsf.movie import detect_movie, read_movie
@@ -60,14 +60,31 @@ def rates(size: int, images: int, gain: float, b: float, false_positives: float,
     }
 
 
+def figure(table: pd.DataFrame, path: Path) -> None:
+    """Candidates per image over the stated rate, per case, with 2 SE bars."""
+    with saved_figure(path, (6, 3)) as ax:
+        labels = [
+            f"{r['stated per image']:g}/image, G {r['EM gain']:g}, b {r['b (photons/pixel)']:g}"
+            for _, r in table.iterrows()
+        ]
+        ratio = table["candidates per image"] / table["stated per image"]
+        error = 2 * table["SE"] / table["stated per image"]
+        ax.errorbar(range(len(table)), ratio, yerr=error, fmt="o")
+        ax.axhline(1.0, color="grey", lw=1, label="stated rate")
+        ax.set_xticks(range(len(table)), labels, rotation=60, ha="right", fontsize=6)
+        ax.set_ylabel("false candidates / stated")
+        ax.legend(fontsize=7)
+
+
 def main(argv=None):
-    args, started, _ = study(__doc__, argv, "detection_false_positives", posteriors=False)
+    args, started, stem = study(__doc__, argv, "detection_false_positives", posteriors=False)
     if args.quick:
         size, images, cases = 256, 4, [(0.01, 100.0, 3.0)]
     else:
         size, images = 1024, 20
         cases = [(fp, g, b) for fp in (0.01, 1.0) for g in (100.0, 300.0) for b in (1.0, 3.0, 10.0)]
     table = pd.DataFrame([rates(size, images, g, b, fp, seed=0) for fp, g, b in cases])
+    figure(table, args.out / f"{stem}.png")
     text = (
         f"### False candidates per image on pure EMCCD noise ({size} x {size})\n\n"
         + table.to_markdown(index=False, floatfmt=".3g")
@@ -76,6 +93,7 @@ def main(argv=None):
         f"{images} frames of {size} x {size} pure EMCCD noise per case: candidates per image "
         "against the stated rate (the threshold from the camera law's tail).\n\n"
         + table.to_markdown(index=False, floatfmt=".3g")
+        + f"\n\n![false candidates over the stated rate](results/{stem}.png)"
     )
     return finish(args, "detection_false_positives", table, text, started, summary)
 

@@ -34,13 +34,13 @@ import pandas as pd
 from numpy.typing import ArrayLike
 from scipy import stats
 
+from bayespsf._runtime import refuse_beyond_memory
 from bayespsf._validate import real_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.estimators import fit_mle
 from bayespsf.inference.settings import check_settings
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
-from bayespsf.scene.memory import refuse_beyond_memory
 
 REPLICATE_STREAM = 0x6F66  # a ROI's replicates: its seed's stream of this number
 CHUNK = 256  # ROIs whose replicates are drawn and refitted together (memory ~ CHUNK x replicates)

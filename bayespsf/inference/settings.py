@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bayespsf._runtime import refuse_beyond_memory
 from bayespsf.errors import BayespsfInputError
-from bayespsf.scene.memory import refuse_beyond_memory
 
 
 @dataclass(frozen=True)

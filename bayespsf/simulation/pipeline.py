@@ -18,7 +18,7 @@ of any size (``simulate_chunks``, for runs larger than memory) and on any machin
 working memory is one block: at most 1024 images and ``2**22`` pixels (32 MB per array), so a
 ROI of 401 x 401 pixels is simulated 26 images at a time, not 1024 (1.3 GB per array, and the
 work of 1024 images for one). A run whose counts cannot fit in the machine's memory is refused
-by name before anything is allocated (``bayespsf.scene.memory``).
+by name before anything is allocated (``bayespsf._runtime.refuse_beyond_memory``).
 """
 
 from __future__ import annotations
@@ -28,12 +28,12 @@ from collections.abc import Iterator, Mapping
 import numpy as np
 import pandas as pd
 
+from bayespsf._runtime import refuse_beyond_memory
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.psf.defocus import Defocus
 from bayespsf.scene import Scene
 from bayespsf.scene import units as photon_units
-from bayespsf.scene.memory import refuse_beyond_memory
 from bayespsf.simulation import camera_effects as cx
 from bayespsf.simulation import effects as fx
 
