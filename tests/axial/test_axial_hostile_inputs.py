@@ -1,7 +1,7 @@
 """Hostile and unusual inputs to the z calibration (``bead_rois``, ``step_widths``,
 ``calibrate``, ``bayespsf calibrate-z``, the calibration file) and where a calibration meets a
 model (``z_posterior``, ``z_posteriors``): each ends in a named error that says what is wrong
-and what fixes it, or in a result that says what it did (issue 27)."""
+and what fixes it, or in a result that says what it did."""
 
 import numpy as np
 import pandas as pd

@@ -1,7 +1,7 @@
 """Hostile and unusual inputs to the camera calibration (``calibrate_camera``, ``bayespsf
 calibrate``, ``dark_calibration``, photon transfer and Eq. photonConv): each ends in one named
 error that says what is wrong and which flag or key fixes it, never a traceback or a silently
-wrong camera file (issue 27)."""
+wrong camera file."""
 
 import numpy as np
 import pandas as pd

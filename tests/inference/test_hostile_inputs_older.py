@@ -1,4 +1,4 @@
-"""The older surfaces under hostile inputs (issue 27): sizes that cannot fit in memory, the
+"""The older surfaces under hostile inputs: sizes that cannot fit in memory, the
 largest ROI the scene schema allows, result files with a damaged attribute, and a goodness of
 fit in every posterior (two overlapping molecules gave a confident single-spot posterior with
 nothing that said the model does not fit)."""

@@ -1,4 +1,4 @@
-"""The older surfaces under hostile inputs (issue 27), input files: a path that is not a regular
+"""The older surfaces under hostile inputs, input files: a path that is not a regular
 file (a named pipe nobody writes to) is refused by name before it is opened; opening it waited
 forever.
 

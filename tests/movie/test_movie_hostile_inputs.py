@@ -1,4 +1,4 @@
-"""The movie path under hostile or unusual inputs (issue 27): counts below the camera's offset,
+"""The movie path under hostile or unusual inputs: counts below the camera's offset,
 saturated spots and movies, two spots closer than the detector resolves, frame indices outside
 the movie, positions given as text, pixel sizes in the wrong unit, and the stated false-positive
 rate on single EMCCD frames at low background. Each is a named error or a flag in the

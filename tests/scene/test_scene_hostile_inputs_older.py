@@ -1,4 +1,4 @@
-"""The older surfaces under hostile inputs (issue 27), scenes: an unknown likelihood tier is
+"""The older surfaces under hostile inputs, scenes: an unknown likelihood tier is
 refused at load, naming the key and the tiers of the scene's camera kind (it was accepted, and
 failed, or not, only when a model was built)."""
 
