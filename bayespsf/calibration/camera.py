@@ -49,6 +49,7 @@ from bayespsf.model import MIN_ROI, Model
 from bayespsf.movie.extract import check_sizes, open_movie
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.project import project
+from bayespsf.movie.select import Rules
 from bayespsf.scene import units as photon_units
 
 EXCESS = {"emccd": 2.0, "scmos": 1.0}  # the excess-noise factor of each kind
@@ -181,6 +182,7 @@ def calibrate_camera(
     fit: int = 15,
     quantum_efficiency: float | None = None,
     readout_sd: float | None = None,
+    rules: Rules | None = None,
 ) -> CameraCalibration:
     """A camera's offset, readout noise and ADU per photon from a movie (and dark frames).
 
@@ -212,6 +214,9 @@ def calibrate_camera(
         for an EMCCD, in ADU ``readout_sd / e_per_adu``; per photoelectron for an sCMOS, in
         ADU ``readout_sd M``); stands in where no dark frames are given and the movie cannot
         measure it.
+    rules : Rules or None, optional
+        The selection rules of the molecules the ADU per photon is measured on (default the
+        paper's, ``Rules()``).
 
     Returns
     -------
@@ -282,7 +287,9 @@ def calibrate_camera(
         # s^2 below the offset, which 2 in 3 of a 15 x 15 ROI hold at 3 background photons and
         # a readout of 1.6 e- (its stack fits then ran to ~160 nm widths for 120)
         camera = SCMOS(m0, first.offset, first.readout_sd**2, likelihood="exact")
-    found = find_molecules(movie, Model(MIN_ROI, pixel_size, camera), s0=s0, roi=roi, fit=fit)
+    found = find_molecules(
+        movie, Model(MIN_ROI, pixel_size, camera), s0=s0, roi=roi, fit=fit, rules=rules
+    )
     chosen = found.molecules[found.molecules["selected"]]
     if len(chosen) < 2:
         raise BayespsfInputError(_too_few_molecules(found, len(chosen), s0, pixel_size, stated))

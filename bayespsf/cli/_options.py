@@ -90,6 +90,38 @@ def add_pixel_size(parser: argparse.ArgumentParser, help: str = PIXEL_SIZE_HELP)
     parser.add_argument("--pixel-size", type=float, default=None, help=help)
 
 
+def add_selection(parser: argparse.ArgumentParser) -> None:
+    """Add the selection rules' options: ``--rules {paper,none}``, ``--min-valid-frames N`` and
+    ``--skip-rule RULE`` (repeatable).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    """
+    parser.add_argument(
+        "--rules",
+        choices=("paper", "none"),
+        default="paper",
+        help="the selection rules: the paper's five (default), or none (every accepted "
+        "candidate is kept: blinking, moving or short movies)",
+    )
+    parser.add_argument(
+        "--min-valid-frames",
+        type=int,
+        default=None,
+        help="valid frames a molecule needs (default 75, the paper's)",
+    )
+    parser.add_argument(
+        "--skip-rule",
+        action="append",
+        default=[],
+        metavar="RULE",
+        help="switch off one of the paper's selection rules by its name in selection.md "
+        "(repeatable); an astigmatic movie needs equal_widths and width_range off",
+    )
+
+
 def add_psf_sd(
     parser: argparse.ArgumentParser, help: str = PSF_SD_HELP, required: bool = False
 ) -> None:

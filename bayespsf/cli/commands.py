@@ -135,6 +135,21 @@ def _movie_model(args):
     return movie, Model.from_scene(scene), s0
 
 
+def _rules(args):
+    """The selection rules of ``--rules``, ``--min-valid-frames`` and ``--skip-rule``."""
+    from bayespsf.movie.select import RULES, Rules
+
+    if args.rules == "none":
+        if args.min_valid_frames is not None or args.skip_rule:
+            raise CommandError(
+                "--rules none keeps every accepted candidate: give --min-valid-frames or "
+                "--skip-rule only with --rules paper"
+            )
+        return Rules(skip=RULES)
+    settings = {} if args.min_valid_frames is None else {"min_valid_frames": args.min_valid_frames}
+    return Rules(**settings, skip=tuple(args.skip_rule))
+
+
 def _command_line(args) -> str:
     """The command as typed (``bayespsf calibrate ...``), for the provenance of its files."""
     return f"bayespsf {args.command} " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
@@ -284,7 +299,7 @@ def _detect(args) -> int:
     out = _output_folder(args.out)
     movie, model, s0 = _movie_model(args)
     settings = dict(s0=s0, roi=args.roi, fit=args.fit, false_positives=args.false_positives)
-    settings["projection"] = args.projection
+    settings.update(projection=args.projection, rules=_rules(args))
     copies = {"camera.toml": args.camera}  # the camera file used, verbatim
     with _one_run():  # refused before the work, as write would refuse it after it
         run = selection_run(movie, model, **settings)  # what write records: found.run
@@ -302,12 +317,10 @@ def _analyze(args) -> int:
     """``bayespsf analyze``: per-frame and per-molecule posteriors of a movie's molecules."""
     from bayespsf.analysis.pipeline import analyze
     from bayespsf.io import read_z_calibration
-    from bayespsf.movie.select import Rules
 
     out = _output_folder(args.out)
     movie, model, s0 = _movie_model(args)
-    settings = {} if args.min_valid_frames is None else {"min_valid_frames": args.min_valid_frames}
-    rules = Rules(**settings, skip=tuple(args.skip_rule))
+    rules = _rules(args)
     command = _command_line(args)
     camera_text = Path(args.camera).read_text(encoding="utf-8")
     z_calibration = None
@@ -420,6 +433,7 @@ def _calibrate(args) -> int:
         fit=args.fit,
         quantum_efficiency=args.quantum_efficiency,
         readout_sd=args.readout_sd,
+        rules=_rules(args),
     )
     command = _command_line(args)
     out.parent.mkdir(parents=True, exist_ok=True)

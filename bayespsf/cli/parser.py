@@ -24,6 +24,7 @@ from bayespsf.cli._options import (
     add_pixel_size,
     add_psf_sd,
     add_seed,
+    add_selection,
     add_workers,
 )
 
@@ -180,6 +181,7 @@ def _add_detect(commands) -> None:
     add_psf_sd(detect)
     add_pixel_size(detect)
     add_geometry(detect, ROI_PAPER_HELP)
+    add_selection(detect)
     detect.add_argument(
         "--false-positives",
         type=float,
@@ -210,20 +212,7 @@ def _add_analyze(commands) -> None:
     add_psf_sd(analyze)
     add_pixel_size(analyze)
     add_geometry(analyze)
-    analyze.add_argument(
-        "--min-valid-frames",
-        type=int,
-        default=None,
-        help="valid frames a molecule needs (default 75, the paper's)",
-    )
-    analyze.add_argument(
-        "--skip-rule",
-        action="append",
-        default=[],
-        metavar="RULE",
-        help="switch off one of the paper's selection rules by its name in selection.md "
-        "(repeatable); an astigmatic movie needs equal_widths and width_range off",
-    )
+    add_selection(analyze)
     add_method(analyze, METHOD_BATCHED_HELP)
     analyze.add_argument("--ess", type=float, default=None, help="effective draws per ROI")
     add_seed(analyze)
@@ -339,4 +328,5 @@ def _add_calibrate(commands) -> None:
         "where the movie's background cannot measure it (an EMCCD at high gain)",
     )
     add_geometry(calibrate)
+    add_selection(calibrate)
     add_out(calibrate, "camera.toml", "the camera file to write")

@@ -341,8 +341,9 @@ def find_molecules(
     if "photon_window" not in rules.skip and len(movie) < rules.min_valid_frames:
         raise BayespsfInputError(
             f"the movie has {len(movie)} frame(s), fewer than the {rules.min_valid_frames} "
-            "valid frames the photon_window rule needs (Rules(min_valid_frames=...) or "
-            "skip=('photon_window',))"
+            "valid frames the photon_window rule needs (--min-valid-frames N, --skip-rule "
+            "photon_window or --rules none on the command line; Rules(min_valid_frames=...) or "
+            "skip=('photon_window',) in Python)"
         )
     candidates = detect_movie(
         movie,

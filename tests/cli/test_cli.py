@@ -4,6 +4,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from bayespsf import cli, load_scene, simulate_movie
@@ -365,3 +366,36 @@ def test_pixel_size_flag_stands_in_for_metadata_and_disagreeing_values_are_refus
     base[3] = str(stated)
     with pytest.raises(SystemExit, match=r"--pixel-size 100 nm, but .* pixel_size = 79 nm"):
         cli.main([*base, "--pixel-size", "100", "--out", str(tmp_path / "c")])
+
+
+def test_selection_options_run_a_short_movie_from_the_command_line(tmp_path, capsys):
+    """A 12-frame movie: refused by the paper's 75-frame rule with the flags that fix it named;
+    ``--min-valid-frames`` or ``--rules none`` run it; ``--rules none`` keeps every accepted
+    candidate and is refused beside the rules' own options."""
+    scene = load_scene("paper-movie").replace(
+        movie={
+            "frames": 12,
+            "height": 64,
+            "width": 64,
+            "molecules": 2,
+            "dark_frames": 0,
+            "min_spacing": 20,
+            "edge": 12,
+        }
+    )
+    made = simulate_movie(scene, seed=3, out=tmp_path / "m")
+    camera = {k: v for k, v in scene.to_dict()["camera"].items() if k in CAMERA_KEYS["emccd"]}
+    lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
+    (tmp_path / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
+    base = ["detect", str(made.files["movie"]), "--camera", str(tmp_path / "camera.toml")]
+    base += ["--psf-sd", "120"]
+    with pytest.raises(SystemExit, match=r"--min-valid-frames N, --skip-rule photon_window"):
+        cli.main([*base, "--out", str(tmp_path / "paper")])
+    assert cli.main([*base, "--min-valid-frames", "8", "--out", str(tmp_path / "eight")]) == 0
+    assert cli.main([*base, "--rules", "none", "--out", str(tmp_path / "none")]) == 0
+    molecules = pd.read_csv(tmp_path / "none" / "molecules.csv")
+    candidates = pd.read_csv(tmp_path / "none" / "candidates.csv")
+    accepted = candidates[candidates["status"] == "accepted"]
+    assert len(accepted) > 0 and int(molecules["selected"].sum()) == len(accepted)
+    with pytest.raises(SystemExit, match="--rules none keeps every accepted candidate"):
+        cli.main([*base, "--rules", "none", "--skip-rule", "snr", "--out", str(tmp_path / "x")])
