@@ -25,17 +25,12 @@ class CommandError(Exception):
     """
 
 
-def _output_folder(path: str, option: str = "--out", stem: bool = False):
-    """``path`` as a folder to write into (or, with ``stem``, a path stem whose folder is
-    made): no file may stand at it or at any of its parents."""
-    out = Path(path)
-    if stem and out.is_dir():
-        raise CommandError(f"{option} {out} is a folder; give a path stem such as {out}/sim")
-    for place in out.parents if stem else (out, *out.parents):
-        if place.exists() and not place.is_dir():
-            what = "is" if place == out else f"lies under {place}, which is"
-            raise CommandError(f"{option} {out} {what} a file, not a folder")
-    return out
+def _output_folder(path: str, option: str = "--out", stem: bool = False) -> Path:
+    """``path`` as a folder (or, with ``stem``, a path stem) to write into: ``output_folder``
+    of ``bayespsf.io.run_record``, named by the command's flag."""
+    from bayespsf.io.run_record import output_folder
+
+    return output_folder(path, option, stem=stem)
 
 
 @contextmanager

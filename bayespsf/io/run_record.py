@@ -88,18 +88,7 @@ def file_fingerprint(path: str | os.PathLike) -> dict:
 
 
 def bytes_digest(data: bytes) -> str:
-    """The SHA-256 hex digest of ``data`` (a run's dict holds it for a file it copies).
-
-    Parameters
-    ----------
-    data : bytes
-        The bytes.
-
-    Returns
-    -------
-    str
-        The hex digest.
-    """
+    """The SHA-256 hex digest of ``data`` (a run's dict holds it for a file it copies)."""
     return hashlib.sha256(data).hexdigest()
 
 
@@ -292,9 +281,35 @@ def _names(names: Iterable[str]) -> list[str]:
     return list(dict.fromkeys(plain))
 
 
-def _folder(folder: str | os.PathLike, option: str) -> Path:
+def output_folder(folder: str | os.PathLike, option: str = "out", stem: bool = False) -> Path:
+    """``folder`` as a folder to write into: no file may stand at it or at any of its parents.
+
+    Parameters
+    ----------
+    folder : str or path-like
+        The output folder (it need not exist), or with ``stem`` a path stem (``OUT`` of
+        ``OUT.npy``, ``OUT.truth.csv``) whose folder is made.
+    option : str, default "out"
+        What names it in messages: a flag (``--out``) or a Python argument (``out``).
+    stem : bool, default False
+        Whether ``folder`` is a path stem rather than a folder.
+
+    Returns
+    -------
+    pathlib.Path
+        ``folder``.
+
+    Raises
+    ------
+    BayespsfInputError
+        If a file stands at ``folder`` or at one of its parents, or a stem is a folder.
+    """
     folder = Path(folder)
-    for place in (folder, *folder.parents):
+    if stem and folder.is_dir():
+        raise BayespsfInputError(
+            f"{_named(option, folder)} is a folder; give a path stem such as {folder}/sim"
+        )
+    for place in folder.parents if stem else (folder, *folder.parents):
         if place.exists() and not place.is_dir():
             what = "is" if place == folder else f"lies under {place}, which is"
             raise BayespsfInputError(
@@ -372,7 +387,7 @@ def check_folder(
     Nothing is read but ``run.json`` and nothing is written. A folder whose record is this
     run's goes on as it is (a rerun, or a killed run resumed).
     """
-    folder = _folder(folder, option)
+    folder = output_folder(folder, option)
     run, files = _with_copies(run, files, copies)
     try:
         record = read_run_record(folder)
@@ -478,6 +493,7 @@ __all__ = [
     "check_folder",
     "claim_folder",
     "file_fingerprint",
+    "output_folder",
     "read_copies",
     "read_run_record",
     "run_differences",
