@@ -92,6 +92,19 @@ def best_time(fn: Callable[[], object], repeat: int = 3) -> float:
     return best
 
 
+def cache_folder():
+    """The folder of the machine's on-disk caches (the EMCCD tables, JAX's compiled programs):
+    ``$BAYESPSF_CACHE`` (``off``: ``None``, no cache), else ``$XDG_CACHE_HOME/bayespsf``, else
+    ``~/.cache/bayespsf``."""
+    from pathlib import Path
+
+    chosen = os.environ.get("BAYESPSF_CACHE")
+    if chosen is not None:
+        return None if chosen.strip().lower() == "off" else Path(chosen)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "bayespsf"
+
+
 def machine() -> str:
     """The machine a result was measured on, as one line."""
     return (

@@ -91,3 +91,28 @@ def as_generator(rng) -> np.random.Generator:
     if rng is None:
         raise BayespsfInputError("rng must be a numpy Generator or an integer seed, got None")
     return np.random.default_rng(rng)
+
+
+PLATEAU_SPREAD = 1000  # a plateau counts where the ROI spans this many count quanta
+
+
+def saturation_plateau(roi: np.ndarray) -> int:
+    """The number of pixels of a saturation plateau in one ROI (flat counts), else 0.
+
+    A plateau is two or more pixels at the ROI's maximum where that maximum is an ADC's full
+    scale (``2**k - 1`` or ``2**k`` ADU, ``k`` = 8 to 20), or three or more where the ROI spans
+    at least ``PLATEAU_SPREAD`` quanta (the smallest step between its distinct counts) between
+    its median and its maximum: there, by chance, three pixels share the maximum with a
+    probability of order ``PLATEAU_SPREAD**-2`` or less (the counts near the peak are spread
+    over hundreds of quanta), while a clipped spot has several.
+    """
+    top = roi.max()
+    at_top = int(np.count_nonzero(roi == top))
+    if at_top < 2:
+        return 0
+    full_scale = any(top in (2.0**k - 1, 2.0**k) for k in range(8, 21))
+    if full_scale:
+        return at_top
+    steps = np.diff(np.unique(roi))
+    spread = (top - np.median(roi)) / steps.min()
+    return at_top if at_top >= 3 and spread >= PLATEAU_SPREAD else 0

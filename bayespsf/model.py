@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from bayespsf import psf
-from bayespsf._validate import finite_array, real_array
+from bayespsf._validate import finite_array, real_array, saturation_plateau
 from bayespsf.cameras import EMCCD, SCMOS, Camera, Photon
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
@@ -28,7 +28,6 @@ DEFAULT_TIER = {"emccd": "table", "scmos": "exact"}
 MIN_ROI = 5  # six parameters need the spot and a border of background pixels
 OFFSET_SDS = 5.0  # counts this many readout SDs below the offset are not the camera's
 OFFSET_FRACTION = 0.1  # ... nor an ROI with more than this fraction of such pixels
-PLATEAU_SPREAD = 1000  # a plateau counts where the ROI spans this many count quanta
 LOG_PARAMETERS = [2, 3, 4]  # s_x, s_y, N are sampled in log space
 
 
@@ -65,28 +64,6 @@ class PriorTerms:
             with np.errstate(over="ignore"):  # beyond ~1e154 scales: density 0, log -inf
                 total -= 0.5 * (((p[..., q] - self.centre[q]) / self.scale[q]) ** 2).sum(axis=-1)
         return np.where(inside, total, -np.inf)
-
-
-def saturation_plateau(roi: np.ndarray) -> int:
-    """The number of pixels of a saturation plateau in one ROI (flat counts), else 0.
-
-    A plateau is two or more pixels at the ROI's maximum where that maximum is an ADC's full
-    scale (``2**k - 1`` or ``2**k`` ADU, ``k`` = 8 to 20), or three or more where the ROI spans
-    at least ``PLATEAU_SPREAD`` quanta (the smallest step between its distinct counts) between
-    its median and its maximum: there, by chance, three pixels share the maximum with a
-    probability of order ``PLATEAU_SPREAD**-2`` or less (the counts near the peak are spread
-    over hundreds of quanta), while a clipped spot has several.
-    """
-    top = roi.max()
-    at_top = int(np.count_nonzero(roi == top))
-    if at_top < 2:
-        return 0
-    full_scale = any(top in (2.0**k - 1, 2.0**k) for k in range(8, 21))
-    if full_scale:
-        return at_top
-    steps = np.diff(np.unique(roi))
-    spread = (top - np.median(roi)) / steps.min()
-    return at_top if at_top >= 3 and spread >= PLATEAU_SPREAD else 0
 
 
 def _sample_prior_1d(spec: dict, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -332,7 +309,26 @@ class Model:
         _, offset = self.camera.photons_per_adu()
         offset = np.broadcast_to(np.asarray(offset, dtype=np.float64), c.shape[-2:]).ravel()
         readout = np.sqrt(self.camera.variance(np.zeros(c.shape[-2:]))).ravel()
-        return [self._roi_problem(roi, offset, readout) for roi in flat]
+        out: list[str | None] = [None] * len(flat)
+        for i in np.flatnonzero(self._suspects(flat, offset, readout)):  # the rest pass
+            out[i] = self._roi_problem(flat[i], offset, readout)
+        return out
+
+    def _suspects(self, flat, offset, readout) -> np.ndarray:
+        """ROIs that may have a problem (``_roi_problem`` decides), by whole-stack screens."""
+        try:
+            self.camera._check_counts(flat.reshape(-1, self.roi, self.roi))
+        except BayespsfInputError:
+            return np.ones(len(flat), dtype=bool)
+        top = flat.max(axis=1, initial=-np.inf)
+        cam, suspect = self.camera, ~np.all(np.isfinite(flat), axis=1)
+        suspect |= np.all(flat == flat[:, :1], axis=1)
+        if isinstance(cam, EMCCD) and cam.readout_sd == 0:
+            suspect |= np.any(flat < cam.offset, axis=1)
+        suspect |= np.mean(flat < offset - OFFSET_SDS * readout, axis=1) > OFFSET_FRACTION
+        if self.saturation > 0:
+            return suspect | (top >= self.saturation)
+        return suspect | (np.count_nonzero(flat == top[:, None], axis=1) >= 2)
 
     def _roi_problem(self, roi, offset, readout) -> str | None:
         bad = np.count_nonzero(~np.isfinite(roi))

@@ -136,7 +136,8 @@ def frame_consistency(
         sum_w = w.groupby(groups).transform("sum")
         combined = (w * m).groupby(groups).transform("sum") / sum_w
         count = usable.groupby(groups).transform("sum")
-        spread = s**2 - 1.0 / sum_w
+        # a molecule of one frame has no spread about its own estimate: NaN, not sqrt(0 or -eps)
+        spread = (s**2 - 1.0 / sum_w).where(usable & (count > 1))
         z = ((m - combined) / np.sqrt(spread)).where(usable & (count > 1))
         covers = ((m - combined).abs() <= Z95 * s).where(usable & (count > 1))
         expected = pd.Series(2 * stats.norm.cdf(Z95 * s / np.sqrt(spread)) - 1, index=s.index)

@@ -5,6 +5,8 @@ ROI's place in the movie. ``bayespsf.io.locs`` writes it in the files the field'
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 
@@ -15,6 +17,8 @@ from bayespsf.psf import PARAMETER_NAMES
 
 INTERVAL = ("q0025", "q0975")  # the central 95% interval's quantile columns
 PLACE_COLUMNS = ("molecule", "frame", "row", "col")  # the ROI centre's movie pixel
+# the columns the reasons for a missing value come from (missing_values)
+_CONTEXT = ("status", "message", "method", "mle_converged", "gof_replicates", "z_why")
 
 
 def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
@@ -38,7 +42,9 @@ def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
         (photons per pixel), ``lpx``, ``lpy`` (posterior SDs of x and y, pixels), all
         float32, and with a z calibration ``z`` and ``lpz`` (nm); then every other column of
         ``posteriors`` but ``row`` and ``col`` (``molecule``, the summaries, ``selected``,
-        ``method``, ``converged``, ESS, ``photon_unit``, ...).
+        ``method``, ``converged``, ESS, ``photon_unit``, ...); last ``missing``
+        (``missing_values``): which of the row's values are NaN and why, ``""`` where none
+        is. ``bayespsf.io.write_locs`` writes such values into ``locs.hdf5`` as its fill value.
 
     Raises
     ------
@@ -78,8 +84,98 @@ def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
     if "z_mean" in t:  # a z calibration was given (bayespsf.axial): picasso's z and lpz, nm
         locs["z"] = t["z_mean"].to_numpy(np.float32)
         locs["lpz"] = t["z_sd"].to_numpy(np.float32)
-    rest = [c for c in t.columns if c not in (*PICASSO_COLUMNS, "row", "col")]
-    return pd.concat([locs, t[rest].reset_index(drop=True)], axis=1)
+    rest = [c for c in t.columns if c not in (*PICASSO_COLUMNS, "row", "col", "missing")]
+    out = pd.concat([locs, t[rest].reset_index(drop=True)], axis=1)
+    out["missing"] = missing_values(out)
+    return out
 
 
-__all__ = ["INTERVAL", "PLACE_COLUMNS", "localizations"]
+def missing_values(locs: pd.DataFrame) -> pd.Series:
+    """Per row, which of its numeric values are missing (NaN or infinite) and why.
+
+    Parameters
+    ----------
+    locs : pandas.DataFrame
+        A localisation table (``localizations``' columns, or any of them).
+
+    Returns
+    -------
+    pandas.Series of str
+        ``""`` where every value is present; else ``"; "``-separated groups ``columns:
+        reason``, the columns named with ``*`` for the parameter (``crlb_*: the
+        maximum-likelihood fit did not converge``). The reasons come from the row's own
+        columns: ``status`` and ``message`` (no posterior: refused or failed), ``method``
+        (``acceptance`` exists for a Markov chain only), ``mle_converged`` (the MLE, its
+        Cramér-Rao bound and the goodness of fit's test), ``gof_replicates``, ``z_why``.
+    """
+    numeric = [
+        c
+        for c in locs.columns
+        if pd.api.types.is_numeric_dtype(locs[c]) and not pd.api.types.is_bool_dtype(locs[c])
+    ]
+    with np.errstate(invalid="ignore"):
+        absent = ~np.isfinite(locs[numeric].to_numpy(np.float64))
+    # rows alike in what is missing and in the columns the reasons come from share one text
+    context = [locs[c].astype(str).to_numpy() for c in _CONTEXT if c in locs]
+    packed = np.packbits(absent, axis=1)
+    texts: dict[tuple, str] = {}
+    out = np.full(len(locs), "", dtype=object)
+    for i in np.flatnonzero(absent.any(axis=1)):
+        key = (packed[i].tobytes(), *(c[i] for c in context))
+        if key not in texts:
+            row, groups = locs.iloc[i], {}
+            for name in (numeric[j] for j in np.flatnonzero(absent[i])):
+                family = _family(name)
+                reasons = groups.setdefault(_why_missing(row, name), [])
+                if family not in reasons:
+                    reasons.append(family)
+            texts[key] = "; ".join(f"{', '.join(f)}: {why}" for why, f in groups.items())
+        out[i] = texts[key]
+    return pd.Series(out, index=locs.index, dtype=object)
+
+
+def _family(name: str) -> str:
+    """A column's name with its parameter as ``*`` and a quantile's digits as ``*``
+    (``crlb_x0`` -> ``crlb_*``, ``s_x_q0025`` -> ``*_q*``)."""
+    for p in sorted(PARAMETER_NAMES, key=len, reverse=True):
+        if name.startswith(f"{p}_"):
+            name = "*" + name[len(p) :]
+            break
+        if name.endswith(f"_{p}"):
+            name = name[: -len(p)] + "*"
+            break
+    return re.sub(r"_q\d{4}$", "_q*", name)
+
+
+def _why_missing(row: pd.Series, name: str) -> str:
+    """Why ``row`` has no value of column ``name``, from the row's own columns."""
+    status = str(row.get("status", ""))
+    if status in ("refused", "failed"):  # no posterior: its columns and the position
+        message = str(row.get("message", "") or "").strip()
+        return f"no posterior ({status}{': ' + message if message else ''})"
+    mle_failed = "mle_converged" in row and not bool(row["mle_converged"])
+    if name == "acceptance" and str(row.get("method", "mcmc")) != "mcmc":
+        return f"the {row['method']} posterior has no Markov chain"
+    if name in ("z", "lpz") or name.startswith("z_"):
+        why = str(row.get("z_why", "") or "").strip()
+        return "no z posterior" + (f" ({why})" if why else "")
+    if name.startswith("crlb_") or name.endswith("_mle"):
+        if mle_failed:
+            return "the maximum-likelihood fit did not converge"
+        return "the information at the maximum-likelihood fit is not invertible"
+    if name.endswith("_lsq"):
+        return "the least-squares fit did not converge"
+    if name == "gof_p":
+        if mle_failed:
+            return "no goodness-of-fit test (the maximum-likelihood fit did not converge)"
+        if row.get("gof_replicates", 1) == 0:
+            return "no goodness-of-fit test (no replicate's refit converged)"
+        return "no goodness-of-fit test"
+    if name == "gof_discrepancy" and mle_failed:
+        return "the maximum-likelihood fit did not converge"
+    if name.endswith("_rank"):
+        return "too few near-independent draws for a rank"
+    return "not computed for this row"
+
+
+__all__ = ["INTERVAL", "PLACE_COLUMNS", "localizations", "missing_values"]

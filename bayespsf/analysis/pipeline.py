@@ -173,6 +173,7 @@ def analyze(
     fit: int = 15,
     rules: Rules | None = None,
     method: str = "auto",
+    backend: str = "numpy",
     ess: float | None = None,
     seed: int = 0,
     workers: int | None = None,
@@ -215,6 +216,8 @@ def analyze(
     method : {"auto", "laplace", "importance", "mcmc"}, default "auto"
         The per-ROI posterior's sampler (``sample_many``): ``"auto"`` the batched Laplace
         where its pilot passes, else importance sampling, else an emcee chain.
+    backend : {"numpy", "jax"}, default "numpy"
+        Where the batched sampler runs (``sample_many``'s ``backend``; ``"jax"``: a GPU).
     ess : float, optional
         Effective sample size of every posterior (per ROI, per molecule's joint posterior
         and, with ``z_calibration``, of z); default each sampler's own.
@@ -390,6 +393,7 @@ def analyze(
         progress=progress,
         check=gof_discrepancy,
         method=method,
+        backend=backend,
         **effective,
     )
     frames = pd.concat(

@@ -16,17 +16,19 @@ if TYPE_CHECKING:
 
 
 def _flag_table(frames: pd.DataFrame) -> pd.DataFrame:
-    """The fraction of frames flagged at each level, beside its value when the model holds,
-    and the binomial p-value of at least that many flags when it holds (``flag_excess_p``)."""
+    """Per level alpha, the frames tested, the number flagged (``gof_p <= alpha``) and their
+    fraction, beside the fraction expected when the model holds, and the binomial p-value of
+    at least that many flags when it holds (``flag_excess_p``)."""
     p = frames["gof_p"].dropna()
     rows = []
     for alpha in (0.02, 0.1):
-        rate = float((p <= alpha).mean()) if len(p) else np.nan
+        flagged = int((p <= alpha).sum())
         rows.append(
             {
                 "alpha": alpha,
                 "frames": len(p),
-                "flagged": rate,
+                "flagged frames": flagged,
+                "flagged fraction": flagged / len(p) if len(p) else np.nan,
                 "binomial SE": np.sqrt(alpha * (1 - alpha) / max(len(p), 1)),
                 "expected when the model holds": alpha,
                 "p (this many flags or more)": flag_excess_p(p, alpha),
@@ -134,8 +136,10 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "",
         "A parametric-bootstrap goodness-of-fit test of every frame's ROI "
         f"(`bayespsf.inference.gof`: {discrepancy} against 49 "
-        "refitted replicates; column `gof_p`). Where the model holds, a fraction alpha of the "
-        "frames has `gof_p <= alpha`; more flags mean ROIs it does not describe (two "
+        "refitted replicates; column `gof_p`). `frames` counts the frames tested, `flagged "
+        "frames` those with `gof_p <= alpha` and `flagged fraction` their share. Where the "
+        "model holds, a fraction alpha of the frames has `gof_p <= alpha`; more flags mean "
+        "ROIs it does not describe (two "
         "molecules, a hot pixel, a spot that is not Gaussian). `p (this many flags or more)` "
         "tests the whole dataset: small when more frames are flagged than the model allows. "
         "It sees a misfit that every frame shares (an Airy spot fitted with a Gaussian), "

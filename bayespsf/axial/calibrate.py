@@ -109,8 +109,8 @@ def bead_rois(
             f"no bead was detected on the stack's mean projection at least {roi // 2} pixels "
             f"from its edges: check the bead's SD (--psf-sd, {s0:g} nm given), the camera file "
             "(--camera: its offset and gain turn counts into photons) and the pixel size "
-            f"({model.pixel_size:g} nm: the camera file's [geometry] pixel_size, else the "
-            "stack's metadata), or cut less "
+            f"({model.pixel_size:g} nm: --pixel-size, else the camera file's [geometry] "
+            "pixel_size, else the stack's metadata), or cut less "
             f"around the bead (--roi, {roi} pixels) if it lies near an edge"
         )
     found = found.sort_values("amplitude", ascending=False).reset_index(drop=True)

@@ -121,8 +121,9 @@ def check_calibration(calibration: DefocusCalibration, model: Model) -> None:
                 f"{used:g} nm: another pixel size means another magnification or camera, whose "
                 "defocus curves differ, so z from these would be biased. Calibrate a z-stack "
                 f"taken at {used:g} nm pixels (`bayespsf calibrate-z` with the data's camera "
-                "file), or check the data's pixel size (the camera file's [geometry] pixel_size, "
-                "--camera, else the movie's metadata); if both image through the same optics "
+                "file), or check the data's pixel size (--pixel-size, else the camera file's "
+                "[geometry] pixel_size, else the movie's metadata); if both image through the "
+                "same optics "
                 f"(binning alone), set pixel_size = {used:g} in the calibration file's [source]"
             )
     if setup["camera_kind"] is not None:

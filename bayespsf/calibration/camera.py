@@ -265,8 +265,9 @@ def calibrate_camera(
     pixel_size = movie.pixel_size if pixel_size is None else pixel_size
     if pixel_size is None:
         raise BayespsfInputError(
-            "pixel_size: the movie's metadata give none; state it (nm): --pixel-size, or "
-            "pixel_size= from Python"
+            "pixel_size: the movie's metadata give none; state it (nm): --pixel-size on the "
+            "command line (the camera file written then holds it as [geometry] pixel_size), "
+            "or pixel_size= from Python"
         )
     excess = EXCESS[kind]
     if dark_movie is not None:

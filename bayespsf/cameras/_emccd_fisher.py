@@ -89,6 +89,16 @@ def _table(r: float) -> CubicSpline:
     return CubicSpline(log_lam, values)
 
 
+def spline_arrays(r: float) -> dict:
+    """The spline of ``log(lam I(lam))`` that ``fisher_information`` evaluates for ``r``:
+    ``knots`` (k,), in log10 lam from ``GRID_LOG10_MIN`` to ``GRID_LOG10_MAX``, and
+    ``coefficients`` (4, k - 1), the cubic of each interval in powers of ``log10 lam - knot``,
+    highest first. Above the last knot the information is the Gaussian limit
+    ``1 / v + 2 / v**2``, ``v = 2 lam + r**2``."""
+    spline = _table(float(r))
+    return {"knots": spline.x, "coefficients": spline.c}
+
+
 def fisher_information(lam, r: float) -> np.ndarray:
     """Exact Fisher information of the EMCCD law per pixel, ``lam >= 0`` (photons).
 

@@ -213,6 +213,39 @@ def table_for(r: float) -> Table:
     return Table(r)
 
 
+def table_arrays(r: float) -> dict:
+    """The table of readout/gain ratio ``r`` (``R_MIN <= r <= R_MAX``) and its grids, as plain
+    numbers and one array, for array backends that evaluate the same interpolant.
+
+    Keys: ``coefficients`` (cells, 16), the patches' power-basis coefficients (``Table.coef``:
+    the bulk grid's ``(n_xi - 1) (n_eta - 1)`` cells row by row, then the near grid's from
+    ``near_offset``; entry ``4 m + n`` multiplies ``a**m s**n``, ``a`` and ``s`` the offsets in
+    a cell along log lam and along the count coordinate); the grids' starts ``xi0`` (log lam),
+    ``eta0``, ``tau0``, sizes ``n_xi``, ``n_eta``, ``n_tau`` and steps ``xi_step``,
+    ``eta_step``, ``tau_step``; ``near_offset``; and the constants ``near`` (``NEAR``),
+    ``eta_max``, ``lam_min``, ``lam_max`` and ``small_lam_reach`` of the module docstring.
+    """
+    table = table_for(float(r))
+    return {
+        "coefficients": table.coef,
+        "xi0": float(table.xi[0]),
+        "n_xi": int(table.xi.size),
+        "xi_step": XI_STEP,
+        "eta0": float(table.eta[0]),
+        "n_eta": int(table.eta.size),
+        "eta_step": ETA_STEP,
+        "tau0": float(table.tau[0]),
+        "n_tau": int(table.tau.size),
+        "tau_step": TAU_STEP,
+        "near_offset": int(table.near_offset),
+        "near": NEAR,
+        "eta_max": ETA_MAX,
+        "lam_min": LAM_MIN,
+        "lam_max": LAM_MAX,
+        "small_lam_reach": SMALL_LAM_REACH,
+    }
+
+
 def log_table(t, lam, r):
     """Log density of the EMCCD law with readout ``r > 0`` (gain units), ``lam >= 0``."""
     return _log_table(t, lam, r, None)

@@ -19,14 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from bayespsf._runtime import cache_folder
+
 
 def folder() -> Path | None:
-    """The cache folder, or ``None`` when caching is off."""
-    chosen = os.environ.get("BAYESPSF_CACHE")
-    if chosen is not None:
-        return None if chosen.strip().lower() == "off" else Path(chosen)
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "bayespsf"
+    """The cache folder, or ``None`` when caching is off (``bayespsf._runtime.cache_folder``)."""
+    return cache_folder()
 
 
 def digest(*sources: str | Path) -> str:

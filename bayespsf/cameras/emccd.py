@@ -176,6 +176,36 @@ class EMCCD(Camera):
         """``log(e_per_adu / gain)``: a density in gain units to one in ADU."""
         return float(np.log(self.e_per_adu / self.gain))
 
+    def law_arrays(self) -> dict:
+        """The law's constants and tables as plain numbers and arrays, for array backends.
+
+        Returns
+        -------
+        dict
+            ``tier`` (``likelihood``); ``gain``, ``readout_sd``, ``offset``, ``e_per_adu``;
+            ``r`` (``readout_in_gain_units``); ``log_jacobian``, ``log(e_per_adu / gain)``
+            (a density in gain units to one per ADU); ``table_range``, the ``r`` the
+            ``table`` tier interpolates in (``R_MIN``, ``R_MAX`` of ``_emccd_table``);
+            ``table``: for the ``table`` tier with ``r`` in that range, the interpolation
+            table (coefficients, grid starts, sizes and steps, and the grids' limits; keys
+            listed in ``_emccd_table.table_arrays``), else ``None``; ``fisher``: the spline of
+            ``log(lam I(lam))`` behind ``fisher_information`` (``knots`` in log10 lam and
+            ``coefficients`` (4, knots - 1), highest power first).
+
+        Notes
+        -----
+        The tables are built on the machine's first use of this ``r`` (seconds), then read
+        from the on-disk cache.
+        """
+        r, (low, high) = self.readout_in_gain_units, (_emccd_table.R_MIN, _emccd_table.R_MAX)
+        table = self.likelihood == "table" and low <= r <= high
+        return dict(
+            tier=self.likelihood, gain=self.gain, readout_sd=self.readout_sd,
+            offset=self.offset, e_per_adu=self.e_per_adu, r=r, log_jacobian=self._log_jacobian,
+            table_range=(low, high), table=_emccd_table.table_arrays(r) if table else None,
+            fisher=_emccd_fisher.spline_arrays(r),
+        )  # fmt: skip
+
     def gain_units(self, counts: ArrayLike) -> np.ndarray:
         """Counts in ADU as electrons over gain, ``t = (counts - offset) e_per_adu / gain``.
 

@@ -154,7 +154,8 @@ def add_geometry(parser: argparse.ArgumentParser, roi_help: str = ROI_HELP) -> N
 
 
 def add_method(parser: argparse.ArgumentParser, help: str) -> None:
-    """Add ``--method``, the posterior method (one of ``METHODS``, default ``auto``).
+    """Add ``--method``, the posterior method (one of ``METHODS``, default ``auto``), and
+    ``--backend`` (``numpy`` or ``jax``), where its batched pass runs.
 
     Parameters
     ----------
@@ -164,6 +165,13 @@ def add_method(parser: argparse.ArgumentParser, help: str) -> None:
         Its help text: ``METHOD_PER_ROI_HELP`` or ``METHOD_BATCHED_HELP``.
     """
     parser.add_argument("--method", choices=METHODS, default="auto", help=help)
+    parser.add_argument(
+        "--backend",
+        choices=("numpy", "jax"),
+        default="numpy",
+        help="where the batched posteriors run (default numpy; jax: a GPU where JAX finds "
+        "one, installed by pip install 'bayespsf[gpu]')",
+    )
 
 
 def add_seed(parser: argparse.ArgumentParser, help: str = SEED_HELP) -> None:

@@ -118,6 +118,12 @@ def _movie_model(args):
             f"pixel_size = {stated:g} nm: give one of them"
         )
     fallback = movie.pixel_size if args.pixel_size is None else args.pixel_size
+    if fallback is None and stated is None:
+        raise CommandError(
+            f"no pixel size: {args.movie}'s metadata give none and {args.camera} has no "
+            "[geometry] pixel_size; state it (nm): --pixel-size, or [geometry] pixel_size in "
+            f"{args.camera}"
+        )
     scene = camera_scene(table, args.camera, args.fit, fallback, roi_name="--fit")
     emitter = scene.to_dict().get("emitter", {})
     s0 = args.psf_sd
@@ -273,6 +279,7 @@ def _fit(args) -> int:
         method=args.method,
         max_seconds=args.max_seconds,
         check=args.check,
+        backend=args.backend,
     )
     for _, row in table.iterrows():
         if row["status"] in ("refused", "failed"):
@@ -331,6 +338,7 @@ def _analyze(args) -> int:
             fit=args.fit,
             rules=rules,
             method=args.method,
+            backend=args.backend,
             ess=args.ess,
             seed=args.seed,
             workers=None if args.scheduler else args.workers,
@@ -343,11 +351,15 @@ def _analyze(args) -> int:
             force=args.force,
         )
     check = result.consistency.set_index("parameter")
+    z_sd, z_sd_se = check.loc["s_x", "z_sd"], check.loc["s_x", "z_sd_se"]
+    spread = (
+        f"z-score SD of s_x {z_sd:.3g} +- {z_sd_se:.2g} (1 when the model holds)"
+        if z_sd == z_sd  # NaN where no molecule has two analysed frames to compare
+        else "no z-score SD of s_x (it needs molecules with two or more analysed frames)"
+    )
     print(
         f"{movie!r}: {int(result.molecules['selected'].sum())} molecules selected, "
-        f"{len(result.frames)} frames analysed; z-score SD of s_x "
-        f"{check.loc['s_x', 'z_sd']:.3g} +- {check.loc['s_x', 'z_sd_se']:.2g} (1 when the "
-        "model holds)"
+        f"{len(result.frames)} frames analysed; {spread}"
     )
     print("wrote " + ", ".join(str(p) for p in result.paths.values()))
     return 0

@@ -15,7 +15,7 @@ from pathlib import Path
 import pandas as pd
 
 from bayespsf import load_scene, simulate, theory
-from bayespsf.inference.estimators import fit_lsq
+from bayespsf.inference.lsq import fit_lsq
 from bayespsf.inference.sampling import sample_posterior
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES

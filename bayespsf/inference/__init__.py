@@ -6,9 +6,10 @@ sampling or an emcee chain, chosen by their diagnostics), returned as a ``Poster
 ``joint_posterior`` pools one molecule's frames. Model checks: ``bootstrap_check``.
 """
 
-from bayespsf.inference.estimators import covariance, fit_laplace, fit_lsq, fit_mle, start_values
+from bayespsf.inference.estimators import covariance, fit_laplace, fit_mle, start_values
 from bayespsf.inference.gof import bootstrap_check
 from bayespsf.inference.joint import JointPosterior, joint_posterior
+from bayespsf.inference.lsq import fit_lsq
 from bayespsf.inference.posterior import Posterior
 from bayespsf.inference.sampling import sample_posterior
 from bayespsf.inference.settings import Settings

@@ -24,6 +24,7 @@ from bayespsf._runtime import one_blas_thread
 from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import solver as stack_mle
+from bayespsf.inference.backends import check_backend
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES, pixel_centres
 
@@ -119,169 +120,6 @@ def covariance(fits: pd.DataFrame) -> np.ndarray:
     return corr * sd[:, :, None] * sd[:, None, :]
 
 
-# ---------------------------------------------------------------------------- least squares
-def gauss2d(theta, model: Model):
-    """Eq. gauss2dfxn sampled at the pixel centres, and its Jacobian.
-
-    ``theta = (f0, x0, y0, s_x, s_y, b)``: ``f0 exp(-(x-x0)^2/2s_x^2 - (y-y0)^2/2s_y^2) + b``.
-    Returns ``(values (roi, roi), jacobian (6, roi, roi))``.
-    """
-    f0, x0, y0, sx, sy, _ = theta
-    c = pixel_centres(model.roi, model.pixel_size)
-    dx, dy = (c - x0) / sx, (c - y0) / sy
-    gx, gy = np.exp(-0.5 * dx * dx), np.exp(-0.5 * dy * dy)
-    shape = gy[:, None] * gx[None, :]
-    jac = np.empty((6, model.roi, model.roi))
-    jac[0] = shape
-    jac[1] = f0 * shape * (dx / sx)[None, :]
-    jac[2] = f0 * shape * (dy / sy)[:, None]
-    jac[3] = f0 * shape * (dx * dx / sx)[None, :]
-    jac[4] = f0 * shape * (dy * dy / sy)[:, None]
-    jac[5] = 1.0
-    return f0 * shape + theta[5], jac
-
-
-def lsq_to_params(theta, pixel_size: float) -> np.ndarray:
-    """``(f0, x0, y0, s_x, s_y, b)`` to ``x0 y0 s_x s_y N b`` with ``N = 2 pi s_x s_y f0 / a^2``
-    (the Gaussian's integral over the plane, in photons)."""
-    f0, x0, y0, sx, sy, b = np.moveaxis(np.asarray(theta, float), -1, 0)
-    return np.stack([x0, y0, sx, sy, 2 * np.pi * sx * sy * f0 / pixel_size**2, b], axis=-1)
-
-
-def _lsq_one(photons, start, model):
-    a = model.pixel_size
-    f0 = start[4] * a * a / (2 * np.pi * start[2] * start[3])
-    theta0 = np.array([f0, start[0], start[1], start[2], start[3], start[5]])
-    lower = [-np.inf, -np.inf, -np.inf, 1e-3 * a, 1e-3 * a, -np.inf]
-    y = photons.ravel()
-
-    def residual(theta):
-        return gauss2d(theta, model)[0].ravel() - y
-
-    def jacobian(theta):
-        return gauss2d(theta, model)[1].reshape(6, -1).T
-
-    res = optimize.least_squares(
-        residual, theta0, jac=jacobian, bounds=(lower, np.inf), method="trf", x_scale="jac"
-    )
-    return res
-
-
-def fit_lsq(counts: ArrayLike, model: Model) -> pd.DataFrame:
-    """The paper's fit: unweighted least squares of Eq. gauss2dfxn to counts in photons.
-
-    Parameters
-    ----------
-    counts : array_like, shape (..., roi, roi)
-        ROIs in ADU.
-    model : Model
-        Geometry and camera (its mean gain converts the counts to photons).
-
-    Returns
-    -------
-    pandas.DataFrame
-        One row per ROI: ``x0 y0 s_x s_y`` (nm), ``N`` (photons), ``b`` (photons per pixel),
-        ``photon_unit``, ``converged`` (bool), ``message`` and ``status`` (``"converged"``,
-        ``"not converged"`` or ``"refused"``; module docstring).
-
-    Raises
-    ------
-    BayespsfInputError
-        If ``counts`` is not real or not of shape ``(..., roi, roi)``.
-
-    See Also
-    --------
-    fit_mle : maximum likelihood under the camera law, with error bars.
-    lsq_first_order : this fit's limit and covariance, predicted to first order.
-
-    Notes
-    -----
-    As in DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010) (MATLAB ``lsqcurvefit``):
-    counts are converted to photons with the camera's mean gain (``Model.to_photons``) and
-    fitted by a trust-region least squares (scipy ``least_squares``, analytic Jacobian) of the
-    sampled Gaussian with amplitude f0 and constant background. Its widths estimate the
-    pixelated width (Eq. tophat), not s0. Not converged: the optimiser failed, a width ran
-    away beyond the ROI, or a value is not finite.
-
-    Examples
-    --------
-    >>> import bayespsf
-    >>> scene = bayespsf.load_scene("paper-fig3")
-    >>> counts, truth = bayespsf.simulate(scene, 2, seed=1)
-    >>> bayespsf.fit_lsq(counts, bayespsf.Model.from_scene(scene))["status"].tolist()
-    ['converged', 'converged']
-    """
-    stack, problems = _stack(counts, model)
-    photons = model.to_photons(stack)
-    starts = start_values(photons, model)
-    rows = []
-    limit = model.roi * model.pixel_size
-    for image, start, problem in zip(photons, starts, problems, strict=True):
-        if problem is not None:
-            rows.append(_refused_row(problem))
-            continue
-        res = _lsq_one(image, start, model)
-        params = lsq_to_params(res.x, model.pixel_size)
-        ok, message = bool(res.success), res.message
-        if not np.all(np.isfinite(params)):
-            ok, message = False, "non-finite estimate"
-        elif params[2] > limit or params[3] > limit:
-            ok, message = False, "a width ran away beyond the ROI"
-        rows.append(dict(zip(PARAMETER_NAMES, params, strict=True), converged=ok, message=message))
-    return _frame(rows, model)
-
-
-def lsq_first_order(model: Model, params):
-    """First-order prediction of ``fit_lsq``: its limit and its covariance.
-
-    The limit is the least-squares fit of Eq. gauss2dfxn to the noise-free expected image (in
-    photons): the sampled Gaussian that best matches the pixel-integrated spot. The covariance
-    is the M-estimator sandwich ``A^-1 B A^-1`` with ``A`` the Hessian of the half sum of
-    squares at the limit (including the residual-curvature term, since the models differ) and
-    ``B = J^T diag(var) J`` with the camera's exact pixel variances in photons (Huber 1967;
-    White 1982). Returned in ``x0 y0 s_x s_y N b`` by the delta method.
-
-    Returns
-    -------
-    limit : ndarray (6,), covariance : ndarray (6, 6)
-    """
-    params = np.asarray(params, float)
-    lam = model.expected(params)  # expected photoelectrons (CIC included)
-    mean = lam / model.photoelectrons_per_photon  # the mean of model.to_photons(counts)
-    res = _lsq_one(mean, params, model)
-    theta = res.x
-    _, jac = gauss2d(theta, model)
-    j = jac.reshape(6, -1).T
-    variance = model.photon_variance(lam).ravel()
-
-    def gradient(th):
-        values, jj = gauss2d(th, model)
-        return jj.reshape(6, -1) @ (values - mean).ravel()
-
-    steps = 1e-6 * np.maximum(np.abs(theta), 1.0)
-    hess = np.array(
-        [
-            (gradient(theta + e) - gradient(theta - e)) / (2 * h)
-            for e, h in zip(np.diag(steps), steps, strict=True)
-        ]
-    )
-    a_inv = np.linalg.inv(0.5 * (hess + hess.T))
-    cov_theta = a_inv @ (j.T * variance) @ j @ a_inv
-    f0, _, _, sx, sy, _ = theta
-    a2 = model.pixel_size**2
-    to_params = np.zeros((6, 6))  # d(x0 y0 s_x s_y N b) / d(f0 x0 y0 s_x s_y b)
-    to_params[0, 1] = to_params[1, 2] = to_params[2, 3] = to_params[3, 4] = to_params[5, 5] = 1.0
-    to_params[4] = [
-        2 * np.pi * sx * sy / a2,
-        0,
-        0,
-        2 * np.pi * sy * f0 / a2,
-        2 * np.pi * sx * f0 / a2,
-        0,
-    ]
-    return lsq_to_params(theta, model.pixel_size), to_params @ cov_theta @ to_params.T
-
-
 # ----------------------------------------------------------------------- maximum likelihood
 def _scipy_maximise(model, stack, starts):
     """One ROI at a time by scipy's L-BFGS-B (the reference path of ``fit_mle``), in the
@@ -331,6 +169,7 @@ def fit_mle(
     laplace: bool = True,
     engine: str = "stack",
     crlb: bool = True,
+    backend: str = "numpy",
 ) -> pd.DataFrame:
     """Maximum likelihood under the model's camera law (any tier), with the Laplace SDs.
 
@@ -350,6 +189,9 @@ def fit_mle(
     crlb : bool
         Fill the ``crlb_<p>`` columns (NaN without): the expected information at every fit
         (for sCMOS, a quadrature per pixel, the costliest step of a fit).
+    backend : {"numpy", "jax"}
+        ``"jax"``: the stack engine in JAX (``bayespsf.inference.jax_mle``) on whatever
+        device JAX finds (a GPU where one is installed); Photon and EMCCD cameras.
 
     Returns
     -------
@@ -363,7 +205,9 @@ def fit_mle(
     Raises
     ------
     BayespsfInputError
-        For an unknown ``engine``, counts not real or not ``(..., roi, roi)``, a bad ``start``.
+        For an unknown ``engine`` or ``backend`` (or ``"jax"`` without JAX), counts not real
+        or not ``(..., roi, roi)``, a bad ``start``; with ``backend="jax"``, a camera law it
+        does not support (sCMOS; the EMCCD ``exact`` tier with readout).
 
     See Also
     --------
@@ -399,6 +243,8 @@ def fit_mle(
     """
     if engine not in ENGINES:
         raise BayespsfInputError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
+    if check_backend(backend) == "jax" and engine != "stack":
+        raise BayespsfInputError("backend='jax' runs the stack engine; use engine='stack'")
     stack, problems = _stack(counts, model)
     starts = (
         start_values(model.to_photons(stack), model)
@@ -410,8 +256,15 @@ def fit_mle(
             f"start must have one row per ROI ({len(stack)}), got {len(starts)}"
         )
     fit = np.flatnonzero([problem is None for problem in problems])
-    maximise = stack_mle.maximise if engine == "stack" else _scipy_maximise
-    params, logl, ok, message = maximise(model, stack[fit], starts[fit])
+    if backend == "jax":
+        from bayespsf.inference import jax_mle
+
+        found = jax_mle.maximise(model, stack[fit], starts[fit], laplace, crlb)
+        params, logl = found["params"], found["log_likelihood"]
+        ok, message = found["converged"], found["message"]
+    else:
+        maximise = stack_mle.maximise if engine == "stack" else _scipy_maximise
+        params, logl, ok, message = maximise(model, stack[fit], starts[fit])
     low, high = stack_mle.box(model.roi)
     u = stack_mle.to_internal(params, model.pixel_size)
     # b's bound 0 is physical; any other coordinate on its bound is a failed search
@@ -427,32 +280,57 @@ def fit_mle(
     bound = np.full((len(fit), 6), np.nan)
     if crlb and ok.any():
         with np.errstate(invalid="ignore"):  # a negative diagonal (not invertible): NaN
-            bound[ok] = _in_blocks(lambda p: stack_mle.crlb(model, p), params[ok], roi=model.roi)
+            bound[ok] = (
+                found["crlb"][ok]
+                if backend == "jax"
+                else _in_blocks(lambda p: stack_mle.crlb(model, p), params[ok], roi=model.roi)
+            )
     cov = np.full((len(fit), 6, 6), np.nan)
     if laplace and ok.any():
-        cov[ok], definite = _laplace(model, stack[fit][ok], params[ok])
+        if backend == "jax":
+            cov[ok], definite = found["cov"][ok], found["definite"][ok]
+        else:
+            cov[ok], definite = _laplace(model, stack[fit][ok], params[ok])
         bad = np.flatnonzero(ok)[~definite]
         message[bad] = "observed information not positive definite"
         ok[bad] = False
         cov[bad] = np.nan
-    rows: list[dict] = []
-    laplace_columns = (*(f"sd_{n}" for n in PARAMETER_NAMES), *(c for _, _, c in CORRELATIONS))
-    crlb_columns = tuple(f"crlb_{n}" for n in PARAMETER_NAMES)
-    fitted = dict(zip(fit, range(len(fit)), strict=True))
-    for i, problem in enumerate(problems):
-        if problem is not None:
-            rows.append(_refused_row(problem, ("log_likelihood", *crlb_columns, *laplace_columns)))
-            continue
-        k = fitted[i]
-        row = dict(zip(PARAMETER_NAMES, params[k], strict=True), log_likelihood=logl[k])
-        row.update(zip(crlb_columns, bound[k], strict=True))
-        if laplace:
-            sd = np.sqrt(np.diagonal(cov[k]))
-            row.update({f"sd_{name}": v for name, v in zip(PARAMETER_NAMES, sd, strict=True)})
-            row.update({c: cov[k, p, q] / (sd[p] * sd[q]) for p, q, c in CORRELATIONS})
-        row.update(converged=bool(ok[k]), message=str(message[k]))
-        rows.append(row)
-    return _frame(rows, model)
+    return _mle_table(
+        model, problems, fit, params, logl, bound, cov if laplace else None, ok, message
+    )
+
+
+def _mle_table(model, problems, fit, params, logl, bound, cov, ok, message) -> pd.DataFrame:
+    """``fit_mle``'s table, column by column (a dataset of 10^6 ROIs is not a loop of rows):
+    fitted rows from the arrays, refused rows NaN with their reason."""
+    n = len(problems)
+    columns = {name: np.full(n, np.nan) for name in PARAMETER_NAMES}
+    columns["log_likelihood"] = np.full(n, np.nan)
+    for k, name in enumerate(PARAMETER_NAMES):
+        columns[name][fit] = params[:, k]
+    columns["log_likelihood"][fit] = logl
+    for k, name in enumerate(PARAMETER_NAMES):
+        columns[f"crlb_{name}"] = np.full(n, np.nan)
+        columns[f"crlb_{name}"][fit] = bound[:, k]
+    if cov is not None:
+        with np.errstate(invalid="ignore"):  # NaN covariances (not converged) stay NaN
+            sd = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+            for k, name in enumerate(PARAMETER_NAMES):
+                columns[f"sd_{name}"] = np.full(n, np.nan)
+                columns[f"sd_{name}"][fit] = sd[:, k]
+            for p, q, column in CORRELATIONS:
+                columns[column] = np.full(n, np.nan)
+                columns[column][fit] = cov[:, p, q] / (sd[:, p] * sd[:, q])
+    converged = np.zeros(n, dtype=bool)
+    converged[fit] = ok
+    messages = np.array([problem or "" for problem in problems], dtype=object)
+    messages[fit] = [str(m) for m in message]
+    status = np.where(converged, "converged", "not converged").astype(object)
+    status[[i for i, problem in enumerate(problems) if problem is not None]] = "refused"
+    table = pd.DataFrame(columns)
+    table.insert(6, "photon_unit", model.photon_unit_label)
+    table["converged"], table["message"], table["status"] = converged, messages, status
+    return table
 
 
 def _in_blocks(function, *arrays, roi: int):

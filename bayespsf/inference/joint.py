@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy import stats
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.batched import MAX_DRAWS_PER_ESS, score
@@ -62,6 +63,7 @@ from bayespsf.model import LOG_PARAMETERS, Model
 from bayespsf.psf import PARAMETER_NAMES
 
 SHARED = {"b per frame": (0, 1, 2, 3), "one b": (0, 1, 2, 3, 5)}
+DISAGREE_P = 1e-3  # per-frame positions this improbable under one position: not one position
 MIN_LAPLACE_DRAWS = 50  # fewest Laplace draws inside the prior that summarise a posterior
 WIDE_FRACTION, WIDE_SCALE = 0.1, 1.5  # the defensive mixture's wide component
 
@@ -330,7 +332,9 @@ def joint_posterior(
         Its draws per frame, the joint fit, and ``info``: ``method`` is ``"importance"``
         where importance sampling passed (``converged`` True), ``"laplace"`` where it did not
         (the Laplace draws inside the prior; ``why`` says so), ``"none"`` where the joint
-        information is singular or too few Laplace draws lie inside the prior.
+        information is singular or too few Laplace draws lie inside the prior. A failure's
+        ``why`` names frames whose own fits disagree on the position (a molecule that moved,
+        or frames of more than one molecule) and a joint fit on the prior's edge (b = 0).
 
     Raises
     ------
@@ -361,7 +365,8 @@ def joint_posterior(
         centre, covariance = _laplace(model, counts, fit, layout)
         proposal = DefensiveProposal(centre, covariance)
     except np.linalg.LinAlgError:
-        info.update(method="none", converged=False, why="the joint information is singular")
+        why = "the joint information is singular" + _cause(model, counts, starts)
+        info.update(method="none", converged=False, why=why)
         return JointPosterior(layout, np.full((1, layout.frames, 6), np.nan), fit, info)
     run = ImportanceRun(proposal, ess, int(MAX_DRAWS_PER_ESS * ess), random)
     while not run.done:
@@ -378,15 +383,20 @@ def joint_posterior(
     else:
         draws = _laplace_within_prior(model, layout, proposal, keep, random)
         why = (
-            f"the Laplace approximation: importance sampling failed (k-hat {run.khat:.2f}, "
-            f"ESS {run.achieved:.0f} of {ess:g})"
-        ) + ("" if fit_ok else f"; {fit_message}")
+            (
+                f"the Laplace approximation: importance sampling failed (k-hat {run.khat:.2f}, "
+                f"ESS {run.achieved:.0f} of {ess:g})"
+            )
+            + ("" if fit_ok else f"; {fit_message}")
+            + _cause(model, counts, starts)
+        )
     method = "importance" if ok else "laplace"
     if len(draws) < MIN_LAPLACE_DRAWS:
         method, draws = "none", np.full((1, layout.frames, 6), np.nan)
+        edge = _on_edge(model, fit)
         why += (
             f"; and fewer than {MIN_LAPLACE_DRAWS} of its Laplace draws lie in the prior's "
-            "support (a fit on its edge, such as b = 0)"
+            "support" + (f" (the joint fit is on its edge: {edge})" if edge else "")
         )
     info.update(
         method=method,
@@ -398,6 +408,59 @@ def joint_posterior(
         seconds=time.perf_counter() - started,
     )
     return JointPosterior(layout, draws, fit, info)
+
+
+def _cause(model, counts, starts) -> str:
+    """``"; "`` and why the frames are not one immobile molecule where their own fits'
+    positions disagree: x0 or y0 scatters about its inverse-variance weighted mean more than
+    the fits' SDs (inverse observed information) allow, at a chi-square p-value (K - 1
+    degrees of freedom) below ``DISAGREE_P``; else ``""``."""
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        covariance = np.linalg.pinv(observed_information(model, counts, starts), hermitian=True)
+    found = []
+    for k, name in ((0, "x0"), (1, "y0")):
+        var = covariance[:, k, k]
+        good = np.isfinite(var) & (var > 0) & np.isfinite(starts[:, k])
+        if good.sum() < 2:
+            continue
+        x, w = starts[good, k], 1.0 / var[good]
+        z = (x - np.sum(w * x) / np.sum(w)) * np.sqrt(w)
+        chi2, dof = float(np.sum(z**2)), int(good.sum()) - 1
+        p = float(stats.chi2.sf(chi2, dof))
+        if p < DISAGREE_P:
+            found.append(
+                f"{name}: chi-square {chi2:.3g} on {dof} degrees of freedom, p "
+                + (f"= {p:.2g}" if p > 0 else "< 1e-300")
+                + f", a frame {np.abs(z).max():.3g} SDs from their mean"
+            )
+    if not found:
+        return ""
+    return (
+        "; the frames' own fits disagree on the position (" + "; ".join(found) + "): the "
+        "molecule moved, or the frames are not one molecule, which the joint model's one "
+        "position does not describe"
+    )
+
+
+def _on_edge(model, fit) -> str:
+    """Which parameters of the joint fit ``fit`` (frames, 6) lie on (or beyond) an edge of the
+    prior's support, and in which frames; ``""`` if none does."""
+    low, high = model.prior_bounds()
+    found = []
+    for k, name in enumerate(PARAMETER_NAMES):
+        for bound, beyond in ((low[k], fit[:, k] < low[k]), (high[k], fit[:, k] > high[k])):
+            if not np.isfinite(bound):
+                continue
+            on = np.isclose(fit[:, k], bound, rtol=1e-9, atol=1e-9) | beyond
+            if on.all():
+                found.append(f"{name} = {bound:g} in every frame")
+            elif on.any():
+                frames = np.flatnonzero(on)
+                listed = ", ".join(str(f) for f in frames[:5]) + (
+                    ", ..." if len(frames) > 5 else ""
+                )
+                found.append(f"{name} = {bound:g} in frame{'s' * (len(frames) > 1)} {listed}")
+    return "; ".join(found)
 
 
 def _laplace_within_prior(model, layout: Layout, proposal, keep: int, random) -> np.ndarray:

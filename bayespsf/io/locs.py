@@ -7,10 +7,18 @@ picasso's columns followed by bayespsf's own. The writers put it into
   compound dataset ``locs`` with ``frame`` (uint32), ``x``, ``y``, ``photons``, ``sx``, ``sy``,
   ``bg``, ``lpx``, ``lpy`` (float32; positions and widths in camera pixels with the centre of
   pixel (row 0, column 0) at (0, 0), as picasso's Localize writes them; ``photons`` net, ``bg``
-  per pixel; ``lpx``, ``lpy`` the posterior SDs of the position), then bayespsf's columns
-  (those finite wherever a position is: picasso's loader drops any row with a NaN); the YAML
-  holds ``Width``, ``Height``, ``Frames``, ``Pixelsize`` (nm), bayespsf's provenance and the
-  names of the columns left out;
+  per pixel; ``lpx``, ``lpy`` the posterior SDs of the position), then every one of
+  bayespsf's columns for every row. picasso's loader drops any row with a NaN or an infinity
+  in any column, so a value of bayespsf's that is not finite (a Cramér-Rao bound where the
+  MLE did not converge, ``gof_p`` without a converged refit, ``acceptance`` of a posterior
+  made without a chain) is written as ``FILL_VALUE`` (9.969209968386869e36, netCDF's
+  default fill value for doubles: finite, so picasso keeps the row, and far beyond any value
+  the columns hold); the table's ``missing`` column says which values of a row are missing
+  and why, and ``locs.parquet`` keeps them as NaN. picasso's own columns are never filled:
+  a row without a position (a refused or failed ROI, or, with a z calibration, no z) keeps
+  NaN there and picasso leaves it out. The YAML holds ``Width``, ``Height``, ``Frames``,
+  ``Pixelsize`` (nm), bayespsf's provenance, the fill value, the columns that hold it and
+  the count of rows without a position;
 * ``locs.csv``: ThunderSTORM's results table (``id``, ``frame`` from 1, ``x [nm]``, ``y [nm]``,
   ``sigma1 [nm]``, ``sigma2 [nm]``, ``sigma [nm]``, ``intensity [photon]``, ``offset
   [photon]``, ``uncertainty_xy [nm]``). ThunderSTORM, as ImageJ, puts the top-left corner of
@@ -39,6 +47,9 @@ import pandas as pd
 from bayespsf.errors import BayespsfInputError
 
 PICASSO_COLUMNS = ("frame", "x", "y", "photons", "sx", "sy", "bg", "lpx", "lpy")
+PICASSO_Z_COLUMNS = ("z", "lpz")  # picasso's columns of a 3D localisation (nm)
+# what locs.hdf5 holds for a value of bayespsf's that is not finite (netCDF's NC_FILL_DOUBLE)
+FILL_VALUE = 9.969209968386869e36
 
 
 def _structured(locs: pd.DataFrame) -> np.ndarray:
@@ -95,10 +106,16 @@ def write_picasso(locs: pd.DataFrame, path: str | os.PathLike, info: dict) -> tu
 
     Notes
     -----
-    The HDF5 dataset ``locs`` is one compound dataset, strings as fixed-width bytes. A
-    bayespsf column that is NaN in some row with a position is left out (picasso's loader
-    drops every row with a NaN); the YAML names the columns left out, and ``locs.parquet``
-    keeps them. Format details: module docstring.
+    The HDF5 dataset ``locs`` is one compound dataset, strings as fixed-width bytes, with
+    every column of ``locs`` for every row. picasso's loader drops every row with a NaN or an
+    infinity in any column (``picasso.lib.ensure_sanity``), so a value of one of bayespsf's
+    columns that is not finite is written as ``FILL_VALUE`` (9.969209968386869e36, netCDF's
+    default fill value for doubles), which picasso keeps; the dataset's attribute
+    ``fill_value`` and the YAML state it, the YAML names the columns that hold it, and
+    ``locs.parquet`` keeps the NaN. ``bayespsf.analysis.localizations`` puts the reason for
+    each missing value into the ``missing`` column. picasso's own columns (``PICASSO_COLUMNS``,
+    ``z`` and ``lpz``) are not filled: a row without a position keeps NaN there, and picasso
+    leaves it out; the YAML counts those rows. Format details: module docstring.
     """
     import h5py
     import yaml
@@ -107,31 +124,41 @@ def write_picasso(locs: pd.DataFrame, path: str | os.PathLike, info: dict) -> tu
     if missing:
         raise BayespsfInputError(f"info: picasso needs {', '.join(missing)}")
     path = Path(path)
-    kept, omitted = _picasso_safe_columns(locs)
-    info = {**info, "bayespsf columns left out (NaN where a position exists)": omitted}
+    filled, columns = _filled(locs)
+    own = [c for c in (*PICASSO_COLUMNS, *PICASSO_Z_COLUMNS) if c in locs]
+    unplaced = int((~np.isfinite(locs[own].to_numpy(float))).any(axis=1).sum())
+    info = {
+        **info,
+        "bayespsf fill value": FILL_VALUE,
+        "bayespsf columns with filled values (see the missing column)": columns,
+        "rows without a position (NaN; picasso leaves them out)": unplaced,
+    }
     with h5py.File(path, "w") as f:
-        f.create_dataset("locs", data=_structured(locs[kept]))
+        dataset = f.create_dataset("locs", data=_structured(filled))
+        dataset.attrs["fill_value"] = FILL_VALUE
     sidecar = path.with_suffix(".yaml")
     sidecar.write_text(yaml.safe_dump_all([_plain(info)], sort_keys=False))
     return path, sidecar
 
 
-def _picasso_safe_columns(locs: pd.DataFrame) -> tuple[list[str], list[str]]:
-    """The columns to write for picasso, and those left out. picasso's loader drops every row
-    with a NaN in any column (``picasso.lib.ensure_sanity``), so a column that is NaN in some
-    row that has a position (``acceptance`` of a Laplace row beside a chain's) would hide
-    that row; such columns stay in ``locs.parquet`` only. Rows without a position (a refused
-    ROI) are written, and picasso leaves them out."""
-    placed = locs[list(PICASSO_COLUMNS)].notna().all(axis=1)
-    kept, omitted = [], []
+def _filled(locs: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
+    """``locs`` with every value of bayespsf's numeric columns that is not finite (NaN,
+    infinity) replaced by ``FILL_VALUE``, and the names of the columns that hold it. picasso's
+    own columns are left as they are: a row without a position is one picasso cannot show."""
+    out, columns = locs.copy(), []
     for name in locs.columns:
-        column = locs.loc[placed, name]
-        numeric = pd.api.types.is_numeric_dtype(column) and not pd.api.types.is_bool_dtype(column)
-        if name in PICASSO_COLUMNS or not numeric or np.isfinite(column.to_numpy(float)).all():
-            kept.append(name)
-        else:
-            omitted.append(name)
-    return kept, omitted
+        values = locs[name]
+        numeric = pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values)
+        if name in (*PICASSO_COLUMNS, *PICASSO_Z_COLUMNS) or not numeric:
+            continue
+        data = values.to_numpy(dtype=np.float64 if values.isna().any() else None)
+        if data.dtype.kind != "f":  # integers: always finite
+            continue
+        bad = ~np.isfinite(data)
+        if bad.any():
+            out[name] = np.where(bad, FILL_VALUE, data)
+            columns.append(name)
+    return out, columns
 
 
 def _plain(value):
@@ -234,7 +261,10 @@ def write_locs(locs: pd.DataFrame, folder: str | os.PathLike, info: dict) -> dic
     Notes
     -----
     The formats, their coordinate conventions and the columns are described in the module
-    docstring.
+    docstring. ``locs.hdf5`` holds every column for every row; a value of bayespsf's columns
+    that is not finite is ``FILL_VALUE`` there (9.969209968386869e36, which picasso's loader
+    keeps where it would drop the row of a NaN) and NaN in ``locs.parquet``, and the
+    table's ``missing`` column (``bayespsf.analysis.localizations``) says why.
 
     Examples
     --------
@@ -258,4 +288,11 @@ def write_locs(locs: pd.DataFrame, folder: str | os.PathLike, info: dict) -> dic
     return {"locs.hdf5": hdf5, "locs.yaml": yaml_path, "locs.csv": csv, "locs.parquet": parquet}
 
 
-__all__ = ["PICASSO_COLUMNS", "thunderstorm_table", "write_locs", "write_picasso"]
+__all__ = [
+    "FILL_VALUE",
+    "PICASSO_COLUMNS",
+    "PICASSO_Z_COLUMNS",
+    "thunderstorm_table",
+    "write_locs",
+    "write_picasso",
+]

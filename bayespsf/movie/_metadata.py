@@ -195,8 +195,9 @@ def resolve_pixel_size(pixel_size, camera, movie) -> float:
         pixel_size = movie.pixel_size
     if pixel_size is None:
         raise BayespsfInputError(
-            "pixel_size: the movie's metadata has none; give pixel_size (nm), or [geometry] "
-            "pixel_size in the camera file"
+            "pixel_size: the movie's metadata has none; state it (nm): pixel_size= from "
+            "Python, --pixel-size on the command line, or [geometry] pixel_size in the camera "
+            "file"
         )
     if pixel_size == movie.pixel_size and "pixel_size_field" in movie.metadata:
         source = (

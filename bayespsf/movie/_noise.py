@@ -1,5 +1,6 @@
-"""The two nuisance quantities of detection: the background under a spot and the noise variance
-of a pixel, from the camera law or estimated from the image itself."""
+"""The noise of detection: a pixel's noise variance from the camera law or estimated from the
+image itself, the matched filter and its threshold from the camera law's tail (the local
+background under a spot is estimated in ``_background``)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from bayespsf.errors import BayespsfInputError
 MASK_SCORE = 3.0  # the least score whose neighbourhood is left out of the background
 CLIP = 4.0  # differences of adjacent pixels beyond CLIP SDs are left out of the noise variance
 # variance of a standard normal truncated to (-CLIP, CLIP)
-_KEPT_VARIANCE = 1.0 - 2.0 * CLIP * stats.norm.pdf(CLIP) / (1.0 - 2.0 * stats.norm.sf(CLIP))
+KEPT_VARIANCE = 1.0 - 2.0 * CLIP * stats.norm.pdf(CLIP) / (1.0 - 2.0 * stats.norm.sf(CLIP))
 
 
 def camera_noise_variance(camera, background, frames: int = 1) -> np.ndarray:
@@ -63,7 +64,7 @@ def estimate_noise_variance(image) -> float:
     deviations = np.abs(diffs - np.median(diffs))
     for _ in range(3):
         kept = diffs[deviations < CLIP * sd]
-        sd = np.sqrt(kept.var() / _KEPT_VARIANCE) if kept.size > 1 else sd
+        sd = np.sqrt(kept.var() / KEPT_VARIANCE) if kept.size > 1 else sd
     return float(sd**2 / 2.0)
 
 
@@ -82,37 +83,6 @@ def matched_filter(residual: np.ndarray, variance, spot: tuple[np.ndarray, np.nd
         num = ndimage.correlate1d(num, fractions, axis, mode="constant")
         info = ndimage.correlate1d(info, fractions**2, axis, mode="constant")
     return num / np.sqrt(info), num / info
-
-
-def estimate_background(
-    image: np.ndarray,
-    spot: tuple[np.ndarray, np.ndarray],
-    size: int,
-    mask_score: float,
-    variance: float,
-) -> np.ndarray:
-    """Local mean of the background pixels around each pixel (photons per pixel).
-
-    A mean over a ``size`` × ``size`` window (the median is biased on skewed or discrete
-    counts, which would bias the score), after leaving out the pixels within the template's
-    reach of any pixel whose matched-filter score exceeds ``mask_score`` (at least
-    ``MASK_SCORE``; detection passes its threshold, so that the background's own noise
-    excursions are not left out, which would bias it low): first against the plain local
-    mean, then once more against the first estimate. A window with under a tenth
-    of its pixels left keeps the previous estimate. ``variance``: the noise variance that
-    scores the pixels (``estimate_noise_variance``).
-    """
-    back = ndimage.uniform_filter(image, size)
-    reach = len(spot[0])
-    for _ in range(2):
-        score, _ = matched_filter(image - back, variance, spot)
-        spots = ndimage.maximum_filter(score > max(mask_score, MASK_SCORE), reach)
-        keep = (~spots).astype(np.float64)
-        share = ndimage.uniform_filter(keep, size)
-        total = ndimage.uniform_filter(image * keep, size)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            back = np.where(share > 0.1, total / share, back)
-    return back
 
 
 def template(psf_sd, pixel_size, image_shape=None) -> tuple[np.ndarray, np.ndarray]:

@@ -26,6 +26,14 @@ false_positives / n)``, the central-limit approximation, which skewed counts (EM
 photons per pixel, single frames) exceed in the far tail: one 4096 × 4096 EMCCD frame at 3
 photons per pixel gave 9 false candidates against a stated 0.01 (docs/movies.md).
 
+The background. ``b`` is local: at each pixel, a least-squares quadratic surface of the pixels
+around it away from the spots (``_background``), which follows a ramp or an illumination
+profile to the image's edge, so that the threshold is set against the background and the
+camera law at each pixel's own level; without a camera the noise variance is estimated pixel
+by pixel over the same window. With a camera, the variance the background pixels show beyond
+the law (a per-pixel offset pattern, which a projection keeps whole) is added to the law as a
+Gaussian term (``_background.fixed_pattern_variance``).
+
 Flags. ``saturated`` counts the pixels of the spot's template window at the ADC's full scale
 (the camera's declared ``saturation`` or an integer type's largest value) in some frame;
 ``elongated`` marks a spot whose second moments reject one round spot
@@ -48,6 +56,7 @@ from scipy import stats
 from bayespsf import psf
 from bayespsf._validate import finite_array, scalar_in_range
 from bayespsf.errors import BayespsfInputError
+from bayespsf.movie._background import background_and_noise
 from bayespsf.movie._metadata import check_pixel_size, resolve_pixel_size
 from bayespsf.movie._noise import (
     at_type_maximum,
@@ -55,8 +64,6 @@ from bayespsf.movie._noise import (
     check_background,
     check_offset,
     check_signal,
-    checked_map,
-    estimate_background,
     estimate_noise_variance,
     matched_filter,
     pixel_law,
@@ -116,10 +123,11 @@ def detect(
         Pixel side in nm (> 0).
     noise_var : float or array_like (h, w), optional
         Noise variance per pixel in photons² (``camera_noise_variance`` gives it from the
-        camera law); by default estimated from the image (``estimate_noise_variance``).
+        camera law); by default estimated from the image pixel by pixel, from the differences
+        of adjacent pixels away from spots over a window of three ROI sides.
     background : float or array_like (h, w), optional
-        Background in photons per pixel; by default a local mean of the pixels away from spots
-        over a window of three ROI sides (``estimate_background``).
+        Background in photons per pixel; by default the least-squares quadratic surface of the
+        pixels away from spots over a window of three ROI sides around each pixel.
     false_positives : float, default 0.01
         Expected number of background pixels above the threshold per image (> 0, below the
         number of pixels): a bound on the expected number of false candidates per image.
@@ -155,8 +163,9 @@ def detect(
           molecules 1-2 pixels apart, seen as one candidate.
 
         ``attrs["detection"]`` holds the settings, the number of pixels above the threshold,
-        the ``null`` law of the threshold, the background's source, the counts by status and
-        the number of ``saturated_pixels``.
+        the ``null`` law of the threshold, the background's source, the ``fixed_pattern_var``
+        added to a camera law (photons², 0 without one), the counts by status and the number
+        of ``saturated_pixels``.
 
     Raises
     ------
@@ -249,18 +258,12 @@ def _detect(
                 "the image has no noise (adjacent pixels are equal): give noise_var, or an "
                 "image of counts with their noise"
             )
-    if background is None:  # pixels left out: those above the threshold (the law's, if any)
-        level = gaussian if law is None else threshold_map(law, spot, np.median(image), fp_p)
-        back = estimate_background(image, spot, 3 * roi, level, estimate)
-        back_source = f"local mean ({3 * roi} px)"
-    else:
-        back, back_source = checked_map("background", background, image.shape), "given"
-    if noise_var is None:
-        var, source = estimate, "estimated"
-    elif callable(noise_var):  # the camera law at the background (detect_movie)
-        var, source = noise_var(back), "camera"
-    else:
-        var, source = checked_map("noise_var", noise_var, image.shape), "given"
+    # pixels left out of the estimates: those near a score above the threshold (the law's)
+    level = gaussian if law is None else threshold_map(law, spot, np.median(image), fp_p)
+    options = (background, noise_var, law)
+    back, back_source, var, source, law, pattern = background_and_noise(
+        image, spot, 3 * roi, level, estimate, *options
+    )
     if np.any(var <= 0):
         raise BayespsfInputError("noise_var must be > 0 photons²")
     if law is None:  # the image's own noise, else five readout SDs of one frame (ADU check)
@@ -293,6 +296,7 @@ def _detect(
         "null": "gaussian" if law is None else "camera law (saddlepoint)",
         "noise_source": source,
         "noise_var": float(np.median(var)),
+        "fixed_pattern_var": pattern,
         "background_source": back_source,
         "roi": roi,
         "min_distance": float(min_distance),

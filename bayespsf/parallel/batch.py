@@ -37,11 +37,13 @@ from numpy.typing import ArrayLike
 from bayespsf._runtime import one_blas_thread, progress_bar
 from bayespsf._validate import real_array
 from bayespsf.errors import BayespsfInputError
+from bayespsf.inference.backends import check_backend
 from bayespsf.inference.summary import (
     draws_row,
     molecule_row,
 )
 from bayespsf.model import Model
+from bayespsf.parallel.device import device_posteriors
 from bayespsf.parallel.executors import _parallelism, molecule_seed, run_tasks, task_runner
 from bayespsf.parallel.store import Store
 from bayespsf.scene import Scene
@@ -124,26 +126,30 @@ def _resolved_sampler_settings(options: dict) -> dict:
     return {**resolved, "chunk": Settings.chunk, "min_taus": Settings.min_taus}
 
 
-def _manifest(counts, model, seed, options, truths, check: str | bool) -> dict:
+def _manifest(counts, model, seed, options, truths, check: str | bool, backend: str) -> dict:
     digest = hashlib.sha256(np.ascontiguousarray(counts, dtype=np.float64).tobytes())
     if truths is not None:
         digest.update(np.ascontiguousarray(truths, dtype=np.float64).tobytes())
-    return {
-        "bayespsf": "sample_many store",
-        "molecules": int(counts.shape[0]),
-        "seed": int(seed),
-        "sampler": _resolved_sampler_settings(options),
-        "model": repr(model),
-        "prior": model.prior,
-        "clock-induced charge": model.clock_induced_charge,
-        "data sha256": digest.hexdigest(),
-    } | (
+    return (
         {
-            "model check": "parametric bootstrap (bayespsf.inference.gof)"
-            + ("" if check == "likelihood" else f", discrepancy {check}")
+            "bayespsf": "sample_many store",
+            "molecules": int(counts.shape[0]),
+            "seed": int(seed),
+            "sampler": _resolved_sampler_settings(options),
+            "model": repr(model),
+            "prior": model.prior,
+            "clock-induced charge": model.clock_induced_charge,
+            "data sha256": digest.hexdigest(),
         }
-        if check
-        else {}
+        | ({"backend": backend} if backend != "numpy" else {})
+        | (
+            {
+                "model check": "parametric bootstrap (bayespsf.inference.gof)"
+                + ("" if check == "likelihood" else f", discrepancy {check}")
+            }
+            if check
+            else {}
+        )
     )
 
 
@@ -161,6 +167,7 @@ def sample_many(
     scene: Scene | None = None,
     progress: bool | None = None,
     check: bool | str = False,
+    backend: str = "numpy",
     **options: Any,
 ) -> pd.DataFrame:
     """Sample the posterior of every ROI in ``counts``; return the summary table.
@@ -196,6 +203,11 @@ def sample_many(
         each row, stored with the posterior in its file. True uses the default discrepancy
         (``"likelihood"``); a name of ``bayespsf.inference.gof.DISCREPANCIES`` chooses one
         (``"pearson"`` is calibrated at a low background, where the default is conservative).
+    backend : {"numpy", "jax"}
+        Where the batched methods run: ``"numpy"`` in the worker processes, ``"jax"`` in this
+        process on whatever device JAX finds (a GPU where one is installed;
+        ``bayespsf.parallel.device``), Photon and EMCCD cameras. The chain, for the ROIs whose
+        diagnostics need it, runs on the CPU workers with either.
     **options
         ``ess``, ``walkers``, ``max_steps``, ``moves``, ``method``, ``max_seconds`` of
         ``sample_posterior``. ``method`` defaults to ``"auto"`` here (``sample_posterior``'s
@@ -269,6 +281,7 @@ def sample_many(
     from bayespsf.inference.settings import check_chain_work, check_settings, check_walkers_fit
 
     check = _check_kind(check)
+    check_backend(backend)
     options.setdefault("method", "auto")
     settings = check_settings(seed=seed, **options)  # a bad setting fails here, not in workers
     check_walkers_fit(settings.walkers, model.roi)  # the ROIs left to the chain need them
@@ -292,7 +305,7 @@ def sample_many(
         saver.lock()
     try:
         if saver is not None:
-            saver.open(_manifest(stack, model, seed, options, truths, check))
+            saver.open(_manifest(stack, model, seed, options, truths, check, backend))
             rows = saver.finished(n)
         for i, problem in enumerate(problems):
             if problem is not None:
@@ -302,7 +315,23 @@ def sample_many(
             progress_bar(n, progress, initial=len(rows), unit="molecule") as bar,
             task_runner(executor, workers) as runner,
         ):
-            if settings.method != "mcmc":  # the batched methods; the chain where they fail
+            made = None
+            if settings.method != "mcmc" and backend == "jax" and todo:
+                made, verdicts = device_posteriors(
+                    np.asarray(todo),
+                    stack[todo],
+                    model,
+                    [molecule_seed(seed, i) for i in todo],
+                    None if truths is None else truths[todo],
+                    settings,
+                    scene,
+                    None if saver is None else saver.path,
+                    check,
+                )
+                bar.update(len(made))
+                todo = sorted(verdicts)
+                options = {**options, "method": "mcmc"}
+            elif settings.method != "mcmc":  # the batched methods; the chain where they fail
                 parts = chunk_count(len(todo), _parallelism(runner), settings.ess)
                 chunks = (
                     (
@@ -340,6 +369,8 @@ def sample_many(
             )
             _run(tasks, runner, saver, rows, bar)
         table = pd.DataFrame([rows[i] for i in sorted(rows)])
+        if made is not None and len(made):
+            table = pd.concat([table, made]).sort_values("molecule", ignore_index=True)
         table["photon_unit"] = model.photon_unit_label
         if saver is not None:
             saver.write_summary(table)

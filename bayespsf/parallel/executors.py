@@ -99,15 +99,18 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     Notes
     -----
     Workers are forked, the fastest start, while this process runs one thread; once threads
-    run (a Dask client, a progress monitor), where a fork is unsafe, they start from a
-    forkserver, which re-imports the main module.
+    run (a Dask client, a progress monitor, or JAX, whose runtime threads Python does not
+    count), where a fork is unsafe, they start from a forkserver, which re-imports the main
+    module.
     """
     workers = os.cpu_count() if workers is None else int(workers)
     if workers < 1:
         raise BayespsfInputError(f"workers must be >= 1, got {workers!r}")
     # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
-    # client, a progress monitor): then forkserver, which re-imports the main module
-    method = "fork" if threading.active_count() == 1 else "forkserver"
+    # client, a progress monitor, JAX's runtime): then forkserver, which re-imports the main
+    # module
+    alone = threading.active_count() == 1 and "jax" not in sys.modules
+    method = "fork" if alone else "forkserver"
     context = multiprocessing.get_context(method)
     # a forkserver's workers are its children: they die with it, and it ends with this process
     parent = os.getpid() if method == "fork" else None

@@ -103,3 +103,13 @@ def test_single_frame_molecules_and_missing_values_are_left_out():
             frame_consistency(table.assign(x0_sd=bad))
     _, one, _ = frame_consistency(table, parameters="x0")  # one name, not its letters
     assert set(one["parameter"]) == {"x0"}
+
+
+def test_molecules_of_one_frame_give_no_statistic_and_no_warning():
+    # a one-frame movie: every molecule has one frame, which has no spread about its own
+    # estimate (s^2 - 1/sum(w) is 0, or -1e-15 by rounding, whose square root once warned);
+    # the check's statistics are NaN and nothing is warned (the suite turns warnings to errors)
+    frames, molecules, overall = frame_consistency(synthetic(molecules=50, frames=1))
+    assert frames["x0_z"].isna().all() and molecules.empty
+    assert overall["frames"].eq(0).all() and overall["z_sd"].isna().all()
+    assert overall["p_value"].isna().all()

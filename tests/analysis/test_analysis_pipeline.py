@@ -108,6 +108,7 @@ def test_every_file_is_written_with_one_row_per_analysed_frame(run):
     assert "calibration check" in report and "(zscores.png)" in report
     assert "- `camera.toml`" in report  # the camera file the run used, in the Files list
     assert locs["gof_p"].between(0, 1).all() and "goodness-of-fit" in report
+    assert "flagged frames" in report and "flagged fraction" in report
 
 
 def test_positions_match_the_truth_and_picasso_opens_them(run):

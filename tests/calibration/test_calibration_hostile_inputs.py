@@ -127,7 +127,10 @@ def test_calibrate_camera_messages_name_the_flag_that_fixes_them(tmp_path, empty
         calibrate_camera(missing, missing, kind="emccd", s0=120.0, readout_sd=50.0)
     # a movie without metadata: no pixel size
     np.save(tmp_path / "plain.npy", np.full((30, 64, 64), 100, np.uint16))
-    with pytest.raises(BayespsfInputError, match=r"metadata give none; state it \(nm\): --pixel"):
+    with pytest.raises(
+        BayespsfInputError,
+        match=r"metadata give none; state it \(nm\): --pixel-size .*\[geometry\] pixel_size",
+    ):
         calibrate_camera(tmp_path / "plain.npy", empty["dark"], kind="emccd", s0=120.0)
     # dark frames of another shape
     np.save(tmp_path / "small.npy", np.full((20, 32, 32), 100, np.uint16))

@@ -358,8 +358,13 @@ def test_pixel_size_flag_stands_in_for_metadata_and_disagreeing_values_are_refus
     lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
     (tmp_path / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
     base = ["detect", str(plain), "--camera", str(tmp_path / "camera.toml"), "--psf-sd", "120"]
-    with pytest.raises(SystemExit, match="pixel_size"):  # no metadata, no flag: named
+    # no metadata, no flag: both fixes named, the flag and the camera file's key
+    fixes = r"state it \(nm\): --pixel-size, or \[geometry\] pixel_size in .*camera\.toml"
+    with pytest.raises(SystemExit, match=r"no pixel size: .*plain\.npy's metadata give none"):
         cli.main([*base, "--out", str(tmp_path / "a")])
+    for command in ("detect", "analyze"):
+        with pytest.raises(SystemExit, match=fixes):
+            cli.main([command, *base[1:], "--out", str(tmp_path / "a")])
     assert cli.main([*base, "--pixel-size", "79", "--out", str(tmp_path / "b")]) == 0
     stated = tmp_path / "stated.toml"
     stated.write_text((tmp_path / "camera.toml").read_text() + "[geometry]\npixel_size = 79.0\n")
@@ -399,3 +404,34 @@ def test_selection_options_run_a_short_movie_from_the_command_line(tmp_path, cap
     assert len(accepted) > 0 and int(molecules["selected"].sum()) == len(accepted)
     with pytest.raises(SystemExit, match="--rules none keeps every accepted candidate"):
         cli.main([*base, "--rules", "none", "--skip-rule", "snr", "--out", str(tmp_path / "x")])
+
+
+def test_a_one_frame_movie_runs_without_runtime_warnings(tmp_path):
+    """A one-frame movie with ``--rules none``: each molecule has one frame, so the check
+    across frames has no statistic; ``detect`` and ``analyze`` say so and print no
+    RuntimeWarning (the child processes see every warning: ``PYTHONWARNINGS``)."""
+    import os
+
+    scene = load_scene("paper-movie").replace(
+        movie={"frames": 1, "height": 96, "width": 96, "molecules": 8, "dark_frames": 0}
+    )
+    made = simulate_movie(scene, seed=5, out=tmp_path / "m")
+    camera = {k: v for k, v in scene.to_dict()["camera"].items() if k in CAMERA_KEYS["emccd"]}
+    lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
+    (tmp_path / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
+    base = [str(made.files["movie"]), "--camera", str(tmp_path / "camera.toml")]
+    base += ["--psf-sd", "120", "--rules", "none"]
+    env = {**os.environ, "PYTHONWARNINGS": "always::RuntimeWarning"}
+    for command in (
+        ["detect", *base, "--out", str(tmp_path / "d")],
+        ["analyze", *base, "--method", "laplace", "--workers", "1", "--out", str(tmp_path / "a")],
+    ):
+        result = subprocess.run(
+            [sys.executable, "-m", "bayespsf.cli", *command],
+            capture_output=True,
+            text=True,
+            env=env,
+        )
+        assert result.returncode == 0, result.stderr
+        assert "RuntimeWarning" not in result.stderr, result.stderr
+    assert "no z-score SD of s_x (it needs molecules with two or more analysed" in result.stdout

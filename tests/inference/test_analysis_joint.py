@@ -208,3 +208,34 @@ def test_one_background_for_all_frames_is_shared_like_the_position():
     assert row["joint_method"] == "importance" and np.ptp(post.draws[:, :, 5], axis=1).max() == 0
     assert abs(row["b_joint_mean"] - TRUTH[5]) < 4 * row["b_joint_sd"]
     assert row["b_joint_sd"] < 1.3 * fits["sd_b"].mean() / np.sqrt(6)
+
+
+def test_a_molecule_that_moves_is_named_as_such_not_as_a_fit_on_the_prior_edge():
+    # x0 moves 150 nm (~18 per-frame SDs) from frame to frame: no one position describes the
+    # frames, the joint posterior fails, and its why says the frames' own positions disagree
+    # (it once blamed "a fit on its edge, such as b = 0", with every b well inside its prior)
+    rng = np.random.default_rng(0)
+    truths = np.tile(TRUTH, (6, 1))
+    truths[:, 4] *= rng.uniform(0.7, 1.3, 6)
+    truths[:, 0] += 150.0 * (np.arange(6) - 3)
+    counts = MODEL.camera.sample(MODEL.expected(truths), rng)
+    fits = fit_mle(counts, MODEL)[list(PARAMETER_NAMES)].to_numpy(float)
+    post = joint_posterior(counts, MODEL, fits, seed=1)
+    why = post.info["why"]
+    assert not post.info["converged"] and post.info["method"] == "none"
+    assert "the frames' own fits disagree on the position (x0: chi-square" in why, why
+    assert "the molecule moved, or the frames are not one molecule" in why
+    assert "b = 0" not in why and "such as" not in why
+    assert np.all(post.fit[:, 5] > 1.0)  # no background on its edge
+
+
+def test_an_immobile_molecule_on_the_prior_edge_is_not_called_moving():
+    # the background-free molecule above: its failure names b = 0, and no movement
+    rng = np.random.default_rng(0)
+    truth = TRUTH.copy()
+    truth[4], truth[5] = 3000.0, 0.0
+    counts, _ = frames_of(5, rng, truth=truth)
+    fits = fit_mle(counts, MODEL)[list(PARAMETER_NAMES)].to_numpy(float)
+    why = joint_posterior(counts, MODEL, fits, seed=1).info["why"]
+    assert "the joint fit is on its edge: b = 0 in every frame" in why, why
+    assert "disagree" not in why and "moved" not in why

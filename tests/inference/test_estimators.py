@@ -6,7 +6,7 @@ import pytest
 from bayespsf import Scene, load_scene, simulate
 from bayespsf.calibration import calibrate_gain
 from bayespsf.inference import covariance, fit_lsq, fit_mle, start_values
-from bayespsf.inference.estimators import lsq_first_order
+from bayespsf.inference.lsq import lsq_first_order
 from bayespsf.model import Model
 from bayespsf.theory import crlb, scene_params
 

@@ -126,3 +126,55 @@ def test_missing_columns_and_bad_pixel_size_are_named(posteriors):
         localizations(rows.assign(frame=-1), A)
     with pytest.raises(BayespsfInputError, match="picasso needs Frames"):
         write_locs(localizations(rows, A), "unused", {"Width": 1, "Height": 1, "Pixelsize": A})
+
+
+def test_a_row_without_some_values_keeps_every_column_for_every_row(posteriors, tmp_path):
+    # one frame whose MLE did not converge (no crlb_x0, no x0_mle, no gof_p) and one refused
+    # ROI (no posterior): locs.hdf5 still holds gof_p and crlb_x0 for every row, the missing
+    # values as FILL_VALUE (picasso keeps those rows), and the missing column says why; only
+    # the row without a position is left out by picasso, and locs.yaml counts it
+    import h5py
+    import yaml
+
+    from bayespsf.io.locs import FILL_VALUE
+
+    rows, _, _ = posteriors
+    rows = rows.assign(
+        gof_p=0.4, gof_replicates=49, x0_mle=rows["x0_mean"], crlb_x0=2.0, mle_converged=True
+    )
+    rows.loc[3, ["gof_p", "crlb_x0", "x0_mle"]] = np.nan
+    rows.loc[3, ["mle_converged", "gof_replicates"]] = [False, 0]
+    posterior = [c for c in rows if c.endswith(("_mean", "_sd")) or "_q" in c]
+    rows.loc[5, posterior] = np.nan
+    rows.loc[5, ["status", "message"]] = ["refused", "counts not above the offset"]
+    locs = localizations(rows, A)
+    assert locs.loc[3, "missing"] == (
+        "acceptance: the laplace posterior has no Markov chain; "
+        "gof_p: no goodness-of-fit test (the maximum-likelihood fit did not converge); "
+        "*_mle, crlb_*: the maximum-likelihood fit did not converge"
+    )
+    assert locs.loc[0, "missing"] == "acceptance: the laplace posterior has no Markov chain"
+    assert "no posterior (refused: counts not above the offset)" in locs.loc[5, "missing"]
+    info = {"Width": 64, "Height": 64, "Frames": 8, "Pixelsize": A}
+    paths = write_locs(locs, tmp_path, info)
+    with h5py.File(paths["locs.hdf5"], "r") as f:
+        written = f["locs"][...]
+        assert f["locs"].attrs["fill_value"] == FILL_VALUE
+    assert set(locs.columns) == set(written.dtype.names)
+    for name in ("gof_p", "crlb_x0", "x0_mle", "acceptance"):
+        expected = np.where(np.isfinite(locs[name]), locs[name], FILL_VALUE)
+        np.testing.assert_array_equal(written[name], expected)
+    assert written["gof_p"][3] == FILL_VALUE and written["gof_p"][0] == 0.4
+    assert np.isnan(written["x"][5])  # picasso's own columns are never filled
+    sidecar = yaml.safe_load(paths["locs.yaml"].read_text())
+    assert sidecar["bayespsf fill value"] == FILL_VALUE
+    assert {"gof_p", "crlb_x0", "acceptance"} <= set(
+        sidecar["bayespsf columns with filled values (see the missing column)"]
+    )
+    assert sidecar["rows without a position (NaN; picasso leaves them out)"] == 1
+    parquet = pd.read_parquet(paths["locs.parquet"])
+    assert np.isnan(parquet.loc[3, "gof_p"]) and parquet.loc[0, "gof_p"] == 0.4
+    picasso_io = pytest.importorskip("picasso.io")
+    got, _ = picasso_io.load_locs(str(paths["locs.hdf5"]))
+    assert len(got) == len(locs) - 1 and {"gof_p", "crlb_x0", "missing"} <= set(got.columns)
+    np.testing.assert_array_equal(got["gof_p"], np.delete(written["gof_p"], 5))

@@ -296,3 +296,10 @@ def test_single_emccd_frames_at_low_background_keep_the_stated_rate(tmp_path):
             )
             se = above.std(ddof=1) / np.sqrt(frames)
             assert abs(above.mean() - 1.0) < 3 * se + 0.05, (above.mean(), se)
+
+
+def test_a_movie_without_a_pixel_size_names_every_way_to_state_it(tmp_path):
+    movie = _movie(tmp_path, np.full((3, 64, 64), 120, np.uint16))
+    fixes = r"state it \(nm\): pixel_size= .*--pixel-size .*\[geometry\] pixel_size"
+    with pytest.raises(BayespsfInputError, match=r"metadata has none; " + fixes):
+        detect_movie(movie, psf_sd=S, camera=CAMERA)

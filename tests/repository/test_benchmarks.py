@@ -95,6 +95,24 @@ def test_throughput_benchmark_quick():
     assert len(cold) == 1 and np.all(cold["first fit (s)"] > 0)
 
 
+def test_gpu_benchmark_quick():
+    # both backends on the same ROIs (JAX on the CPU here): the MLE agrees to 1e-6 and the
+    # posterior means within Monte Carlo error (0.071 posterior SDs for two runs at ESS 400;
+    # 64 ROIs x 6 parameters know that spread to ~4%, so 0.1 is ~7 SE above it); the stream
+    # makes every posterior and reports its memory
+    import gpu
+
+    result = gpu.main(["--quick"])
+    fit, posterior = result["agreement"]["fit"], result["agreement"]["posterior"]
+    assert fit["converged (numpy, jax)"] == (64, 64)
+    assert fit["max rel. diff estimate"] < 1e-6 and fit["max rel. diff sd_"] < 1e-4
+    assert posterior["mean difference / posterior SD: SD"] < 0.1
+    stream = result["stream"]
+    assert stream["ROIs streamed"] == 256 == stream["posteriors made on the device"]
+    assert stream["peak resident memory (MiB)"] > 0
+    assert all(v > 0 for k, v in result["rates (ROIs per second)"].items() if "methods" not in k)
+
+
 def test_movie_benchmark_quick():
     # a small movie (100 frames of 128 x 128) read and projected: every step timed and its
     # memory measured (the bound on memory is tested in tests/movie/test_movie_read.py)

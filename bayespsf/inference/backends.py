@@ -1,0 +1,85 @@
+"""The array backends inference runs on: NumPy (the default, every camera law) and JAX (the
+stacked MLE and the chain-free posteriors on whatever device JAX finds: a CUDA GPU where one
+is installed, else the CPU).
+
+JAX is an optional dependency (``pip install "bayespsf[gpu]"`` for a CUDA 13 GPU,
+``pip install "bayespsf[jax]"`` for the CPU); nothing imports it until ``backend="jax"`` is
+asked for.
+"""
+
+from __future__ import annotations
+
+from bayespsf._runtime import cache_folder
+from bayespsf.errors import BayespsfInputError
+
+BACKENDS = ("numpy", "jax")
+
+
+def check_backend(backend: str) -> str:
+    """The backend's name, checked; for ``"jax"`` also that JAX can be imported.
+
+    Parameters
+    ----------
+    backend : str
+        One of ``BACKENDS``.
+
+    Returns
+    -------
+    str
+        ``backend``.
+
+    Raises
+    ------
+    BayespsfInputError
+        For an unknown name (naming ``backend`` and the choices), or ``"jax"`` without JAX
+        installed (naming the extra that installs it).
+    """
+    if backend not in BACKENDS:
+        raise BayespsfInputError(
+            f"backend must be one of {', '.join(BACKENDS)} (--backend on the command line); "
+            f"got {backend!r}"
+        )
+    if backend == "jax":
+        try:
+            import jax  # noqa: F401
+        except ImportError as error:
+            raise BayespsfInputError(
+                "backend='jax' needs JAX: pip install 'bayespsf[gpu]' (a CUDA GPU) or "
+                "'bayespsf[jax]' (the CPU); or use backend='numpy' (the default)"
+            ) from error
+    return backend
+
+
+def start_jax() -> None:
+    """Set JAX up for the backend (idempotent): float64, and compiled programs kept on disk
+    in the machine's cache folder (``bayespsf._runtime.cache_folder``, its ``jax`` folder)
+    unless JAX's ``jax_compilation_cache_dir`` is set already, so that the programs a
+    dataset's ROI size needs compile once per machine (tens of seconds), not once per run.
+
+    Returns
+    -------
+    None
+    """
+    import jax
+
+    if not jax.config.jax_enable_x64:
+        jax.config.update("jax_enable_x64", True)
+    folder = cache_folder()
+    if folder is not None and not jax.config.jax_compilation_cache_dir:
+        jax.config.update("jax_compilation_cache_dir", str(folder / "jax"))
+
+
+def device_name() -> str:
+    """The device JAX computes on (e.g. ``"NVIDIA H100 80GB HBM3"`` or ``"cpu"``).
+
+    Returns
+    -------
+    str
+        The first device's kind, as JAX names it.
+    """
+    import jax
+
+    return str(jax.devices()[0].device_kind)
+
+
+__all__ = ["BACKENDS", "check_backend", "device_name", "start_jax"]

@@ -1,0 +1,173 @@
+"""``sample_many``'s batched pass on JAX's device (``backend="jax"``).
+
+The stack is fitted (``fit_mle(backend="jax")``) and its chain-free posteriors made
+(``bayespsf.inference.jax_sampling``) in this process, on whatever device JAX finds; the
+summary rows of the posteriors made are assembled column by column (a dataset of 10^6 ROIs is
+not a loop of rows); the ROIs whose diagnostics need the chain are handed back, with why, for
+``sample_many`` to run on the CPU as with the NumPy backend. With a store, each posterior is
+written to its file as the NumPy backend writes it.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from bayespsf.inference.summary import QUANTILES, RANK_DRAWS, quantile_column
+from bayespsf.parallel.store import Store
+from bayespsf.psf import PARAMETER_NAMES
+
+CHUNK = 2**16  # ROIs per pass: the host holds this many ROIs' results and draws at a time
+
+
+def device_posteriors(indices, stack, model, seeds, truths, settings, scene, store, check):
+    """Posteriors of ``stack`` (the ROIs ``indices`` of a run) on JAX's device.
+
+    Parameters
+    ----------
+    indices : ndarray of int
+        The ROIs' molecule indices.
+    stack : ndarray, shape (n, roi, roi)
+        Their validated counts.
+    model : Model
+        The inference model.
+    seeds : sequence of int
+        Each ROI's seed (``molecule_seed``).
+    truths : ndarray, shape (n, 6), optional
+        True parameters (SBC ranks).
+    settings : Settings
+        The sampler's settings (``method``: ``auto``, ``laplace`` or ``importance``).
+    scene : Scene, optional
+        Kept in each result file.
+    store : path-like, optional
+        The run's store: each posterior made is written to its file.
+    check : str or bool
+        The discrepancy of the parametric-bootstrap model check, or False.
+
+    Returns
+    -------
+    table : pandas.DataFrame
+        The summary rows of the posteriors made (``sample_many``'s columns).
+    verdicts : dict
+        For each ROI that needs the chain, its molecule index -> the method asked for and why.
+    """
+    tables, verdicts = [], {}
+    for first in range(0, len(indices), CHUNK):
+        part = slice(first, first + CHUNK)
+        table, chain = _chunk(
+            np.asarray(indices)[part],
+            stack[part],
+            model,
+            list(seeds)[part],
+            None if truths is None else truths[part],
+            settings,
+            scene,
+            store,
+            check,
+        )
+        tables.append(table)
+        verdicts |= chain
+    return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(), verdicts
+
+
+def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
+    from bayespsf.inference import fit_mle
+    from bayespsf.inference.jax_sampling import pearson, posteriors
+
+    started = time.perf_counter()
+    fits = fit_mle(stack, model, backend="jax")
+    out = posteriors(stack, model, fits, seeds, settings, truths, keep_draws=store is not None)
+    seconds = (time.perf_counter() - started) / len(indices)
+    made = out["made"]
+    checks = {}
+    if check:
+        from bayespsf.parallel.batch import _model_checks
+
+        checks = _model_checks(stack, model, seeds, check, fits)
+    verdicts = {
+        int(indices[i]): {"requested": settings.method, "why": str(out["why"][i])}
+        | ({"check": checks[i]} if check else {})
+        for i in np.flatnonzero(~made)
+    }
+    rows = np.flatnonzero(made)
+    theta = fits[list(PARAMETER_NAMES)].to_numpy(float)[rows]
+    table = _table(indices[rows], np.asarray(seeds)[rows], out, rows, seconds, truths)
+    chi2 = pearson(model, stack[rows], theta)
+    dof = model.roi * model.roi - 6
+    table["chi2"], table["chi2_dof"] = chi2, dof
+    table["chi2_p"], table["chi2_at"] = stats.chi2.sf(chi2, dof), "mle"
+    if check:
+        for key in ("gof_p", "gof_discrepancy", "gof_replicates"):
+            table[key] = [checks[i][key] for i in rows]
+    if store is not None:
+        _write(store, table, out, rows, indices, stack, model, truths, scene, settings)
+    return table, verdicts
+
+
+def _table(molecules, seeds, out, rows, seconds, truths) -> pd.DataFrame:
+    """The summary rows (``bayespsf.inference.summary.draws_row``'s columns), as columns."""
+    n = len(rows)
+    columns = {
+        "molecule": molecules.astype(int),
+        "seed": seeds.astype(np.uint64).astype(object),
+        "converged": out["converged"][rows],
+        "status": np.where(out["converged"][rows], "converged", "not converged"),
+        "message": np.full(n, "", dtype=object),
+        "method": out["method"][rows],
+        "why": out["why"][rows],
+        "steps": np.zeros(n, int),
+        "draws": out["draws"][rows],
+        "acceptance": np.full(n, np.nan),
+        "seconds": np.full(n, seconds),
+    }
+    for k, name in enumerate(PARAMETER_NAMES):
+        columns[f"{name}_mean"] = out["mean"][rows, k]
+        columns[f"{name}_sd"] = out["sd"][rows, k]
+        for j, q in enumerate(QUANTILES):
+            columns[quantile_column(name, q)] = out["quantiles"][rows, j, k]
+        columns[f"{name}_tau"] = np.ones(n)
+        columns[f"{name}_ess"] = out["ess"][rows]
+        if truths is not None:
+            rank = out["rank"][rows, k]
+            columns[f"{name}_truth"] = np.asarray(truths, float)[rows, k]
+            columns[f"{name}_rank"] = np.where(
+                (rank >= 0) & (out["draws"][rows] >= RANK_DRAWS), rank, np.nan
+            )
+    table = pd.DataFrame(columns)
+    table["seed"] = [int(s) for s in seeds]
+    return table
+
+
+def _write(store, table, out, rows, indices, stack, model, truths, scene, settings) -> None:
+    """Each posterior made, to its file in ``store`` (as the NumPy backend writes it)."""
+    from bayespsf.inference.batched import as_posterior
+
+    saver = Store(store)
+    info_keys = ("method", "why", "converged", "ess", "khat", "weight_sd", "draws_scored")
+    for position, i in enumerate(rows):
+        row = table.iloc[position].to_dict()
+        info = {**asdict(settings), "requested": settings.method, "mle_converged": True}
+        info |= {"stuck_walkers": 0} | {key: _plain(out[key][i]) for key in info_keys}
+        info |= {key: _plain(row[key]) for key in ("chi2", "chi2_dof", "chi2_p", "chi2_at")}
+        info |= {"backend": "jax", "seed": int(row["seed"]), "seconds": float(row["seconds"])}
+        truth = None if truths is None else np.asarray(truths, float)[i]
+        post = as_posterior(
+            {"draws": out["samples"][i], "info": info}, stack[i], model, truth, scene
+        )
+        post.tree.attrs["summary_row"] = json.dumps({k: _plain(v) for k, v in row.items()})
+        saver.write(int(indices[i]), post)
+
+
+def _plain(value):
+    """A NumPy scalar as the Python number JSON writes."""
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+__all__ = ["CHUNK", "device_posteriors"]

@@ -1,0 +1,233 @@
+"""The JAX backend against the NumPy backend on the same ROIs: rates, the device, agreement.
+
+On the same simulated ROIs (``emccd-typical`` by default: EMCCD table tier, 15 x 15 pixels,
+N = 1000, b = 10), in one run:
+
+1. **Agreement** on ``--compare`` ROIs: ``fit_mle`` through each backend (largest relative
+   difference of the estimates, the Laplace SDs and the Cramér-Rao bounds over the ROIs both
+   fitted), and ``sample_many(method="auto")`` through each (the difference of posterior means
+   in posterior SDs, whose spread is Monte Carlo error: about ``sqrt(2 / ess)`` for two
+   independent runs; the ratio of posterior SDs; the 90% interval coverage of each against the
+   truth with its binomial SE). The NumPy backend runs on every core of the machine
+   (``workers=os.cpu_count()``) and its rate is reported too.
+2. **Rates on JAX's device** on ``--rois`` ROIs, after a warm-up that compiles the programs:
+   ``fit_mle(backend="jax")`` (the table included) and its engine alone, and
+   ``sample_many(backend="jax", method="auto")`` (the fits, the posteriors, the summary table;
+   the ROIs whose diagnostics need a chain run it on the CPU, counted in the table).
+3. **Streaming**: ``--stream`` ROIs through the fit and the posteriors in blocks of ``--rois``
+   (the simulated block reused with each ROI's own seed, as a dataset's ROIs would be read
+   block by block), with the peak resident memory of the process.
+
+    pip install -e ".[gpu]"                   # JAX with CUDA (or ".[jax]" for the CPU)
+    python benchmarks/gpu.py                  # the full run (minutes on one GPU)
+    python benchmarks/gpu.py --quick          # a small run on any machine (the tests)
+
+A full run writes ``gpu.md`` and ``gpu.json`` to ``--out`` (default ``benchmarks/results``)
+and its section of benchmarks/README.md, with the machine and the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bayespsf import load_scene, simulate
+from bayespsf.inference import fit_mle, start_values
+from bayespsf.inference.backends import device_name
+from bayespsf.inference.jax_sampling import posteriors
+from bayespsf.inference.settings import check_settings
+from bayespsf.inference.summary import coverage
+from bayespsf.model import Model
+from bayespsf.parallel import sample_many
+from bayespsf.parallel.executors import molecule_seed
+from bayespsf.psf import PARAMETER_NAMES
+
+
+def _options(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="a small run (the tests)")
+    parser.add_argument("--scene", default="emccd-typical", help="a shipped scene")
+    parser.add_argument(
+        "--compare", type=int, default=2000, help="ROIs run through both (0: rates only)"
+    )
+    parser.add_argument("--rois", type=int, default=100_000, help="ROIs per timed block")
+    parser.add_argument("--stream", type=int, default=1_000_000, help="ROIs streamed")
+    parser.add_argument("--out", default="benchmarks/results", help="where gpu.md goes")
+    options = parser.parse_args(argv)
+    if options.quick:
+        options.compare, options.rois, options.stream = 64, 128, 256
+    return options
+
+
+def _timed(function):
+    started = time.perf_counter()
+    value = function()
+    return value, time.perf_counter() - started
+
+
+def agreement(counts, truth, model) -> tuple[dict, dict]:
+    """Both backends on the same ROIs: the MLE's largest relative differences and the
+    posteriors' agreement in posterior SDs."""
+    cpu = os.cpu_count() or 1
+    fit_mle(counts[:8], model)  # the camera's tables and the compiled kernels, not timed
+    (mle_np, t_np), (mle_jax, _) = (
+        _timed(lambda: fit_mle(counts, model)),
+        _timed(lambda: fit_mle(counts, model, backend="jax")),
+    )
+    both = mle_np["converged"].to_numpy(bool) & mle_jax["converged"].to_numpy(bool)
+    fit = {"ROIs": len(counts), "converged (numpy, jax)": (
+        int(mle_np["converged"].sum()), int(mle_jax["converged"].sum()))}  # fmt: skip
+    for prefix in ("", "sd_", "crlb_"):
+        a = mle_np.loc[both, [prefix + p for p in PARAMETER_NAMES]].to_numpy(float)
+        b = mle_jax.loc[both, [prefix + p for p in PARAMETER_NAMES]].to_numpy(float)
+        fit[f"max rel. diff {prefix or 'estimate '}".strip()] = float(
+            np.max(np.abs(a - b) / np.maximum(np.abs(a), 1e-12))
+        )
+    truths = truth.to_numpy(float)
+    (post_np, t_post_np) = _timed(
+        lambda: sample_many(counts, model, seed=7, workers=cpu, truths=truths)
+    )
+    post_jax = sample_many(counts, model, seed=7, workers=cpu, truths=truths, backend="jax")
+    z = np.concatenate(
+        [
+            (post_np[f"{p}_mean"] - post_jax[f"{p}_mean"]) / post_np[f"{p}_sd"]
+            for p in PARAMETER_NAMES
+        ]
+    )
+    ratio = np.concatenate([post_jax[f"{p}_sd"] / post_np[f"{p}_sd"] for p in PARAMETER_NAMES])
+    cov_np, cov_jax = coverage(post_np, 0.9), coverage(post_jax, 0.9)
+    posterior = {
+        "mean difference / posterior SD: mean": float(np.nanmean(z)),
+        "mean difference / posterior SD: SD": float(np.nanstd(z)),
+        "expected SD (Monte Carlo, 2 runs at ESS 400)": float(np.sqrt(2 / 400)),
+        "posterior SD ratio jax/numpy: mean": float(np.nanmean(ratio)),
+        "90% coverage numpy (min-max over parameters)": (
+            float(cov_np["coverage"].min()), float(cov_np["coverage"].max())),
+        "90% coverage jax (min-max over parameters)": (
+            float(cov_jax["coverage"].min()), float(cov_jax["coverage"].max())),
+        "binomial SE": float(np.sqrt(0.09 / len(counts))),
+        "methods numpy": post_np["method"].value_counts().to_dict(),
+        "methods jax": post_jax["method"].value_counts().to_dict(),
+    }  # fmt: skip
+    rates = {
+        f"fit_mle numpy (one process, {len(counts)} ROIs)": len(counts) / t_np,
+        f"sample_many auto numpy ({cpu} workers, {len(counts)} ROIs)": len(counts) / t_post_np,
+    }
+    return {"fit": fit, "posterior": posterior}, rates
+
+
+def device_rates(counts, model, seeds_from: int = 0) -> dict:
+    """ROIs per second on JAX's device, after compiling on the same shapes."""
+    from bayespsf.inference import jax_mle
+
+    n = len(counts)
+    fit_mle(counts, model, backend="jax")  # compiles every chunk shape this size uses
+    sample_many(counts[:n], model, seed=1, workers=1, backend="jax")
+    starts = start_values(model.to_photons(counts), model)
+    _, t_engine = _timed(lambda: jax_mle.maximise(model, counts, starts, True, True))
+    _, t_fit = _timed(lambda: fit_mle(counts, model, backend="jax"))
+    table, t_post = _timed(lambda: sample_many(counts, model, seed=2, workers=1, backend="jax"))
+    return {
+        f"fit_mle jax engine ({n} ROIs: fit, Laplace, CRLB)": n / t_engine,
+        f"fit_mle jax ({n} ROIs, the table included)": n / t_fit,
+        f"sample_many auto jax ({n} ROIs, summary table included)": n / t_post,
+        "sample_many auto jax: methods": table["method"].value_counts().to_dict(),
+    }
+
+
+def stream(counts, model, total: int) -> dict:
+    """``total`` ROIs through the fit and the posteriors, block by block, each ROI with its
+    own seed (the block's counts reused); the peak resident memory of the process."""
+    settings = check_settings(method="auto")
+    block = len(counts)
+    done, made, started = 0, 0, time.perf_counter()
+    while done < total:
+        k = min(block, total - done)
+        seeds = [molecule_seed(3, done + i) for i in range(k)]
+        fits = fit_mle(counts[:k], model, backend="jax")
+        out = posteriors(counts[:k], model, fits, seeds, settings)
+        made += int(out["made"].sum())
+        done += k
+    seconds = time.perf_counter() - started
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB -> MiB (Linux)
+    return {
+        "ROIs streamed": done,
+        "block": block,
+        "posteriors made on the device": made,
+        "seconds": seconds,
+        "ROIs per second": done / seconds,
+        "peak resident memory (MiB)": peak,
+        "one block's counts (MiB)": counts.nbytes / 2**20,
+    }
+
+
+def main(argv=None) -> dict:
+    """Run the benchmark; return its results (also printed, and with a full run written)."""
+    options = _options(argv)
+    scene = load_scene(options.scene)
+    model = Model.from_scene(scene)
+    counts, truth = simulate(scene, max(options.compare, options.rois), seed=11)
+    compare, rates = {"fit": {}, "posterior": {}}, {}
+    if options.compare:
+        compare, rates = agreement(counts[: options.compare], truth.iloc[: options.compare], model)
+        print(json.dumps({"agreement": compare, "rates": rates}, default=str), flush=True)
+    rates |= device_rates(counts[: options.rois], model)
+    print(json.dumps({"rates": rates}, default=str), flush=True)
+    streamed = stream(counts[: options.rois], model, options.stream)
+    command = "python benchmarks/gpu.py" + (" --quick" if options.quick else "")
+    result = {
+        "command": command,
+        "device": device_name(),
+        "scene": options.scene,
+        "agreement": compare,
+        "rates (ROIs per second)": rates,
+        "stream": streamed,
+    }
+    text = render(result)
+    print(text)
+    if not options.quick:
+        out = Path(options.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "gpu.md").write_text(text, encoding="utf-8")
+        (out / "gpu.json").write_text(json.dumps(result, indent=1, default=str), encoding="utf-8")
+        from _report import write_section
+
+        write_section("gpu", text)
+    return result
+
+
+def render(result: dict) -> str:
+    """The results as markdown tables."""
+    from _report import machine
+
+    lines = [
+        f"`{result['command']}` on {machine()}; JAX device: {result['device']}; "
+        f"scene `{result['scene']}`.",
+        "",
+    ]
+    for title, table in (
+        ("Rates", result["rates (ROIs per second)"]),
+        ("MLE agreement", result["agreement"]["fit"]),
+        ("Posterior agreement", result["agreement"]["posterior"]),
+        ("Streaming", result["stream"]),
+    ):
+        frame = pd.DataFrame({"": list(table), title: [_cell(v) for v in table.values()]})
+        lines += [frame.to_markdown(index=False), ""]
+    return "\n".join(lines)
+
+
+def _cell(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+if __name__ == "__main__":
+    main()

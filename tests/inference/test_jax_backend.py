@@ -1,0 +1,169 @@
+"""The JAX backend (``backend="jax"``) against the NumPy backend on the same ROIs: the same MLE
+to 1e-6, posterior summaries within Monte Carlo error, coverage on simulations, results that
+do not depend on the chunking, PSIS equal to arviz_stats', and the command line. JAX runs on
+the CPU here; ``benchmarks/gpu.py`` runs the same comparison on a GPU."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bayespsf import load_scene, simulate
+from bayespsf.errors import BayespsfInputError
+from bayespsf.inference import Posterior, fit_mle, jax_psis, jax_sampling
+from bayespsf.inference.importance import psis as numpy_psis
+from bayespsf.inference.settings import check_settings
+from bayespsf.inference.summary import coverage
+from bayespsf.model import Model
+from bayespsf.parallel import sample_many
+from bayespsf.psf import PARAMETER_NAMES
+
+P = list(PARAMETER_NAMES)
+
+
+def simulated(name: str, n: int = 48):
+    scene = load_scene(name)
+    counts, truth = simulate(scene, n, seed=21)
+    return counts, truth[P].to_numpy(float), Model.from_scene(scene)
+
+
+@pytest.fixture(scope="module")
+def rois():
+    """The EMCCD table tier (the default for EMCCD scenes): the posterior tests' ROIs."""
+    return simulated("emccd-typical")
+
+
+@pytest.fixture(scope="module")
+def both(rois):
+    counts, truths, model = rois
+    run = {"seed": 5, "workers": 1, "truths": truths}
+    return (
+        sample_many(counts, model, **run),
+        sample_many(counts, model, backend="jax", **run),
+    )
+
+
+@pytest.mark.parametrize("scene", ["emccd-typical", "ideal"])
+def test_the_mle_is_the_numpy_engines_to_1e6(scene):
+    # both engines run the same Levenberg-Marquardt to a Newton decrement of 1e-10: the same
+    # optimum to far below 1e-6 relative. The Laplace SDs come from the exact Hessian here and
+    # from central differences of the gradient there (truncation ~1e-6 relative); the CRLB is
+    # the same expected information, to rounding.
+    counts, _, model = simulated(scene)
+    a, b = fit_mle(counts, model), fit_mle(counts, model, backend="jax")
+    assert list(a.columns) == list(b.columns)
+    assert (a["status"] == b["status"]).all() and a["converged"].all()
+    for columns, rel in (
+        (P, 1e-6),
+        ([f"sd_{p}" for p in P], 1e-4),
+        ([f"crlb_{p}" for p in P], 1e-8),
+    ):
+        np.testing.assert_allclose(b[columns], a[columns], rtol=rel)
+    np.testing.assert_allclose(b["log_likelihood"], a["log_likelihood"], rtol=1e-10)
+
+
+def test_posterior_summaries_agree_within_monte_carlo_error(both):
+    # two independent runs at ESS 400 differ in a posterior mean by ~sqrt(2/400) = 0.071
+    # posterior SDs; over 48 ROIs x 6 parameters the spread of that difference is known to
+    # ~4%, so 0.1 (7 SE above 0.071) fails only where the backends' posteriors differ
+    a, b = both
+    assert list(a.columns) == list(b.columns)
+    assert (a["status"] == b["status"]).all()
+    z = np.concatenate([(a[f"{p}_mean"] - b[f"{p}_mean"]) / a[f"{p}_sd"] for p in P])
+    assert abs(np.mean(z)) < 0.03 and np.std(z) < 0.1
+    ratio = np.concatenate([b[f"{p}_sd"] / a[f"{p}_sd"] for p in P])
+    assert abs(np.mean(ratio) - 1) < 0.02  # an SD's Monte Carlo error: ~1/sqrt(2 x 400)
+    assert set(b["method"]) <= {"laplace", "importance", "mcmc"}
+    assert b["why"].str.contains("k-hat|pilot weight SD").all()
+    assert (b["draws"] >= 400).all() and b[[f"{p}_rank" for p in P]].notna().all().all()
+
+
+def test_coverage_through_the_jax_backend(both):
+    # the calibration study's statistic: 90% intervals hold the truth in 90% of ROIs, within
+    # 3 binomial SEs (48 ROIs: SE 0.043) per parameter
+    _, b = both
+    table = coverage(b, 0.9)
+    assert (np.abs(table["coverage"] - 0.9) <= 3 * np.sqrt(0.09 / len(b))).all()
+
+
+def test_a_rois_posterior_does_not_depend_on_the_other_rois(rois):
+    # each ROI is one lane of a vmapped program with its own key: the same numbers whatever
+    # shares its chunk (the chunk's size is a batch dimension, which changes no lane's
+    # arithmetic)
+    counts, truths, model = rois
+    settings = check_settings(method="auto")
+    fits = fit_mle(counts, model, backend="jax")
+    seeds = list(range(100, 100 + len(counts)))
+    whole = jax_sampling.posteriors(counts, model, fits, seeds, settings, truths)
+    part = slice(10, 22)
+    alone = jax_sampling.posteriors(
+        counts[part], model, fits.iloc[part], seeds[part], settings, truths[part]
+    )
+    for key in ("mean", "sd", "quantiles", "ess", "weight_sd", "rank"):
+        np.testing.assert_allclose(alone[key], whole[key][part], rtol=1e-12, atol=1e-12)
+    assert (alone["method"] == whole["method"][part]).all()
+
+
+@pytest.mark.parametrize("draws", [64, 520, 2048])
+def test_psis_is_arviz_stats(draws):
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(draws)
+    for scale in (0.1, 1.0, 3.0):  # light to heavy tails: k-hat from < 0 to > 0.7
+        log_ratio = scale * rng.standard_t(3, draws)
+        log_w, khat = jax_psis.psis(jnp.asarray(log_ratio))
+        w, khat_ref = numpy_psis(log_ratio)
+        assert float(khat) == pytest.approx(khat_ref, rel=1e-9, abs=1e-12)
+        np.testing.assert_allclose(np.exp(np.asarray(log_w)), w, rtol=1e-9, atol=1e-300)
+
+
+def test_a_store_made_on_the_device_reads_back_and_resumes(rois, tmp_path):
+    counts, truths, model = rois
+    store = tmp_path / "store"
+    run = {"seed": 5, "workers": 1, "truths": truths[:4], "store": store, "backend": "jax"}
+    table = sample_many(counts[:4], model, **run)
+    post = Posterior.load(store / "molecule-000002.nc")
+    assert post.draws()["x0"].mean() == pytest.approx(table.loc[2, "x0_mean"], rel=1e-12)
+    assert len(post.draws()) == table.loc[2, "draws"]
+    again = sample_many(counts[:4], model, **run)  # resumes: read back, not sampled again
+    pd.testing.assert_frame_equal(
+        again[["molecule", "x0_mean", "s_x_q0975"]], table[["molecule", "x0_mean", "s_x_q0975"]]
+    )
+    with pytest.raises(BayespsfInputError, match="backend"):  # another backend's store
+        sample_many(counts[:4], model, **{**run, "backend": "numpy"})
+
+
+def test_named_refusals():
+    scene = load_scene("scmos-typical")
+    counts, _ = simulate(scene, 2, seed=1)
+    with pytest.raises(BayespsfInputError, match="backend='numpy'"):
+        fit_mle(counts, Model.from_scene(scene), backend="jax")
+    with pytest.raises(BayespsfInputError, match="backend must be one of numpy, jax"):
+        fit_mle(counts, Model.from_scene(scene), backend="cuda")
+    with pytest.raises(BayespsfInputError, match="engine='stack'"):
+        fit_mle(counts, Model.from_scene(scene), backend="jax", engine="scipy")
+
+
+def test_fit_on_the_command_line(tmp_path):
+    import tifffile
+
+    from bayespsf import cli
+
+    counts, _ = simulate(load_scene("emccd-typical"), 4, seed=4)
+    tifffile.imwrite(tmp_path / "rois.tif", counts.astype(np.float32), photometric="minisblack")
+    out = tmp_path / "fit"
+    args = ["fit", str(tmp_path / "rois.tif"), "--scene", "emccd-typical", "--backend", "jax"]
+    assert cli.main([*args, "--out", str(out), "--workers", "1"]) == 0
+    summary = pd.read_csv(out / "summary.csv")
+    assert len(summary) == 4 and summary["converged"].all()
+    assert set(summary["method"]) <= {"laplace", "importance"}
+
+
+@pytest.mark.parametrize("scene", ["emccd-typical", "ideal"])
+def test_pearsons_statistic_on_the_device_is_the_hosts(scene):
+    # the same sum over pixels of the same camera mean and variance: equal to rounding
+    from bayespsf.inference import gof
+
+    counts, truths, model = simulated(scene, 8)
+    np.testing.assert_allclose(
+        jax_sampling.pearson(model, counts, truths), gof.pearson(model, counts, truths), rtol=1e-12
+    )
