@@ -37,6 +37,7 @@ T_MAX = 1e15  # largest |t| in gain units, 1e5 times the law's bulk at lam = 1e1
 _NEGLIGIBLE_ABS = 1e-13  # readout ignored where it moves log J by less than this ...
 _NEGLIGIBLE_REL = 2.0**-53  # ... or by less than half an ulp of log J
 _REACH = 40.0  # readout SDs: beyond them the Gaussian weight is below exp(-800)
+_BLOCK = 2048  # points per quadrature pass: its (points, 4, _NODES) arrays are 1.5 MB each
 
 
 def log_0f1_2(w):
@@ -207,15 +208,22 @@ def log_convolved(t0, lam, r, *, with_score: bool = False):
 
     The closed form ``log f(t0)`` where ``readout_negligible``, quadrature elsewhere. With
     ``with_score``, also returns ``dJ/dlam / J``, using
-    ``d log f(u) / d lam = -1 + 1/lam + u * dlog_0f1_2(lam u)``.
+    ``d log f(u) / d lam = -1 + 1/lam + u * dlog_0f1_2(lam u)``. The quadrature runs over
+    blocks of ``_BLOCK`` points, each point's value the same as in one pass over all of them,
+    so its memory does not grow with the input (in one pass, the 285 000 points of the
+    ``table`` tier's grids took a process to 1.6 GB: benchmarks/README.md, first use).
     """
     t0, lam = np.broadcast_arrays(np.asarray(t0, float), np.asarray(lam, float))
+    shape = t0.shape
+    t0, lam = t0.ravel(), lam.ravel()
     negligible, log_j = readout_negligible(t0, lam, r)
     score = _score_amplified(np.where(negligible, t0, 1.0), lam)
-    hard = ~negligible
-    if hard.any():
-        quad = _log_convolved_quadrature(t0[hard], lam[hard], r, with_score=with_score)
-        log_j[hard], score[hard] = quad if with_score else (quad, 0.0)
+    hard = np.flatnonzero(~negligible)
+    for start in range(0, hard.size, _BLOCK):
+        k = hard[start : start + _BLOCK]
+        quad = _log_convolved_quadrature(t0[k], lam[k], r, with_score=with_score)
+        log_j[k], score[k] = quad if with_score else (quad, 0.0)
+    log_j, score = log_j.reshape(shape), score.reshape(shape)
     return (log_j, score) if with_score else log_j
 
 

@@ -151,3 +151,17 @@ def test_parallel_benchmark_quick():
     table = parallel.main(["--quick"])
     assert len(table) == 4 and np.all(table["ROIs/s"] > 0)
     assert table["same posteriors as one process"].iloc[1:3].tolist() == [True, True]
+
+
+def test_first_use_benchmark_quick():
+    # a first use with an empty cache builds the tables (the cache holds them after it, and the
+    # process's peak is above its imports') and a warm run reads them; the bound on the first
+    # use's memory is tested in tests/cameras/test_first_use.py
+    import first_use
+
+    table = first_use.main(["--quick"]).set_index("process")
+    first, warm = table.loc["first use (empty cache)"], table.loc["warm (cache filled)"]
+    assert first["cache before (MB)"] == 0 and first["cache after (MB)"] > 30
+    assert warm["cache before (MB)"] == first["cache after (MB)"] == warm["cache after (MB)"]
+    assert np.all(table[["imports (s)", "likelihood table (s)", "Fisher spline (s)"]] > 0)
+    assert np.all(table["peak (MiB)"] > table["peak after imports (MiB)"])
