@@ -167,7 +167,7 @@ def analyze(
     movie: Movie | str | Path,
     model: Model,
     *,
-    s0: float,
+    s0: float | None = None,
     out: str | Path,
     roi: int = 25,
     fit: int = 15,
@@ -196,9 +196,9 @@ def analyze(
     model : Model
         A camera file's model: camera law (ADU to photons), pixel size, prior and photon
         unit. Its ROI size is not used: the posteriors use ``model.for_roi(fit)``.
-    s0 : float
-        The spot's SD in nm: the detector's template and the traces' aperture
-        (``find_molecules``).
+    s0 : float, optional
+        The spot's SD in nm: the detector's template and the traces' aperture; default
+        estimated from the movie (``find_molecules``); the report and the record state it.
     out : str or Path
         The folder every file goes into (made if missing), with the run record ``run.json``
         (``bayespsf.io.run_record``: the movie's fingerprint, the camera, every setting
@@ -372,6 +372,8 @@ def analyze(
     check_folder(out, run, ANALYSIS_FILES, force=force, copies=copied)  # before the work
     about = {"movie": str(movie.path)}  # recorded, not compared: a moved movie is the same
     found = find_molecules(movie, model, s0=s0, roi=roi, fit=fit, rules=rules, progress=progress)
+    about["psf sd"] = found.psf_width.record()  # an estimate is a result: recorded, not compared
+    provenance = {**(provenance or {}), "psf sd": found.psf_width.summary()}
     claimed = claim_folder(out, run, ANALYSIS_FILES, force=force, copies=copied, about=about)
     paths = {**(files or {}), **claimed}
     paths.update(write_tables(found, out))

@@ -16,6 +16,10 @@ photon transfer with their third cumulant (``bayespsf.calibration.photon_transfe
 dimmer half of the pixels with ``M`` from their fourth cumulant (for detection), then, once
 the molecules have given ``M``, from the pixels that no candidate's ROI touches.
 
+A movie of fewer than 20 frames has too few for either: its background away from the spots
+gives the camera by spatial photon transfer (``bayespsf.calibration.short``), an approximate
+result whose text and camera file say so and what would make it better.
+
 The camera file holds the ``[camera]`` table of scenes and
 ``[geometry] pixel_size``, and records in its comments the command that made it and every
 estimate with its error.
@@ -36,12 +40,14 @@ import numpy as np
 from bayespsf.calibration.dark import DarkCalibration, dark_calibration
 from bayespsf.calibration.gain import GainEstimate, gain_from_molecules
 from bayespsf.calibration.photon_transfer import (
+    MIN_FRAMES,
     MovieOffset,
     away_from,
     first_adu_per_photon,
     offset_from_cumulants,
     pixel_cumulants,
 )
+from bayespsf.calibration.short import ShortCalibration, calibrate_short, camera_entries
 from bayespsf.cameras import EMCCD, SCMOS
 from bayespsf.errors import BayespsfInputError
 from bayespsf.io.camera_file import camera_file_text
@@ -49,6 +55,7 @@ from bayespsf.model import MIN_ROI, Model
 from bayespsf.movie.extract import check_sizes, open_movie
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.project import project
+from bayespsf.movie.psf_width import estimate_psf_sd
 from bayespsf.movie.select import Rules
 from bayespsf.scene import units as photon_units
 
@@ -90,25 +97,18 @@ class CameraCalibration:
 
     def camera_table(self) -> dict:
         """The ``[camera]`` table (the scenes' keys) this calibration gives."""
-        m = self.gain.adu_per_photon
-        if self.kind == "emccd":
-            table = {
-                "kind": "emccd",
-                "gain": m * self.e_per_adu,
-                "readout_sd": self.offset.readout_sd * self.e_per_adu,
-                "offset": self.offset.offset,
-                "e_per_adu": self.e_per_adu,
-            }
-        else:
-            table = {
-                "kind": "scmos",
-                "gain": m,
-                "offset": self.offset.offset,
-                "variance": self.offset.readout_sd**2,
-            }
-        if self.quantum_efficiency is not None:
-            table["quantum_efficiency"] = self.quantum_efficiency
-        return table
+        return camera_entries(
+            self.kind,
+            self.gain.adu_per_photon,
+            self.offset.offset,
+            self.offset.readout_sd,
+            self.e_per_adu,
+            self.quantum_efficiency,
+        )
+
+    def summary(self) -> str:
+        """What ``bayespsf calibrate`` prints: the ADU per photon with its error."""
+        return str(self.gain)
 
     def toml(self, command: str) -> str:
         """The camera file: its provenance as comments, then ``[geometry]`` and ``[camera]``.
@@ -175,7 +175,7 @@ def calibrate_camera(
     dark=None,
     *,
     kind: str,
-    s0: float,
+    s0: float | None = None,
     pixel_size: float | None = None,
     e_per_adu: float = 1.0,
     roi: int = 25,
@@ -183,12 +183,15 @@ def calibrate_camera(
     quantum_efficiency: float | None = None,
     readout_sd: float | None = None,
     rules: Rules | None = None,
-) -> CameraCalibration:
+) -> CameraCalibration | ShortCalibration:
     """A camera's offset, readout noise and ADU per photon from a movie (and dark frames).
 
     Offset and readout come from ``dark``, or without dark frames from the movie's own
     background pixels (``bayespsf.calibration.photon_transfer``); the ADU per photon from the
     movie's immobile molecules by Eq. photonConv (``gain_from_molecules``; module docstring).
+    A movie of fewer than ``MIN_FRAMES`` (20) frames, one frame included, is calibrated
+    instead from its background by spatial photon transfer (``calibrate_short``): an
+    approximate result that says so.
 
     Parameters
     ----------
@@ -198,8 +201,9 @@ def calibrate_camera(
         Dark frames of the same camera and frame shape; None to calibrate from the movie alone.
     kind : {"emccd", "scmos"}
         The camera's kind (its excess-noise factor: 2 or 1).
-    s0 : float
-        The spot's SD (nm), for detection.
+    s0 : float or None, optional
+        The spot's SD (nm), for detection; default estimated from the movie's spots by least
+        squares on its projection (``bayespsf.movie.estimate_psf_sd`` without a camera).
     pixel_size : float or None, optional
         Pixel size (nm); default the movie's metadata.
     e_per_adu : float, optional
@@ -220,8 +224,9 @@ def calibrate_camera(
 
     Returns
     -------
-    CameraCalibration
-        What was measured; ``CameraCalibration.toml(command)`` is the camera file's text.
+    CameraCalibration or ShortCalibration
+        What was measured (a ``ShortCalibration`` for fewer than 20 frames); its
+        ``toml(command)`` is the camera file's text and ``summary()`` what the command prints.
 
     Raises
     ------
@@ -269,7 +274,21 @@ def calibrate_camera(
             "command line (the camera file written then holds it as [geometry] pixel_size), "
             "or pixel_size= from Python"
         )
+    if s0 is None:  # the spot's SD: estimated where not stated (no camera yet)
+        s0 = estimate_psf_sd(movie, pixel_size=pixel_size, fit=fit).sd
     excess = EXCESS[kind]
+    if len(movie) < MIN_FRAMES:  # too few frames for the cumulants or the molecules
+        return calibrate_short(
+            movie,
+            dark_movie,
+            kind=kind,
+            excess=excess,
+            s0=s0,
+            pixel_size=pixel_size,
+            e_per_adu=float(e_per_adu),
+            quantum_efficiency=None if quantum_efficiency is None else float(quantum_efficiency),
+            readout_sd=readout_sd,
+        )
     if dark_movie is not None:
         first = dark_calibration(dark_movie)
         m0 = provisional_adu_per_photon(movie, first, excess)

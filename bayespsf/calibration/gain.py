@@ -19,19 +19,24 @@ Here, per molecule and over the pixels of its ROI's centre, the variance excess 
 by weighted least squares. The quadratic term is the frame-to-frame fluctuation of the
 molecule's photon count (a relative variance ``phi``, common to its pixels): Eq. photonConv
 assumes none, and the paper's own molecules fluctuated by up to 20% between frames, which would
-raise the variance of a 100-photon pixel by as much as its shot noise does. The weights are
-``1 / Var(sigma_i*^2) = (K - 1) / (2 v_i^2)`` with ``v_i`` the fitted variance (K frames;
-normal counts), iterated from equal weights so that they do not depend on the noise of the
-variances they weigh. The molecules' estimates are combined by their inverse-variance weighted
-mean; its standard error is taken from the scatter of the molecules about it (Birge's ratio:
-it holds even where the per-molecule errors are misjudged), and the 95% interval from Student's
-t with ``molecules - 1`` degrees of freedom. A molecule whose estimate lies more than
+raise the variance of a 100-photon pixel by as much as its shot noise does. The weights are ``1
+/ Var(sigma_i*^2) = (K - 1) / (2 v_i^2)`` with ``v_i`` the fitted variance (K frames; normal
+counts), iterated from equal weights so that they do not depend on the noise of the variances
+they weigh. The molecules' estimates are combined by their inverse-variance weighted mean, and
+then each molecule is fitted again with the variances of its weights taken at that common ``M``
+(and its own ``phi``): weights from a molecule's own ``M`` give a molecule that reads low a
+small SE and a large weight, which pulls the combination low by about half its SE. The standard
+error is the larger of the one from the molecules' SEs and the one from their scatter about the
+mean (Birge's ratio, which holds where the per-molecule errors are misjudged by a common
+factor): over ~15 molecules the scatter alone is itself uncertain by ~20%, and a movie whose
+molecules happen to agree closely would otherwise be given a small SE. The 95% interval is from
+Student's t with ``molecules - 1`` degrees of freedom. A molecule whose estimate lies more than
 ``OUTLIER_Z`` of its own SEs from the others' (first their weighted median, then the weighted
-mean of those kept) is left out and flagged: a molecule that moves inflates its pixels'
-variance beyond shot noise by an amount not proportional to ``S_i^2`` (moving molecules of a
-paper-movie read 48-270 ADU per photon against 16.7). A fluctuation common to a molecule's
-pixels is not an outlier: frames that span its bleaching step add ``p (1 - p) S_i^2`` and fall
-into the quadratic term.
+mean of those kept) is left out and flagged: a molecule that moves inflates its pixels' variance
+beyond shot noise by an amount not proportional to ``S_i^2`` (moving molecules of a paper-movie
+read 48-270 ADU per photon against 16.7). A fluctuation common to a molecule's pixels is not an
+outlier: frames that span its bleaching step add ``p (1 - p) S_i^2`` and fall into the quadratic
+term.
 
 The background pixels are the ROI's periphery outside its central ``fit`` x ``fit`` pixels
 (the paper's 25 x 25 ROIs and 15 x 15 fits). Frames are read a block at a time: memory holds two
@@ -69,7 +74,8 @@ class GainEstimate:
     adu_per_photon : float
         ``M``: for an EMCCD, the EM gain over the electrons per ADU (gain / e_per_adu).
     se : float
-        Its standard error (from the molecules' scatter).
+        Its standard error: the larger of the one from the molecules' SEs and the one from
+        their scatter (Birge's ratio).
     interval : tuple of float
         The 95% interval (Student's t, molecules - 1 degrees of freedom): the error bar.
     per_molecule : pandas.DataFrame
@@ -164,9 +170,10 @@ def gain_from_molecules(
     centre pixels is fitted as ``excess M S_i + phi S_i^2`` by iterated weighted least
     squares (Eq. photonConv of DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), with a
     term for the frame-to-frame fluctuation of the photon count); the molecules' estimates
-    are combined by their inverse-variance weighted mean with an SE from their scatter
-    (Birge's ratio) and a Student's t interval; a molecule more than ``OUTLIER_Z`` of its SEs
-    from the others is left out and flagged (a moving molecule).
+    are combined by their inverse-variance weighted mean (refitted with weights at the common
+    ``M``), with an SE that is the larger of the one from their SEs and the one from their
+    scatter (Birge's ratio), and a Student's t interval; a molecule more than ``OUTLIER_Z``
+    of its SEs from the others is left out and flagged (a moving molecule).
 
     Examples
     --------
@@ -186,7 +193,7 @@ def gain_from_molecules(
     >>> frames = pd.read_csv(made.files["truth"])[["molecule", "frame"]]
     >>> gain = gain_from_molecules(made.files["movie"], made.molecules, frames)
     >>> round(gain.adu_per_photon, 1), gain.interval[0] < 200 / 12 < gain.interval[1]
-    (17.1, True)
+    (17.2, True)
     """
     check_sizes(roi, fit)
     check_sizes(fit, centre)
@@ -217,10 +224,24 @@ def gain_from_molecules(
         )
     sums = _moments(movie, chosen, use, roi, fit, block)
     rows = [_one_molecule(mid, *sums[mid], roi, fit, centre, excess) for mid in chosen["molecule"]]
+    first = _combine(_table(rows, chosen), excess)
+    # again, each molecule weighted at the molecules' common M (module docstring); an outlier
+    # keeps its own weights, which leave it out again
+    outlier = first.per_molecule["outlier"].to_numpy()
+    rows = [
+        row
+        if out
+        else _one_molecule(mid, *sums[mid], roi, fit, centre, excess, first.adu_per_photon)
+        for row, out, mid in zip(rows, outlier, chosen["molecule"], strict=True)
+    ]
+    return _combine(_table(rows, chosen), excess)
+
+
+def _table(rows: list[dict], chosen: pd.DataFrame) -> pd.DataFrame:
     per_molecule = pd.DataFrame(rows)
     per_molecule.insert(1, "x", chosen["x"].to_numpy())
     per_molecule.insert(2, "y", chosen["y"].to_numpy())
-    return _combine(per_molecule, excess)
+    return per_molecule
 
 
 def _moments(movie, molecules, use, roi, fit, block) -> dict:
@@ -238,8 +259,9 @@ def _moments(movie, molecules, use, roi, fit, block) -> dict:
     return sums
 
 
-def _one_molecule(molecule, k, total, squares, roi, fit, centre, excess) -> dict:
-    """Eq. photonConv with the fluctuation term, by iterated weighted least squares."""
+def _one_molecule(molecule, k, total, squares, roi, fit, centre, excess, common=None) -> dict:
+    """Eq. photonConv with the fluctuation term, by iterated weighted least squares; the
+    weights' variances use ``common`` for ``M`` where given (else the molecule's own fit)."""
     mean = total / k
     var = (squares - k * mean**2) / (k - 1)
     ring = np.ones((roi, roi), bool)
@@ -254,7 +276,8 @@ def _one_molecule(molecule, k, total, squares, roi, fit, centre, excess) -> dict
     for _ in range(3):
         w = np.sqrt(weights)
         coef, *_ = np.linalg.lstsq(design * w[:, None], excess_var * w, rcond=None)
-        fitted = np.maximum(b_var + design @ coef, b_var)
+        at = coef if common is None else np.array([common, coef[1]])
+        fitted = np.maximum(b_var + design @ at, b_var)
         weights = (k - 1) / (2.0 * fitted**2)
     # the covariance of a weighted least-squares fit with known weights
     cov = np.linalg.inv(design.T @ (design * weights[:, None]))
@@ -292,8 +315,8 @@ def _combine(per_molecule: pd.DataFrame, excess: float) -> GainEstimate:
             "pixels' variance; give a movie with more immobile single molecules"
         )
     mean = float(np.sum(w * m) / np.sum(w))
-    scatter = np.sum(w * (m - mean) ** 2) / (n - 1)  # Birge's ratio squared
-    se = float(np.sqrt(scatter / np.sum(w)))
+    birge = np.sum(w * (m - mean) ** 2) / (n - 1)  # Birge's ratio squared
+    se = float(np.sqrt(max(birge, 1.0) / np.sum(w)))  # never below the molecules' own SEs
     half = float(stats.t.ppf(0.975, n - 1)) * se
     return GainEstimate(mean, se, (mean - half, mean + half), per_molecule, float(excess))
 

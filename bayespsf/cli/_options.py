@@ -21,7 +21,10 @@ CAMERA_AS_FOR_DETECT = "the camera file (as for detect)"
 CAMERA_OR_SCENE_HELP = "TOML with [camera] and [geometry] pixel_size (and optional [prior])"
 
 MOVIE_HELP = "the movie: .tif/.tiff/.ome.tif or .npy"
-PSF_SD_HELP = "the spot's SD in nm"
+PSF_SD_HELP = (
+    "the spot's SD in nm (default: the camera file's [emitter] s0x, s0y, else estimated from "
+    "the data)"
+)
 ROI_HELP = "ROI cut (default 25)"
 #: ``--roi`` of ``detect``, which names the paper's cut.
 ROI_PAPER_HELP = "ROI cut (default 25, the paper's)"
@@ -134,7 +137,7 @@ def add_psf_sd(
     help : str, optional
         Its help text (default ``PSF_SD_HELP``).
     required : bool, optional
-        Whether the command needs it (default False: the camera file may give it).
+        Whether the command needs it (default False: the camera file may give it, or the data).
     """
     parser.add_argument("--psf-sd", type=float, default=None, required=required, help=help)
 

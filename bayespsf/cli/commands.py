@@ -102,7 +102,7 @@ def _truth_table(path: str, n: int, unit: str):
 
 
 def _movie_model(args):
-    """The movie, the camera file's model and the spot's SD of ``detect`` and ``analyze``."""
+    """The movie, the camera file's model and the spot's SD (None: to be estimated)."""
     from bayespsf.io import camera_scene, read_camera_file
     from bayespsf.model import Model
     from bayespsf.movie import read_movie
@@ -129,10 +129,8 @@ def _movie_model(args):
     s0 = args.psf_sd
     if s0 is None and {"s0x", "s0y"} <= set(table.get("emitter", {})):
         s0 = 0.5 * (emitter["s0x"] + emitter["s0y"])
-    if s0 is None:
-        raise CommandError(
-            f"give --psf-sd (the spot's SD in nm), or [emitter] s0x and s0y in {args.camera}"
-        )
+    if s0 is None and args.command == "calibrate-z":  # a z-stack's spots are out of focus
+        raise CommandError("give --psf-sd NM (the bead's in-focus SD), or [emitter] s0x, s0y")
     return movie, Model.from_scene(scene), s0
 
 
@@ -310,6 +308,7 @@ def _detect(args) -> int:
     with _one_run():
         paths = write(found, out, force=args.force, copies=copies, about={"movie": args.movie})
     selected = int(found.molecules["selected"].sum())
+    print(f"{found.psf_width.summary()}" + (" (--psf-sd states it)" if s0 is None else ""))
     print(f"{movie!r}: {len(found.molecules)} candidate molecules, {selected} selected")
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
@@ -357,6 +356,7 @@ def _analyze(args) -> int:
         if z_sd == z_sd  # NaN where no molecule has two analysed frames to compare
         else "no z-score SD of s_x (it needs molecules with two or more analysed frames)"
     )
+    print(f"{result.found.psf_width.summary()}" + (" (--psf-sd states it)" if s0 is None else ""))
     print(
         f"{movie!r}: {int(result.molecules['selected'].sum())} molecules selected, "
         f"{len(result.frames)} frames analysed; {spread}"
@@ -424,16 +424,19 @@ def _calibrate_z(args) -> int:
 def _calibrate(args) -> int:
     """``bayespsf calibrate``: a camera file from a movie (and dark frames, if any)."""
     from bayespsf.calibration.camera import calibrate_camera
+    from bayespsf.movie.psf_width import resolve_psf_sd  # the spot's SD, stated or estimated
 
     out = Path(args.out)
     if out.is_dir():
         raise CommandError(f"--out {out} is a folder; give the camera file's name")
     _output_folder(str(out.parent))
+    width = resolve_psf_sd(args.movie, None, args.psf_sd, pixel_size=args.pixel_size, fit=args.fit)
+    print(width.summary() + (" (--psf-sd states it)" if args.psf_sd is None else ""))
     calibration = calibrate_camera(
         args.movie,
         args.dark,
         kind=args.kind,
-        s0=args.psf_sd,
+        s0=width.sd,
         pixel_size=args.pixel_size,
         e_per_adu=args.e_per_adu,
         roi=args.roi,
@@ -445,7 +448,7 @@ def _calibrate(args) -> int:
     command = _command_line(args)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(calibration.toml(command))
-    print(calibration.gain)
+    print(calibration.summary())
     print(f"wrote {out}")
     return 0
 

@@ -305,7 +305,7 @@ def _add_calibrate(commands) -> None:
         default="emccd",
         help="emccd (excess noise 2) or scmos, also a CCD (excess 1)",
     )
-    add_psf_sd(calibrate, required=True)
+    add_psf_sd(calibrate, "the spot's SD in nm (default: estimated from the data)")
     add_pixel_size(calibrate, "nm (default: the movie's metadata)")
     calibrate.add_argument(
         "--e-per-adu",

@@ -6,7 +6,8 @@ bounded memory; ``detect`` / ``detect_movie`` / ``detect_frames`` find candidate
 a stated false-positive rate; ``cut_rois`` cuts each molecule's ROIs over time;
 ``molecules_over_time`` gives per-frame photons, background and centroid, the bleaching steps
 (``bleach_steps``) and the drift; ``select`` applies the paper's selection rules (``Rules``);
-``find_molecules`` composes them all. The camera's calibration from a movie is in
+``find_molecules`` composes them all; ``estimate_psf_sd`` measures the spot's SD where it is
+not stated. The camera's calibration from a movie is in
 ``bayespsf.calibration``.
 """
 
@@ -14,6 +15,7 @@ from bayespsf.movie.detect import detect, detect_frames, detect_movie
 from bayespsf.movie.extract import RoiStack, cut_rois, iter_rois
 from bayespsf.movie.pipeline import FoundMolecules, find_molecules
 from bayespsf.movie.project import project
+from bayespsf.movie.psf_width import PsfWidth, estimate_psf_sd
 from bayespsf.movie.read import Movie, read_movie
 from bayespsf.movie.select import Rules, select
 from bayespsf.movie.steps import bleach_steps
@@ -22,6 +24,7 @@ from bayespsf.movie.traces import molecules_over_time, traces
 __all__ = [
     "FoundMolecules",
     "Movie",
+    "PsfWidth",
     "RoiStack",
     "Rules",
     "bleach_steps",
@@ -29,6 +32,7 @@ __all__ = [
     "detect",
     "detect_frames",
     "detect_movie",
+    "estimate_psf_sd",
     "find_molecules",
     "iter_rois",
     "molecules_over_time",

@@ -22,6 +22,7 @@ from bayespsf.io import run_record
 from bayespsf.model import Model
 from bayespsf.movie.detect import detect_movie
 from bayespsf.movie.extract import RoiStack, check_sizes, iter_rois, open_movie, photon_model
+from bayespsf.movie.psf_width import PsfWidth, resolve_psf_sd
 from bayespsf.movie.read import Movie
 from bayespsf.movie.select import Rules, report_markdown, select
 from bayespsf.movie.traces import molecules_over_time
@@ -36,11 +37,10 @@ class FoundMolecules:
     candidates : pandas.DataFrame
         ``detect_movie``'s table (accepted and rejected candidates).
     molecules : pandas.DataFrame
-        One row per candidate: ``molecule``, ``x``, ``y`` (camera pixels, picasso's
-        convention), ``bleach_frame`` (first frame without signal; empty if none),
-        ``selected`` and ``rejected_by`` (the first rule that removed it, or
-        ``detection: edge`` / ``detection: neighbour``; empty if selected), then the trace's
-        and the selection's columns.
+        One row per candidate: ``molecule``, ``x``, ``y`` (camera pixels, picasso's convention),
+        ``bleach_frame`` (first frame without signal; empty if none), ``selected`` and
+        ``rejected_by`` (the first rule that removed it, or ``detection: edge`` / ``detection:
+        neighbour``; empty if selected), then the trace's and the selection's columns.
     frames : pandas.DataFrame
         One row per (molecule, frame) of accepted candidates: the trace (aperture photons,
         background, centroid), the frame's fit (``s_x``, ``s_y``, ``N_fit``, ``b_fit``,
@@ -53,6 +53,8 @@ class FoundMolecules:
         The selection rules applied.
     run : dict
         What identifies the run that found them (``selection_run``), for ``write``'s record.
+    psf_width : PsfWidth or None
+        The spot's SD used: given, or estimated with its error (``estimate_psf_sd``).
 
     See Also
     --------
@@ -66,13 +68,17 @@ class FoundMolecules:
     report: pd.DataFrame
     rules: Rules
     run: dict = field(default_factory=dict)
+    psf_width: PsfWidth | None = None
 
     def report_markdown(self) -> str:
-        """The selection report as markdown (``select.report_markdown``) and the number of
-        candidates detected by status."""
+        """The selection report as markdown (``select.report_markdown``), the number of
+        candidates detected by status and the spot's SD (given or estimated)."""
         detected = self.candidates["status"].value_counts()
         counts = ", ".join(f"{k}: {v}" for k, v in detected.items()) or "none"
-        return report_markdown(self.report, self.rules) + f"\nCandidates detected: {counts}.\n"
+        note = "" if self.psf_width is None else f"\nThe {self.psf_width.summary()}.\n"
+        return (
+            report_markdown(self.report, self.rules) + f"\nCandidates detected: {counts}.\n{note}"
+        )
 
 
 def fit_model(model: Model, fit: int) -> Model:
@@ -111,9 +117,8 @@ def frame_fits(
     block : int, default 64
         Frames read at a time.
     until : pandas.Series, optional
-        Molecule id -> first frame without signal (or NA): limits the fits to the frames
-        before each molecule's bleaching step (a frame without a spot has no width to
-        measure).
+        Molecule id -> first frame without signal (or NA): fits only the frames before each
+        molecule's bleaching step (a frame without a spot has no width to measure).
     progress : bool, optional
         A progress bar on stderr (default: when it is a terminal).
 
@@ -172,7 +177,7 @@ def selection_run(
     movie: Movie | str | Path,
     model: Model,
     *,
-    s0: float,
+    s0: float | None,
     roi: int = 25,
     fit: int = 15,
     false_positives: float = 0.01,
@@ -193,7 +198,7 @@ def selection_run(
         ``command`` (``"detect"``), ``movie`` (per file its ``file_fingerprint``, then the
         movie's shape, data type and channel; not its path: a moved movie is the same),
         ``camera`` (the model for ``fit`` x ``fit`` ROIs, its CIC and saturation), ``psf
-        sd``, ``roi``, ``fit``, ``false positives``, ``projection``, ``selection rules``.
+        sd`` (or ``"estimated"``), ``roi``, ``fit``, ``false positives``, ``projection``, ``rules``.
 
     Raises
     ------
@@ -212,7 +217,7 @@ def selection_run(
         "command": "detect",
         "movie": {"files": [run_record.file_fingerprint(f) for f in files], "shape": shape},
         "camera": camera,
-        "psf sd": s0,
+        "psf sd": "estimated" if s0 is None else s0,
         "roi": roi,
         "fit": fit,
         "false positives": false_positives,
@@ -225,7 +230,7 @@ def find_molecules(
     movie: Movie | str | Path,
     model: Model,
     *,
-    s0: float,
+    s0: float | None = None,
     roi: int = 25,
     fit: int = 15,
     false_positives: float = 0.01,
@@ -242,13 +247,12 @@ def find_molecules(
         The movie in counts (ADU), from ``read_movie`` or a path it opens.
     model : Model
         The camera (ADU to photons, its law) and pixel size; its ROI size is not used.
-    s0 : float
-        The spot's SD in nm (the detector's template and the traces' aperture).
-    roi : int, default 25
-        Odd side in pixels of the cut around each molecule (the paper's 25); its periphery
-        outside ``fit`` gives the background.
-    fit : int, default 15
-        Odd side in pixels of the fitted centre (the paper's 15).
+    s0 : float, optional
+        The spot's SD in nm (detector's template, traces' aperture); default estimated from
+        the movie (``bayespsf.movie.estimate_psf_sd``, with ``model`` and ``fit``).
+    roi, fit : int, default 25 and 15
+        Odd sides in pixels of the cut around each molecule and of its fitted centre (the
+        paper's 25 and 15); the cut's periphery outside ``fit`` gives the background.
     false_positives : float, default 0.01
         Expected false detections per projected image (``detect``).
     projection : {"mean", "median"}, default "mean"
@@ -282,7 +286,7 @@ def find_molecules(
           (``sigma_b^2``, photons²); ``before_bleach``, ``rejected_by``, ``valid`` and
           ``photon_unit`` (fits only before the bleaching step: NaN after it);
         - ``report``: the selection report (``select``);
-        - ``rules``: the rules applied.
+        - ``rules``: the rules applied; ``psf_width``: the SD used (given or estimated).
 
     Raises
     ------
@@ -345,9 +349,10 @@ def find_molecules(
             "photon_window or --rules none on the command line; Rules(min_valid_frames=...) or "
             "skip=('photon_window',) in Python)"
         )
+    width = resolve_psf_sd(movie, model, s0, fit=fit, false_positives=false_positives)
     candidates = detect_movie(
         movie,
-        psf_sd=s0,
+        psf_sd=width.sd,
         camera=model,
         projection=projection,
         false_positives=false_positives,
@@ -369,7 +374,7 @@ def find_molecules(
         report = pd.DataFrame([{"rule": "no molecule accepted by detection"}])
     else:
         per_molecule, per_frame = molecules_over_time(
-            movie, accepted, model, s0=s0, roi=roi, fit=fit, block=block, progress=progress
+            movie, accepted, model, s0=width.sd, roi=roi, fit=fit, block=block, progress=progress
         )
         until = per_molecule.set_index("molecule")["bleach_frame"]
         fitted = frame_fits(
@@ -401,7 +406,7 @@ def find_molecules(
     unit = photon_model(model).photon_unit_label
     for table in (candidates, molecules, frames):
         table["photon_unit"] = unit
-    return FoundMolecules(candidates, molecules, frames, report, rules, run)
+    return FoundMolecules(candidates, molecules, frames, report, rules, run, width)
 
 
 SELECTION_FILES = ("candidates.csv", "molecules.csv", "frames.csv", "selection.md")
@@ -459,7 +464,7 @@ def write(
         Files to copy verbatim into ``out``, by their name there (the command's camera file,
         as ``camera.toml``); their bytes are part of the run's record.
     about : mapping, optional
-        Kept in the record, not compared (the command's movie path).
+        Kept in the record, not compared (the movie path); the spot's SD used is added.
 
     Returns
     -------
@@ -475,9 +480,10 @@ def write(
     """
     tables = "".join(t.to_csv() for t in (found.candidates, found.molecules, found.frames))
     run = found.run or {"command": "detect", "tables": run_record.bytes_digest(tables.encode())}
+    width = {} if found.psf_width is None else {"psf sd": found.psf_width.record()}  # a result
     copied = run_record.read_copies(copies)
     paths = run_record.claim_folder(
-        out, run, SELECTION_FILES, force=force, copies=copied, about=about
+        out, run, SELECTION_FILES, force=force, copies=copied, about={**(about or {}), **width}
     )
     return {**paths, **write_tables(found, out)}
 

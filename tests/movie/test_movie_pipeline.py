@@ -129,9 +129,11 @@ def test_detect_command_writes_the_tables_and_report(movie, tmp_path, capsys):
     assert "DeSantis" in (out / "selection.md").read_text()
     assert (out / "camera.toml").read_text() == camera.read_text()  # the camera file, recorded
     assert f"{len(molecules)} candidate molecules" in capsys.readouterr().out
-    with pytest.raises(SystemExit, match="psf-sd"):
-        camera.write_text(camera.read_text().split("[emitter]")[0])
-        cli.main(["detect", str(stem.with_suffix(".ome.tif")), "--camera", str(camera)])
+    # without s0x, s0y and --psf-sd the spot's SD is estimated from the movie, and said so
+    camera.write_text(camera.read_text().split("[emitter]")[0])
+    command = ["detect", str(stem.with_suffix(".ome.tif")), "--camera", str(camera)]
+    assert cli.main([*command, "--out", str(tmp_path / "estimated")]) == 0
+    assert "estimated from" in capsys.readouterr().out
 
 
 def test_movies_the_rules_cannot_use_are_named(tmp_path):
