@@ -350,6 +350,7 @@ def find_molecules(
             "skip=('photon_window',) in Python)"
         )
     width = resolve_psf_sd(movie, model, s0, fit=fit, false_positives=false_positives)
+    rules = rules.for_psf(width.sd)  # the width range follows the spot's SD
     candidates = detect_movie(
         movie,
         psf_sd=width.sd,
@@ -366,10 +367,8 @@ def find_molecules(
                 "x": accepted["x"],
                 "y": accepted["y"],
                 "bleach_frame": pd.Series(dtype=float),
-                "selected": pd.Series(dtype=bool),
-                "rejected_by": "",
-            }
-        )
+                "selected": pd.Series(dtype=bool), "rejected_by": ""}
+        )  # fmt: skip
         frames = pd.DataFrame(columns=["molecule", "frame"])
         report = pd.DataFrame([{"rule": "no molecule accepted by detection"}])
     else:

@@ -26,7 +26,7 @@ how many molecules and frames each rule removed.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -65,8 +65,11 @@ class Rules:
         ``equal_widths``: the largest difference of mean s_x and s_y in nm ...
     width_difference_fraction : float, default 0.05
         ... or as a fraction of their mean, whichever is larger.
-    width_low, width_high : float, default 95.0 and 135.0
-        ``width_range``: both mean widths must lie in this range (nm).
+    width_low, width_high : float, optional
+        ``width_range``: both mean widths must lie in this range (nm). Default: the paper's
+        95 and 135 nm, which bracket its in-focus spot SD of 120 nm, scaled by ``s0 / 120``
+        for a movie whose spot SD ``s0`` (stated or estimated) is another (``for_psf``); an
+        end that is given is kept.
     skip : tuple of str, default ()
         Names of rules (``RULES``) switched off.
 
@@ -93,8 +96,8 @@ class Rules:
     min_snr: float = 2.5
     width_difference_nm: float = 10.0
     width_difference_fraction: float = 0.05
-    width_low: float = 95.0
-    width_high: float = 135.0
+    width_low: float | None = None
+    width_high: float | None = None
     skip: tuple[str, ...] = ()
 
     def __post_init__(self):
@@ -108,6 +111,9 @@ class Rules:
             "width_low",
             "width_high",
         )
+        numbers = tuple(
+            n for n in numbers if not (n.startswith("width_") and getattr(self, n) is None)
+        )
         for name in numbers:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float | np.number):
@@ -116,7 +122,9 @@ class Rules:
                 raise BayespsfInputError(f"{name} must be a finite number >= 0, got {value!r}")
         if not 0 < self.photon_tolerance < 1:
             raise BayespsfInputError("photon_tolerance must be in (0, 1), e.g. 0.2 for 20%")
-        if not 0 <= self.width_low <= self.width_high:
+        low = PAPER_WIDTHS[0] if self.width_low is None else self.width_low
+        high = PAPER_WIDTHS[1] if self.width_high is None else self.width_high
+        if not 0 <= low <= high:
             raise BayespsfInputError("width_low must be in [0, width_high]")
         if int(self.min_valid_frames) != self.min_valid_frames or self.min_valid_frames < 1:
             raise BayespsfInputError("min_valid_frames must be a whole number >= 1")
@@ -128,7 +136,38 @@ class Rules:
         if unknown:
             raise BayespsfInputError(f"skip names unknown rules {sorted(unknown)}; rules: {RULES}")
 
+    def for_psf(self, s0: float | None) -> Rules:
+        """These rules with the width range resolved: each end as given, else the paper's
+        (95 and 135 nm) scaled by ``s0 / 120`` (its in-focus spot SD), or the paper's own
+        without ``s0``.
 
+        Parameters
+        ----------
+        s0 : float or None
+            The movie's spot SD in nm (stated or estimated).
+
+        Returns
+        -------
+        Rules
+
+        Raises
+        ------
+        BayespsfInputError
+            If a given end and a scaled one cross.
+        """
+        scale = 1.0 if s0 is None else float(s0) / PAPER_S0
+        low = PAPER_WIDTHS[0] * scale if self.width_low is None else self.width_low
+        high = PAPER_WIDTHS[1] * scale if self.width_high is None else self.width_high
+        if low > high:
+            raise BayespsfInputError(
+                f"width_low ({low:g} nm) is above width_high ({high:g} nm) at the spot's SD "
+                f"of {s0:g} nm: give both ends of the width range"
+            )
+        return replace(self, width_low=low, width_high=high)
+
+
+PAPER_S0 = 120.0  # nm: the in-focus spot SD the paper's width range brackets
+PAPER_WIDTHS = (95.0, 135.0)  # nm: the paper's width range (its condition 5)
 RULES = ("single_step", "no_drift", "snr", "photon_window", "equal_widths", "width_range")
 
 
@@ -186,7 +225,7 @@ def select(
     The rules run in the order of ``RULES`` (module docstring), each on what the previous
     ones left; frames after a molecule's bleaching step are never valid.
     """
-    rules = Rules() if rules is None else rules
+    rules = (Rules() if rules is None else rules).for_psf(None)
     _require(molecules, MOLECULE_COLUMNS, "molecules")
     _require(frames, FRAME_COLUMNS, "frames")
     mol = molecules.copy()
@@ -295,7 +334,7 @@ def _row(rule, mol, fr, removed_m, removed_f, skipped=False):
 
 def report_markdown(report: pd.DataFrame, rules: Rules | None = None) -> str:
     """The selection report as markdown: the rules' settings, then the table in order."""
-    rules = Rules() if rules is None else rules
+    rules = (Rules() if rules is None else rules).for_psf(None)
     settings = ", ".join(f"{k} = {v}" for k, v in asdict(rules).items() if k != "skip")
     skipped = f" Skipped: {', '.join(rules.skip)}." if rules.skip else ""
     return (

@@ -95,6 +95,7 @@ def test_rules_are_configurable_and_can_be_skipped():
         ({"photon_tolerance": 0}, "photon_tolerance"),
         ({"min_valid_frames": 0}, "min_valid"),
         ({"width_low": 200.0}, "width_low"),
+        ({"width_low": 200.0, "width_high": 150.0}, "width_low must be in"),
         ({"skip": ("nope",)}, "unknown rules"),
         ({"min_snr": float("nan")}, "min_snr"),
         ({"drift_sigmas": "3"}, "drift_sigmas must be a number"),
@@ -113,3 +114,17 @@ def test_missing_columns_are_named():
     molecules, frames = tables()
     with pytest.raises(BayespsfInputError, match="peak"):
         select(molecules, frames.drop(columns="peak"))
+
+
+def test_the_width_range_follows_the_spots_sd():
+    # the paper's 95-135 nm brackets its in-focus SD of 120 nm; another SD scales it, a range
+    # that is given is kept, and without an SD the paper's own applies
+    assert (Rules().for_psf(None).width_low, Rules().for_psf(None).width_high) == (95.0, 135.0)
+    assert (Rules().for_psf(120.0).width_low, Rules().for_psf(120.0).width_high) == (95.0, 135.0)
+    wide = Rules().for_psf(160.0)
+    assert wide.width_low == pytest.approx(95 * 4 / 3) and wide.width_high == pytest.approx(180)
+    given = Rules(width_low=90.0, width_high=150.0)
+    assert given.for_psf(160.0) == given
+    assert Rules(width_high=150.0).for_psf(160.0).width_low == pytest.approx(95 * 4 / 3)
+    with pytest.raises(BayespsfInputError, match=r"width_low .* is above width_high"):
+        Rules(width_high=120.0).for_psf(160.0)
