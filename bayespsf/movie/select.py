@@ -111,9 +111,8 @@ class Rules:
             "width_low",
             "width_high",
         )
-        numbers = tuple(
-            n for n in numbers if not (n.startswith("width_") and getattr(self, n) is None)
-        )
+        ends = ("width_low", "width_high")  # None: the paper's, scaled to the spot (for_psf)
+        numbers = tuple(n for n in numbers if not (n in ends and getattr(self, n) is None))
         for name in numbers:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float | np.number):
