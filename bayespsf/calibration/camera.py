@@ -47,7 +47,12 @@ from bayespsf.calibration.photon_transfer import (
     offset_from_cumulants,
     pixel_cumulants,
 )
-from bayespsf.calibration.short import ShortCalibration, calibrate_short, camera_entries
+from bayespsf.calibration.short import (
+    ShortCalibration,
+    calibrate_short,
+    camera_entries,
+    unit_comment,
+)
 from bayespsf.cameras import EMCCD, SCMOS
 from bayespsf.errors import BayespsfInputError
 from bayespsf.io.camera_file import camera_file_text
@@ -135,13 +140,7 @@ class CameraCalibration:
             "DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010)",
             f"provisional ADU per photon from the background: "
             f"{self.provisional_adu_per_photon:.4g}",
-            "N and b: "
-            + (
-                "detected photoelectrons (no quantum efficiency declared)"
-                if self.quantum_efficiency is None
-                else f"incident photons (quantum efficiency {self.quantum_efficiency:g} as "
-                "declared; the data cannot measure it)"
-            ),
+            unit_comment(self.quantum_efficiency),
         ]
         tables = {} if self.pixel_size is None else {"geometry": {"pixel_size": self.pixel_size}}
         return camera_file_text({**tables, "camera": self.camera_table()}, comments)

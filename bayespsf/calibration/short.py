@@ -155,16 +155,30 @@ class ShortCalibration:
         comments = [
             f"made by: {command}",
             *self.lines(),
-            "N and b: "
-            + (
-                "detected photoelectrons (no quantum efficiency declared)"
-                if self.quantum_efficiency is None
-                else f"incident photons (quantum efficiency {self.quantum_efficiency:g} as "
-                "declared; the data cannot measure it)"
-            ),
+            unit_comment(self.quantum_efficiency),
         ]
         tables = {} if self.pixel_size is None else {"geometry": {"pixel_size": self.pixel_size}}
         return camera_file_text({**tables, "camera": self.camera_table()}, comments)
+
+
+def unit_comment(quantum_efficiency: float | None) -> str:
+    """The camera file's comment on the unit of N and b.
+
+    Parameters
+    ----------
+    quantum_efficiency : float or None
+        The declared quantum efficiency, or None.
+
+    Returns
+    -------
+    str
+    """
+    if quantum_efficiency is None:
+        return "N and b: detected photoelectrons (no quantum efficiency declared)"
+    return (
+        f"N and b: incident photons (quantum efficiency {quantum_efficiency:g} as declared; "
+        "the data cannot measure it)"
+    )
 
 
 def background_mask(image: np.ndarray, s0: float, pixel_size: float) -> tuple[np.ndarray, int]:
@@ -261,4 +275,5 @@ __all__ = [
     "background_mask",
     "calibrate_short",
     "camera_entries",
+    "unit_comment",
 ]
