@@ -16,7 +16,6 @@ from dataclasses import asdict
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 from bayespsf.inference.summary import QUANTILES, RANK_DRAWS, quantile_column
 from bayespsf.parallel.store import Store
@@ -76,6 +75,8 @@ def device_posteriors(indices, stack, model, seeds, truths, settings, scene, sto
 
 
 def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
+    from scipy import stats
+
     from bayespsf.inference import fit_mle
     from bayespsf.inference.jax_sampling import pearson, posteriors
 
