@@ -167,3 +167,23 @@ def test_pearsons_statistic_on_the_device_is_the_hosts(scene):
     np.testing.assert_allclose(
         jax_sampling.pearson(model, counts, truths), gof.pearson(model, counts, truths), rtol=1e-12
     )
+
+
+def test_a_movie_analysed_on_the_jax_backend(tmp_path):
+    # analyze's per-ROI posteriors through the device pass (its store included): every frame
+    # of the molecule converges, as through the NumPy backend
+    from bayespsf import Model, analyze, simulate_movie
+    from bayespsf.movie import Rules
+
+    scene = load_scene("paper-movie").replace(
+        movie={"frames": 20, "height": 48, "width": 48, "molecules": 1, "dark_frames": 0,
+               "bleach_mean": 12.0, "two_fluorophores": 0.0, "moving": 0.0}
+    )  # fmt: skip
+    made = simulate_movie(scene, seed=0, out=tmp_path / "m")
+    result = analyze(
+        made.files["movie"], Model.from_scene(scene), s0=120.0, out=tmp_path / "out",
+        rules=Rules(min_valid_frames=8), workers=1, progress=False, backend="jax",
+    )  # fmt: skip
+    assert len(result.frames) >= 8 and (result.frames["status"] == "converged").all()
+    assert set(result.frames["method"]) <= {"laplace", "importance"}
+    assert len(list((tmp_path / "out" / "posteriors").glob("molecule-*.nc"))) == len(result.frames)
