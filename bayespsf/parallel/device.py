@@ -115,7 +115,7 @@ def _table(molecules, seeds, out, rows, seconds, truths) -> pd.DataFrame:
     n = len(rows)
     columns = {
         "molecule": molecules.astype(int),
-        "seed": seeds.astype(np.uint64).astype(object),
+        "seed": [int(s) for s in seeds],  # Python ints: 64-bit seeds, as the NumPy rows
         "converged": out["converged"][rows],
         "status": np.where(out["converged"][rows], "converged", "not converged"),
         "message": np.full(n, "", dtype=object),
@@ -139,9 +139,7 @@ def _table(molecules, seeds, out, rows, seconds, truths) -> pd.DataFrame:
             columns[f"{name}_rank"] = np.where(
                 (rank >= 0) & (out["draws"][rows] >= RANK_DRAWS), rank, np.nan
             )
-    table = pd.DataFrame(columns)
-    table["seed"] = [int(s) for s in seeds]
-    return table
+    return pd.DataFrame(columns)
 
 
 def _write(store, table, out, rows, indices, stack, model, truths, scene, settings) -> None:
