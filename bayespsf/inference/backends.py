@@ -15,13 +15,16 @@ from bayespsf.errors import BayespsfInputError
 BACKENDS = ("numpy", "jax")
 
 
-def check_backend(backend: str) -> str:
-    """The backend's name, checked; for ``"jax"`` also that JAX can be imported.
+def check_backend(backend: str, model=None) -> str:
+    """The backend's name, checked; for ``"jax"`` also that JAX can be imported and, given a
+    model, that the backend supports its camera law (before any work starts).
 
     Parameters
     ----------
     backend : str
         One of ``BACKENDS``.
+    model : Model, optional
+        The inference model the backend will run.
 
     Returns
     -------
@@ -31,8 +34,9 @@ def check_backend(backend: str) -> str:
     Raises
     ------
     BayespsfInputError
-        For an unknown name (naming ``backend`` and the choices), or ``"jax"`` without JAX
-        installed (naming the extra that installs it).
+        For an unknown name (naming ``backend`` and the choices), ``"jax"`` without JAX
+        installed (naming the extra that installs it), or a camera law or pixel model the
+        JAX backend does not support (naming the fix).
     """
     if backend not in BACKENDS:
         raise BayespsfInputError(
@@ -47,6 +51,10 @@ def check_backend(backend: str) -> str:
                 "backend='jax' needs JAX: pip install 'bayespsf[gpu]' (a CUDA GPU) or "
                 "'bayespsf[jax]' (the CPU); or use backend='numpy' (the default)"
             ) from error
+        if model is not None:
+            from bayespsf.inference.jax_model import JaxModel
+
+            JaxModel.from_model(model)  # refuses an unsupported law by name
     return backend
 
 

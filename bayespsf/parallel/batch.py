@@ -281,7 +281,7 @@ def sample_many(
     from bayespsf.inference.settings import check_chain_work, check_settings, check_walkers_fit
 
     check = _check_kind(check)
-    check_backend(backend)
+    check_backend(backend, model)  # an unsupported camera law is named before any work
     options.setdefault("method", "auto")
     settings = check_settings(seed=seed, **options)  # a bad setting fails here, not in workers
     check_walkers_fit(settings.walkers, model.roi)  # the ROIs left to the chain need them

@@ -135,13 +135,16 @@ def test_a_store_made_on_the_device_reads_back_and_resumes(rois, tmp_path):
         sample_many(counts[:4], model, **{**run, "backend": "numpy"})
 
 
-def test_named_refusals():
+def test_named_refusals(tmp_path):
     scene = load_scene("scmos-typical")
     counts, _ = simulate(scene, 2, seed=1)
     with pytest.raises(BayespsfInputError, match="backend='numpy'"):
         fit_mle(counts, Model.from_scene(scene), backend="jax")
     with pytest.raises(BayespsfInputError, match="backend must be one of numpy, jax"):
         fit_mle(counts, Model.from_scene(scene), backend="cuda")
+    with pytest.raises(BayespsfInputError, match="sCMOS camera law"):  # before any work
+        sample_many(counts, Model.from_scene(scene), workers=1, backend="jax", store=tmp_path)
+    assert not any(tmp_path.iterdir())  # no store was opened
     with pytest.raises(BayespsfInputError, match="engine='stack'"):
         fit_mle(counts, Model.from_scene(scene), backend="jax", engine="scipy")
 
