@@ -358,17 +358,17 @@ class EMCCD(Camera):
         and at ``lam == 0`` with readout, by differences of the tier's own log-likelihood.
         Without readout at ``lam == 0`` the one-sided derivative is ``+inf`` above the
         offset."""
-        t = self.gain_units(counts)
         r = self.readout_in_gain_units
         tier = self.likelihood
+        if tier == "table" and r != 0:
+            return self._log_likelihood_and_score(counts, expected)[1]
+        t = self.gain_units(counts)
         if tier == "poisson":
             return poisson_score(t, expected)
         if tier == "gaussian":
             return _gaussian_score(t, expected, r)
         if r == 0:
             return _readout_free_score(t, expected)
-        if tier == "table":
-            return self._log_likelihood_and_score(counts, expected)[1]
         if tier != "exact":
             return super()._score(counts, expected)
         t, lam = np.broadcast_arrays(t, expected)

@@ -345,15 +345,12 @@ def _laplace(model, stack, params):
     info = _in_blocks(
         lambda c, p: stack_mle.observed_information(model, c, p), stack, params, roi=model.roi
     )
+    inverse, definite = stack_mle.inverses(info)
+    definite &= np.all(np.isfinite(inverse), axis=(1, 2))
+    if definite.any():
+        definite[definite] = np.all(np.linalg.eigvalsh(inverse[definite]) > 0, axis=1)
     cov = np.full_like(info, np.nan)
-    definite = np.zeros(len(info), dtype=bool)
-    for i, matrix in enumerate(info):
-        try:
-            inverse = np.linalg.inv(matrix)
-        except np.linalg.LinAlgError:
-            continue
-        if np.all(np.isfinite(inverse)) and np.all(np.linalg.eigvalsh(inverse) > 0):
-            cov[i], definite[i] = inverse, True
+    cov[definite] = inverse[definite]
     return cov, definite
 
 

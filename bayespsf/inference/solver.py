@@ -13,7 +13,10 @@ an iteration is one array pass over the active ROIs of a block: the stack's cost
 vectorised likelihood calls, not a Python loop per ROI. Each trial point is evaluated once,
 ``-log L`` with its gradient and metric (``evaluate``: one PSF pass, and one camera pass for
 the log-likelihood and the score together), and a ROI keeps those of the point it stands on, so
-a step costs one evaluation whether it is taken or refused.
+a step costs one evaluation whether it is taken or refused. The Jacobian is never formed as
+``(n, 6, roi, roi)`` images: the spot is separable, so its rows are outer products of 1-D
+factors (``psf.gaussian.axis_factors``), and one compiled loop (``_reduce_pixels``) forms
+``J' score`` and ``J' diag(F) J`` pixel by pixel from them.
 
 The box, the flags and the Laplace SDs are those of ``bayespsf.fit_mle`` (same search box, same
 observed information by differences of the analytic gradient), so the two paths give the same
@@ -22,7 +25,10 @@ numbers to the optimisers' tolerance (``tests/inference/test_stack_mle.py``).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
+
+from bayespsf.psf.gaussian import axis_factor, axis_factors
 
 DECREMENT = 1e-10  # Newton decrement (in log-likelihood units) below which a ROI has converged
 STATIONARY = 1e-4  # ... and where no step lowers -log L, the decrement that still counts as one
@@ -79,48 +85,131 @@ def _objective(model, counts, p):
 
 
 def _gradient_and_metric(model, counts, p):
-    """Gradient of ``-log L`` and the expected information, both in ``u``: (n, 6), (n, 6, 6)."""
-    lam, jac = model.expected_and_jacobian(p)
-    return _in_internal(model, p, lam, jac, model.camera._score(counts, lam))
+    """Gradient of ``-log L`` and the expected information, both in ``u``: (n, 6), (n, 6, 6),
+    from the camera's score alone (``evaluate`` takes it with the log-likelihood)."""
+    lam, x, y = _expected_and_factors(model, p)
+    return _in_internal(model, p, lam, x, y, model.camera._score(counts, lam))
 
 
 def evaluate(model, counts, p):
-    """``_objective`` and ``_gradient_and_metric`` at once, the same numbers from one PSF pass
-    and one camera pass (``camera._log_likelihood_and_score``): (n,), (n, 6), (n, 6, 6). The
-    gradient and metric are NaN where ``-log L`` is not finite (never formed there)."""
-    lam, jac = model.expected_and_jacobian(p)
+    """``_objective`` and ``_gradient_and_metric`` at once, the same numbers (to rounding)
+    from one PSF pass and one camera pass (``camera._log_likelihood_and_score``): (n,), (n, 6),
+    (n, 6, 6). The gradient and metric are NaN where ``-log L`` is not finite (never formed
+    there)."""
+    lam, x, y = _expected_and_factors(model, p)
     log_l, score = model.camera._log_likelihood_and_score(counts, lam)
     f = -log_l.sum(axis=(-2, -1))
     finite = np.isfinite(f)
     if finite.all():
-        return f, *_in_internal(model, p, lam, jac, score)
+        return f, *_in_internal(model, p, lam, x, y, score)
     grad, metric = np.full((len(p), 6), np.nan), np.full((len(p), 6, 6), np.nan)
     grad[finite], metric[finite] = _in_internal(
-        model, p[finite], lam[finite], jac[finite], score[finite]
+        model, p[finite], lam[finite], x[finite], y[finite], score[finite]
     )
     return f, grad, metric
 
 
-def _in_internal(model, p, lam, jac, score):
+def _expected_and_factors(model, p, x=None, y=None):
+    """Expected photoelectrons (n, roi, roi) of ``p`` (n, 6), the same numbers as
+    ``model.expected_and_jacobian``'s, and the spot's 1-D factors (n, 3, roi) along x and y
+    (``psf.gaussian.axis_factors``) that its Jacobian is formed of. A factor given is taken
+    as that of ``p`` (valid parameters whose other axis changed)."""
+    if x is None and y is None:
+        x, y = axis_factors(p, model.roi, model.pixel_size, model.pixel_model)
+    elif x is None or y is None:
+        centre, width = (0, 2) if x is None else (1, 3)
+        made = axis_factor(
+            p[:, centre], p[:, width], model.roi, model.pixel_size, model.pixel_model
+        )
+        x, y = (made, y) if x is None else (x, made)
+    n_py = p[:, 4][:, None, None] * y[:, 0, :, None]
+    return model._detected(n_py * x[:, 0, None, :] + p[:, 5][:, None, None]), x, y
+
+
+def _reduce(model, p, x, y, score, fisher=None):
+    """``J' score`` (n, 6) and, with ``fisher``, ``J' diag(fisher) J`` (n, 6, 6) in the
+    parameters, from the 1-D factors without forming the Jacobian ``J`` (n, 6, roi, roi)."""
+    n = len(p)
+    grad = np.zeros((n, 6))
+    metric = np.zeros((n, 6, 6) if fisher is not None else (0, 6, 6))
+    fisher = np.empty((0, 1, 1)) if fisher is None else np.ascontiguousarray(fisher, np.float64)
+    _reduce_pixels(
+        np.ascontiguousarray(x),
+        np.ascontiguousarray(y),
+        np.ascontiguousarray(p[:, 4], dtype=np.float64),
+        float(model.photoelectrons_per_photon),
+        np.ascontiguousarray(score, dtype=np.float64),
+        fisher,
+        grad,
+        metric,
+    )
+    return grad, metric
+
+
+@numba.njit(cache=True, nogil=True)
+def _reduce_pixels(x, y, photons, scale, score, fisher, grad, metric):
+    """The pixel sums of ``_reduce``, one ROI at a time, into ``grad`` and ``metric`` (zeroed;
+    ``metric`` of length 0 for the gradient alone). The Jacobian's rows at pixel (i, j) are
+    ``c N Py dPx``, ``c N dPy Px``, ``c N Py dPx/ds``, ``c N dPy/ds Px``, ``c Py Px`` and
+    ``c`` (``c``: photoelectrons per photon; ``psf.gaussian.axis_factors``)."""
+    with_metric = metric.shape[0] > 0
+    roi = x.shape[2]
+    jac = np.empty(6)
+    g = np.empty(6)
+    m = np.empty((6, 6))
+    for r in range(x.shape[0]):
+        spot = scale * photons[r]
+        g[:] = 0.0
+        m[:] = 0.0
+        for i in range(roi):
+            row_x0, row_y0 = spot * y[r, 0, i], spot * y[r, 1, i]
+            row_sy, row_n = spot * y[r, 2, i], scale * y[r, 0, i]
+            for j in range(roi):
+                jac[0] = row_x0 * x[r, 1, j]
+                jac[1] = row_y0 * x[r, 0, j]
+                jac[2] = row_x0 * x[r, 2, j]
+                jac[3] = row_sy * x[r, 0, j]
+                jac[4] = row_n * x[r, 0, j]
+                jac[5] = scale
+                s = score[r, i, j]
+                for k in range(6):
+                    g[k] += jac[k] * s
+                if with_metric:
+                    f = fisher[r, i, j]
+                    for k in range(6):
+                        weighted = jac[k] * f
+                        for q in range(k + 1):
+                            m[k, q] += weighted * jac[q]
+        for k in range(6):
+            grad[r, k] = g[k]
+        if with_metric:
+            for k in range(6):
+                for q in range(k + 1):
+                    metric[r, k, q] = metric[r, q, k] = m[k, q]
+
+
+def _in_internal(model, p, lam, x, y, score):
     """The gradient of ``-log L`` (the Jacobian times the per-pixel score) and the expected
-    information, in ``u``, from the pixels' expected counts, Jacobian and score."""
+    information, in ``u``, from the pixels' expected counts, the spot's 1-D factors and the
+    score."""
     # the metric only steers the steps (the optimum is where the gradient vanishes): pixels
     # below METRIC_FLOOR, where a camera's tabulated information ends, are scored at the floor
     fisher = model.camera._step_information(np.maximum(lam, METRIC_FLOOR))
     chain = _chain(p, model.pixel_size)
-    grad = -_contract(jac, score) * chain
-    return grad, _information(jac, fisher) * chain[:, :, None] * chain[:, None, :]
+    grad, metric = _reduce(model, p, x, y, score, fisher)
+    return -grad * chain, metric * chain[:, :, None] * chain[:, None, :]
 
 
 def _contract(jac, pixels):
-    """``sum_xy jac[n, k, x, y] pixels[n, x, y]`` (n, 6), as one batched matrix product."""
+    """``sum_xy jac[n, k, x, y] pixels[n, x, y]`` (n, 6), as one batched matrix product: with
+    ``_information``, the full-Jacobian form of ``_reduce``'s sums (its test reference)."""
     n, pixel_count = len(jac), pixels[0].size if len(pixels) else 0
     return (jac.reshape(n, 6, pixel_count) @ pixels.reshape(n, pixel_count, 1))[..., 0]
 
 
 def _information(jac, fisher):
-    """``J' diag(F) J`` per ROI (n, 6, 6), as one batched matrix product (BLAS, not einsum's
-    three-operand loop)."""
+    """``J' diag(F) J`` per ROI (n, 6, 6) from the full Jacobian, as one batched matrix
+    product (with ``_contract``, the reference of ``_reduce``'s sums)."""
     n, pixel_count = len(jac), fisher[0].size if len(fisher) else 0
     j = jac.reshape(n, 6, pixel_count)
     return (j * fisher.reshape(n, 1, pixel_count)) @ j.transpose(0, 2, 1)
@@ -131,28 +220,43 @@ def crlb(model, p) -> np.ndarray:
     inverse expected information ``J' diag(F) J`` in the parameters (the plug-in error bar
     localisation software reports at its fit; Smith et al., Nat. Methods 7 (2010)); NaN where
     the information is singular."""
-    lam, jac = model.expected_and_jacobian(p)
+    lam, x, y = _expected_and_factors(model, p)
     fisher = model.camera._fisher_information(np.maximum(lam, METRIC_FLOOR))
-    information = _information(jac, fisher)
+    _, information = _reduce(model, p, x, y, np.zeros_like(lam), fisher)
+    inverse, ok = inverses(information)
     out = np.full((len(p), 6), np.nan)
-    for i, matrix in enumerate(information):
-        try:
-            out[i] = np.sqrt(np.diagonal(np.linalg.inv(matrix)))
-        except np.linalg.LinAlgError:
-            continue
+    out[ok] = np.sqrt(np.diagonal(inverse[ok], axis1=1, axis2=2))
     return out
 
 
-def gradient(model, counts, p):
-    """Gradient of ``-log L`` in the parameters ``x0 y0 s_x s_y N b``: (n, 6)."""
-    lam, jac = model.expected_and_jacobian(p)
-    return -_contract(jac, model.camera._score(counts, lam))
+def inverses(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses of ``matrices`` (n, 6, 6), in one batched call where none is singular, and
+    which were invertible (n,) bool (the singular ones' entries are NaN)."""
+    try:
+        return np.linalg.inv(matrices), np.ones(len(matrices), dtype=bool)
+    except np.linalg.LinAlgError:
+        out, ok = np.full_like(matrices, np.nan), np.zeros(len(matrices), dtype=bool)
+        for i, matrix in enumerate(matrices):
+            try:
+                out[i], ok[i] = np.linalg.inv(matrix), True
+            except np.linalg.LinAlgError:
+                continue
+        return out, ok
+
+
+def gradient(model, counts, p, x=None, y=None):
+    """Gradient of ``-log L`` in the parameters ``x0 y0 s_x s_y N b``: (n, 6). ``x``, ``y``:
+    the spot's 1-D factors at ``p`` where known (``_expected_and_factors``)."""
+    lam, x, y = _expected_and_factors(model, p, x, y)
+    return -_reduce(model, p, x, y, model.camera._score(counts, lam))[0]
 
 
 def observed_information(model, counts, p):
     """The Hessian of ``-log L`` in the parameters, by central differences of the analytic
     gradient (forward at b = 0), symmetrised: (n, 6, 6). ``fit_mle``'s steps: 1e-3 pixel in
-    position, 1e-4 relative in s_x, s_y, N, and max(1e-4 b, 1e-4) in b."""
+    position, 1e-4 relative in s_x, s_y, N, and max(1e-4 b, 1e-4) in b. A step in x0 or s_x
+    leaves the spot's factor along y as it is (and conversely; a step in N or b, both), so
+    only the factor that changes is recomputed."""
     a = model.pixel_size
     n = len(p)
     steps = np.column_stack(
@@ -165,6 +269,7 @@ def observed_information(model, counts, p):
             np.maximum(1e-4 * p[:, 5], 1e-4),
         ]
     )
+    x, y = axis_factors(p, model.roi, model.pixel_size, model.pixel_model)
     hessian = np.empty((n, 6, 6))
     for k in range(6):
         upper, lower = p.copy(), p.copy()
@@ -173,9 +278,10 @@ def observed_information(model, counts, p):
         if k == 5:
             lower[:, 5] = np.maximum(lower[:, 5], 0.0)
         span = upper[:, k] - lower[:, k]
-        hessian[:, k] = (gradient(model, counts, upper) - gradient(model, counts, lower)) / span[
-            :, None
-        ]
+        same = {"x": None if k in (0, 2) else x, "y": None if k in (1, 3) else y}
+        hessian[:, k] = (
+            gradient(model, counts, upper, **same) - gradient(model, counts, lower, **same)
+        ) / span[:, None]
     return 0.5 * (hessian + np.swapaxes(hessian, 1, 2))
 
 

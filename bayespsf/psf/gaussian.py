@@ -151,16 +151,19 @@ def _pixel_fractions(centre, width, roi: int, pixel_size: float):
     z = (edges - centre[..., None]) / width[..., None]
     lo, hi = z[..., :-1], z[..., 1:]
     straddle = (lo < 0) & (hi > 0)
-    # Mirror left-side pixels so that 0 <= near <= far for every one-sided pixel.
+    # Mirror left-side pixels so that 0 <= near <= far for every one-sided pixel. The special
+    # functions are taken once per edge (roi + 1 values, not two per pixel): an edge is the
+    # far side of one pixel and the near side of the next.
+    log_tail = special.log_ndtr(-np.abs(z))
+    half_erf = 0.5 * special.erf(z / _SQRT2)
     right = lo >= 0
-    near = np.where(right, lo, -hi)
-    far = np.where(right, hi, -lo)
-    near = np.where(straddle, 0.0, near)
-    far = np.where(straddle, 1.0, far)
-    log_tail_near = special.log_ndtr(-near)
-    log_tail_far = special.log_ndtr(-far)
-    one_sided = np.exp(log_tail_near) * -np.expm1(log_tail_far - log_tail_near)
-    central = 0.5 * (special.erf(hi / _SQRT2) - special.erf(lo / _SQRT2))
+    log_tail_near = np.where(right, log_tail[..., :-1], log_tail[..., 1:])
+    log_tail_far = np.where(right, log_tail[..., 1:], log_tail[..., :-1])
+    # a straddling pixel's one-sided value is not used (its gap is set to 0, where the gap of
+    # its edges' tails could overflow expm1)
+    gap = np.where(straddle, 0.0, log_tail_far - log_tail_near)
+    one_sided = np.exp(log_tail_near) * -np.expm1(gap)
+    central = half_erf[..., 1:] - half_erf[..., :-1]
     return np.where(straddle, central, one_sided), z
 
 
@@ -335,6 +338,57 @@ def expected_counts_and_jacobian(
     jac[..., 5, :, :] = 1.0
     mu = n_py * px + p[..., 5][..., None, None]
     return mu, jac
+
+
+def axis_factors(
+    params: ArrayLike, roi: int, pixel_size: float, pixel_model: str = "integrated"
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two 1-D factors of the separable spot and their derivatives, from which
+    ``expected_counts_and_jacobian`` forms its outer products.
+
+    Parameters
+    ----------
+    params : array_like, shape (..., 6)
+        ``x0, y0, s_x, s_y, N, b`` in nm, nm, nm, nm, photons, photons per pixel.
+    roi : int
+        Odd side length of the ROI, in pixels.
+    pixel_size : float
+        Pixel side ``a`` in nm.
+    pixel_model : {"integrated", "sampled"}, optional
+        As for ``expected_counts_and_jacobian``.
+
+    Returns
+    -------
+    x, y : ndarray, shape (..., 3, roi)
+        Along x (columns) ``Px``, ``dPx/dx0``, ``dPx/ds_x``; along y (rows) ``Py``,
+        ``dPy/dy0``, ``dPy/ds_y``. The expected counts are ``N Py[i] Px[j] + b``; the Jacobian
+        rows by ``x0, y0, s_x, s_y, N, b`` are ``N Py dPx/dx0``, ``N dPy/dy0 Px``,
+        ``N Py dPx/ds_x``, ``N dPy/ds_y Px``, ``Py Px`` and 1.
+
+    Raises
+    ------
+    BayespsfInputError
+        For the inputs ``expected_counts_and_jacobian`` refuses.
+
+    See Also
+    --------
+    expected_counts_and_jacobian : the same numbers as full ``(..., roi, roi)`` images.
+    """
+    roi, a = check_geometry(roi, pixel_size)
+    p = _check_params(params)
+    check_pixel_model(pixel_model)
+    x = axis_factor(p[..., 0], p[..., 2], roi, a, pixel_model)
+    return x, axis_factor(p[..., 1], p[..., 3], roi, a, pixel_model)
+
+
+def axis_factor(
+    centre: np.ndarray, width: np.ndarray, roi: int, a: float, pixel_model: str = "integrated"
+) -> np.ndarray:
+    """One axis of ``axis_factors`` without input validation (for hot loops whose parameters
+    are known to be valid): the fraction of the spot's photons in each pixel, its derivative
+    by the centre and by the width, shape ``(..., 3, roi)``, for centres and widths (nm) of
+    shape ``(...)``, an odd ``roi`` and pixel side ``a`` (nm)."""
+    return np.stack(_axis(centre, width, roi, a, pixel_model, True), axis=-2)
 
 
 def _fraction_derivatives(z, width):
