@@ -2,14 +2,17 @@
 transfer over the background away from the spots (``bayespsf.calibration.spatial``).
 
 The spots are found on the frames' mean projection by ``bayespsf.movie.detect`` without a
-camera (its noise estimated from the image) at a generous false-positive rate (a pixel of
-noise taken for a spot only costs a few background pixels), and every pixel within
-``SPOT_SDS`` spot SDs of a candidate is left out. The offset and readout come from dark
-frames where given; else the readout is declared (``readout_sd``, electrons) or, where the
-photon noise does not hide it, measured with the offset from the background's third and fourth
-cumulants. The result is approximate (a few per cent on an EMCCD frame of 256 x 256 pixels,
-more for an sCMOS without dark frames) and says so in its text and in the camera file's
-comments, with what would make it better.
+camera (its noise estimated from the image) at a strict false-positive rate
+(``FALSE_POSITIVES`` per projection), and every pixel within ``SPOT_SDS`` spot SDs of a
+candidate is left out. The mask so depends on the spots, not on the background's noise: a
+noise excess taken for a spot would take the tail of the counts with it and read ``M`` low,
+and on 80 single simulated EMCCD frames a mask from the molecules' true positions moves ``M``
+by at most 0.4 of its SE and covers the truth as often (71 of 80 within 1.96 SE). The offset
+and readout come from dark frames where given; else the readout is declared (``readout_sd``,
+electrons) or, where the photon noise does not hide it, measured with the offset from the
+background's third and fourth cumulants. The result is approximate (a few per cent on an
+EMCCD frame of 256 x 256 pixels, more for an sCMOS without dark frames) and says so in its
+text and in the camera file's comments, with what would make it better.
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ from bayespsf.calibration.spatial import (
     block_sums,
     plane_factors,
     pooled_cumulants,
+    solve,
     spatial_photon_transfer,
 )
 from bayespsf.cameras import EMCCD, SCMOS
@@ -60,6 +61,34 @@ def test_emccd_frames_cover_the_gain_within_their_errors():
         z.append((got.adu_per_photon - 200.0 / 12.0) / got.adu_per_photon_se)
         assert got.readout_sd == pytest.approx(50.0 / 12.0) and got.readout_sd_se == 0.0
     assert np.max(np.abs(z)) < 3.5 and 0.4 < np.std(z, ddof=1) < 1.6, z
+
+
+def test_the_stated_error_is_the_spread_of_the_estimate_over_frames():
+    # Independent truth: the SD of M over 1200 independent 64 x 64 frames (64 blocks) from the
+    # camera's own sampler (bayespsf.cameras, not the bootstrap's draws), known to 2.0%
+    # (1 / sqrt(2 x 1199)). The stated SE, averaged over 32 frames (its CV ~16% at 64 blocks),
+    # is known to 2.9%: the ratio to 3.5%. The SE is the larger of two estimates of the spread,
+    # so somewhat above it (1.05 over 300 frames at this size); the ratio must lie in
+    # 0.895..1.25, so an SE 10% below the spread fails (3 of the ratio's SDs). And at least 27
+    # of the 32 within 1.96 SE (fails with probability 0.005 at a coverage of 0.95).
+    known = Known(readout_e=50.0, e_per_adu=12.0)
+    keep = np.ones((64, 64), bool)
+    spread = []
+    for chunk in range(3):
+        sums = block_sums(emccd_frames(400, (64, 64), 100 + chunk), keep)
+        trace, cubes, _, _ = sums.factors  # each frame's K2 and K3 (module docstring)
+        for k2, k3 in zip(sums.s2.mean(axis=0) / trace, sums.s3.mean(axis=0) / cubes, strict=True):
+            spread.append(solve(np.array([0.0, k2, k3, 0.0]), 2.0, known)[0])
+    stated, z = [], []
+    for seed in range(32):
+        got = spatial_photon_transfer(
+            block_sums(emccd_frames(1, (64, 64), 1000 + seed), keep), 2.0, known, seed=seed
+        )
+        stated.append(got.adu_per_photon_se)
+        z.append((got.adu_per_photon - 200.0 / 12.0) / got.adu_per_photon_se)
+    ratio = np.mean(stated) / np.std(spread, ddof=1)
+    assert 0.895 < ratio < 1.25, ratio
+    assert np.sum(np.abs(z) <= 1.96) >= 27, z
 
 
 def test_too_little_background_and_a_readout_above_the_noise_are_refused():
