@@ -273,8 +273,9 @@ def calibrate_camera(
             "command line (the camera file written then holds it as [geometry] pixel_size), "
             "or pixel_size= from Python"
         )
+    s0_source = "given"
     if s0 is None:  # the spot's SD: estimated where not stated (no camera yet)
-        s0 = estimate_psf_sd(movie, pixel_size=pixel_size, fit=fit).sd
+        s0, s0_source = estimate_psf_sd(movie, pixel_size=pixel_size, fit=fit).sd, "estimated"
     excess = EXCESS[kind]
     if len(movie) < MIN_FRAMES:  # too few frames for the cumulants or the molecules
         return calibrate_short(
@@ -311,7 +312,9 @@ def calibrate_camera(
     )
     chosen = found.molecules[found.molecules["selected"]]
     if len(chosen) < 2:
-        raise BayespsfInputError(_too_few_molecules(found, len(chosen), s0, pixel_size, stated))
+        raise BayespsfInputError(
+            _too_few_molecules(found, len(chosen), (s0, s0_source), pixel_size, stated)
+        )
     frames = found.frames
     frames = frames[frames["before_bleach"] & frames["molecule"].isin(chosen["molecule"])]
     gain = gain_from_molecules(movie, chosen, frames, roi=roi, fit=fit, excess=excess)
@@ -338,18 +341,25 @@ def calibrate_camera(
 
 
 def _too_few_molecules(found, selected: int, s0, pixel_size: float, stated: bool) -> str:
-    """Why fewer than 2 molecules can calibrate the ADU per photon, and what would help."""
+    """Why fewer than 2 molecules can calibrate the ADU per photon, and what would help
+    (``s0``: the spot's SD in nm and ``"given"`` or ``"estimated"``)."""
+    s0, source = s0
     candidates = found.candidates
     accepted = int((candidates["status"] == "accepted").sum())
     left_out = found.molecules.loc[~found.molecules["selected"].astype(bool), "rejected_by"]
     reasons = ", ".join(f"{rule} {n}" for rule, n in left_out.value_counts().items())
     helps = (
-        f"if the movie holds spots, check --psf-sd (the spot's SD, {s0:g} nm given) and "
+        f"if the movie holds spots, check --psf-sd (the spot's SD, {s0:g} nm {source}) and "
         f"--pixel-size ({pixel_size:g} nm, "
         + ("as given" if stated else "from the movie's metadata")
         + "), and --roi and --fit; `bayespsf detect` on the movie shows what was found and why "
         "each candidate was left out (its selection report)"
     )
+    if "photon_window" in set(left_out):  # a short movie, or molecules that bleach early
+        helps = (
+            "molecules with fewer valid frames than the rules ask count with --min-valid-frames "
+            f"N or --rules none; {helps}"
+        )
     if selected == 0:
         if accepted == 0:
             what = (

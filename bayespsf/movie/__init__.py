@@ -7,12 +7,13 @@ a stated false-positive rate; ``cut_rois`` cuts each molecule's ROIs over time;
 ``molecules_over_time`` gives per-frame photons, background and centroid, the bleaching steps
 (``bleach_steps``) and the drift; ``select`` applies the paper's selection rules (``Rules``);
 ``find_molecules`` composes them all; ``estimate_psf_sd`` measures the spot's SD where it is
-not stated. The camera's calibration from a movie is in
-``bayespsf.calibration``.
+not stated, and ``geometry_for_psf`` sizes the ROI and its fitted centre from it. The
+camera's calibration from a movie is in ``bayespsf.calibration``.
 """
 
 from bayespsf.movie.detect import detect, detect_frames, detect_movie
 from bayespsf.movie.extract import RoiStack, cut_rois, iter_rois
+from bayespsf.movie.geometry import geometry_for_psf
 from bayespsf.movie.pipeline import FoundMolecules, find_molecules
 from bayespsf.movie.project import project
 from bayespsf.movie.psf_width import PsfWidth, estimate_psf_sd
@@ -34,6 +35,7 @@ __all__ = [
     "detect_movie",
     "estimate_psf_sd",
     "find_molecules",
+    "geometry_for_psf",
     "iter_rois",
     "molecules_over_time",
     "project",

@@ -1,28 +1,86 @@
 """Candidates from a score map: local maxima above a threshold, refined to sub-pixel positions,
-and the rejections that keep each molecule's ROI inside the image and apart from the others."""
+and the rejections that keep each molecule's ROI inside the image and its windows clear of its
+neighbours' light (``crowded``; ``bayespsf.movie.geometry`` states the light)."""
 
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage, spatial
+from scipy import ndimage, spatial, special
+
+from bayespsf.movie.geometry import ring_masks, window_light
 
 STATUSES = ("accepted", "rejected: edge", "rejected: neighbour")
+NEIGHBOUR_SDS = 1.0  # a neighbour's light allowed in a window, in SDs of its summed noise
 
 
-def find_peaks(score: np.ndarray, threshold: float, roi: int, min_distance: float):
+def find_peaks(score: np.ndarray, threshold: float, roi: int, min_distance: float | None):
     """``(rows, cols, status, dy, dx)`` of the local maxima (3 × 3) of ``score`` above
     ``threshold``, in image order: ``rejected: edge`` where a ``roi`` × ``roi`` cut centred on
-    the peak would cross the image's edge, else ``rejected: neighbour`` where another peak is
-    closer than ``min_distance`` in rows or in columns, else ``accepted``."""
+    the peak would cross the image's edge, else (unless ``min_distance`` is None) ``rejected:
+    neighbour`` where another peak is closer than ``min_distance`` in rows or in columns, else
+    ``accepted``."""
     peak = score == ndimage.maximum_filter(score, size=3, mode="constant", cval=-np.inf)
     rows, cols = np.nonzero(peak & (score > threshold))
     status = np.full(rows.size, STATUSES[0], dtype=object)
-    status[_near(rows, cols, min_distance)] = STATUSES[2]
+    if min_distance is not None:
+        status[_near(rows, cols, min_distance)] = STATUSES[2]
     h = roi // 2
     height, width = score.shape
     edge = (rows < h) | (cols < h) | (rows >= height - h) | (cols >= width - h)
     status[edge] = STATUSES[1]
     return (rows, cols, status, *_subpixel(score, rows, cols))
+
+
+def crowded(peaks, amplitude, variance, noise_var, s: float, roi: int, fit: int, least: int):
+    """Where a neighbour's light costs a candidate its place (``rejected: neighbour``).
+
+    ``peaks`` is ``(rows, cols, status, dy, dx)`` (``find_peaks``); only candidates not at
+    the edge are judged, every candidate is a source of light. Candidate ``i`` is crowded when
+
+    1. another candidate ``j`` puts more than ``NEIGHBOUR_SDS`` (1) SD of the summed noise of
+       ``i``'s ``fit`` x ``fit`` window into it: ``window_light(A_j) > sqrt(Σ var_i)``, the
+       pixels' variances with ``i``'s own spot on them (``variance``: ``spot_variance``),
+       ``A`` the matched filter's amplitudes; or
+    2. the periphery left once the pixels that the neighbours' light reaches are masked out
+       (``geometry.ring_masks``, bound ``sqrt(n v_i)`` over the ring's ``n`` pixels at
+       ``noise_var`` ``v_i``) holds fewer than ``least`` pixels (``min_periphery``).
+
+    The rule holds whoever is brighter: a faint neighbour that barely touches a bright spot's
+    window puts little light into it and leaves it, a bright one takes a faint spot's place,
+    and of two spots that overlap both go.
+    """
+    rows, cols, status, dy, dx = peaks
+    judged = np.flatnonzero(status != STATUSES[1])
+    out = np.zeros(rows.size, dtype=bool)
+    if rows.size < 2 or not judged.size:
+        return out
+    amplitude = np.maximum(np.asarray(amplitude, dtype=np.float64), 0.0)
+    y, x = rows + dy, cols + dx
+    h = fit // 2
+    offsets = np.arange(-h, h + 1)
+    win_r, win_c = rows[judged, None] + offsets, cols[judged, None] + offsets
+
+    def fractions(delta):  # the spot's share per pixel of the window, along one axis
+        edges = (offsets[None, :] - delta[:, None])[..., None] + np.array([-0.5, 0.5])
+        return np.diff(special.ndtr(edges / s), axis=-1)[..., 0]
+
+    own = amplitude[judged, None, None] * fractions(dy[judged])[:, :, None]
+    own = own * fractions(dx[judged])[:, None, :]
+    bound = np.full(rows.size, np.inf)
+    bound[judged] = NEIGHBOUR_SDS * np.sqrt(variance(win_r, win_c, own).sum(axis=(1, 2)))
+    ring = np.sqrt((roi * roi - fit * fit) * np.broadcast_to(noise_var, rows.shape))
+    least_bound = max(min(ring.min() if roi > fit else np.inf, bound[judged].min()), 1e-300)
+    reach = roi // 2 + 2.0 + s * np.sqrt(2.0 * np.log(max(amplitude.max() / least_bound, 1.0)))
+    tree = spatial.cKDTree(np.column_stack([rows, cols]))
+    pairs = tree.query_pairs(reach, p=np.inf, output_type="ndarray")
+    i, j = np.concatenate([pairs, pairs[:, ::-1]]).T
+    light = window_light(amplitude[j], y[j], x[j], rows[i], cols[i], s, fit)
+    np.logical_or.at(out, i, light > bound[i])
+    if roi > fit:
+        left = judged[~out[judged]]
+        kept = ring_masks(rows[left], cols[left], left, y, x, amplitude, ring[left], s, roi, fit)
+        out[left] |= kept.sum(axis=(1, 2)) < least
+    return out
 
 
 def _near(rows: np.ndarray, cols: np.ndarray, distance: float) -> np.ndarray:

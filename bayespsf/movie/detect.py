@@ -34,6 +34,16 @@ by pixel over the same window. With a camera, the variance the background pixels
 the law (a per-pixel offset pattern, which a projection keeps whole) is added to the law as a
 Gaussian term (``_background.fixed_pattern_variance``).
 
+Neighbours. Every candidate is a source of light, its amplitude ``N̂`` spread as the spot
+(``geometry.window_light``). One is ``rejected: neighbour`` when another puts more than one SD
+of the summed noise of its ``fit`` x ``fit`` window into that window (each pixel's variance with
+its own spot on it), or when masking its neighbours' light out of its periphery leaves fewer
+pixels than the photon aperture's (``_peaks.crowded``, ``bayespsf.movie.geometry``). The rule
+holds whoever is brighter: a faint candidate that barely touches a bright spot's window leaves
+it, a bright one takes a faint one's place, and of two that overlap both go. ``min_distance``
+replaces it by the fixed rule: both of any pair closer than that in rows or in columns go
+(``min_distance=roi``: the paper's isolated molecules, ROIs that never overlap).
+
 Flags. ``saturated`` counts the pixels of the spot's template window at the ADC's full scale
 (the camera's declared ``saturation`` or an integer type's largest value) in some frame;
 ``elongated`` marks a spot whose second moments reject one round spot
@@ -72,8 +82,9 @@ from bayespsf.movie._noise import (
     template,
     threshold_map,
 )
-from bayespsf.movie._peaks import STATUSES, elongation, find_peaks, saturated_near
-from bayespsf.movie.extract import frame_span, open_movie, photon_model
+from bayespsf.movie._peaks import STATUSES, crowded, elongation, find_peaks, saturated_near
+from bayespsf.movie.extract import check_sizes, frame_span, open_movie, photon_model
+from bayespsf.movie.geometry import geometry_for_psf, min_periphery
 from bayespsf.movie.project import project_with_saturation
 
 if TYPE_CHECKING:
@@ -108,7 +119,8 @@ def detect(
     noise_var: float | ArrayLike | None = None,
     background: float | ArrayLike | None = None,
     false_positives: float = 0.01,
-    roi: int = 25,
+    roi: int | None = None,
+    fit: int | None = None,
     min_distance: float | None = None,
 ) -> pd.DataFrame:
     """Candidate molecules in one image (photons): local maxima of the matched-filter score.
@@ -131,13 +143,16 @@ def detect(
     false_positives : float, default 0.01
         Expected number of background pixels above the threshold per image (> 0, below the
         number of pixels): a bound on the expected number of false candidates per image.
-    roi : int, default 25
-        Odd side of the ROI (pixels) to be cut around each molecule; a candidate whose ROI
-        would cross the image's edge is ``rejected: edge``.
+    roi, fit : int, optional
+        Odd sides (pixels) of the ROI to be cut around each molecule and of its fitted centre;
+        default ``geometry_for_psf(psf_sd, pixel_size)``'s (25 and 15 for the paper's 120 nm
+        spot on 79 nm pixels; ``fit`` at most ``roi``). A candidate whose ROI would cross the
+        image's edge is ``rejected: edge``.
     min_distance : float, optional
-        Two candidates whose peak pixels are closer than this in rows or in columns (Chebyshev
-        distance, pixels) are both ``rejected: neighbour``; by default ``roi``, so that
-        accepted ROIs never overlap.
+        The fixed rule instead of the light rule (module docstring): two candidates whose peak
+        pixels are closer than this in rows or in columns (Chebyshev distance, pixels) are
+        both ``rejected: neighbour`` (``min_distance=roi``: the paper's isolated molecules,
+        ROIs that never overlap).
 
     Returns
     -------
@@ -173,8 +188,8 @@ def detect(
         An image that is not 2-D of at least 3 x 3 finite values, constant (named: all zero,
         saturated), mostly saturated or without noise; a ``noise_var`` or ``background`` of
         the wrong shape, a noise variance <= 0, a background below 0 beyond the noise; a
-        ``false_positives`` outside (0, number of pixels); a bad ``roi``; a ``pixel_size``
-        outside 1 nm to 10 µm.
+        ``false_positives`` outside (0, number of pixels); a bad ``roi`` or ``fit``; a
+        ``pixel_size`` outside 1 nm to 10 µm.
 
     See Also
     --------
@@ -185,17 +200,13 @@ def detect(
 
     Notes
     -----
-    The test, its threshold and the flags are stated in the module docstring; here ``T`` is
-    taken as N(0, 1) under the null, ``t = Φ⁻¹(1 - false_positives / n)`` over ``n`` pixels.
+    The test (Kay, vol. II, secs. 4.3, 4.5 and 7.4), its threshold, the neighbour rule and
+    the flags are stated in the module docstring; here ``T`` is taken as N(0, 1) under the
+    null, ``t = Φ⁻¹(1 - false_positives / n)`` over ``n`` pixels.
 
     Positions are refined by fitting a Gaussian through the score at the peak pixel and its
     two neighbours along each axis (a parabola through ``log T``; a parabola through ``T``
     where a neighbour's score is not positive).
-
-    References
-    ----------
-    .. [1] S. M. Kay, *Fundamentals of Statistical Signal Processing, Vol. II: Detection
-       Theory* (Prentice Hall, 1998), secs. 4.3, 4.5 and 7.4.
 
     Examples
     --------
@@ -213,7 +224,7 @@ def detect(
        molecule     x     y    status
     0         0  37.0  32.0  accepted
     """
-    options = (noise_var, background, false_positives, roi, min_distance)
+    options = (noise_var, background, false_positives, roi, fit, min_distance)
     return _detect(image, psf_sd, pixel_size, *options)
 
 
@@ -224,7 +235,8 @@ def _detect(
     noise_var,
     background,
     false_positives=0.01,
-    roi=25,
+    roi=None,
+    fit=None,
     min_distance=None,
     *,
     law=None,
@@ -240,10 +252,13 @@ def _detect(
         raise BayespsfInputError(f"image must be 2-D (h, w) with h, w >= 3, got {image.shape}")
     check_pixel_size(pixel_size, "pixel_size=")
     spot = template(psf_sd, pixel_size, image.shape)
-    roi, _ = psf.check_geometry(roi, pixel_size)
-    min_distance = (
-        roi if min_distance is None else scalar_in_range("min_distance", min_distance, 0.0)
-    )
+    if roi is None or fit is None:
+        sides = geometry_for_psf(psf_sd, pixel_size)
+        roi = sides[0] if roi is None else psf.check_geometry(roi, pixel_size)[0]
+        fit = min(sides[1], roi) if fit is None else fit
+    check_sizes(roi, fit)
+    if min_distance is not None:
+        min_distance = scalar_in_range("min_distance", min_distance, 0.0)
     fp = scalar_in_range("false_positives", false_positives, 0.0, image.size, low_inclusive=False)
     if fp >= image.size:
         raise BayespsfInputError(f"false_positives must be below the {image.size} pixels")
@@ -260,10 +275,8 @@ def _detect(
             )
     # pixels left out of the estimates: those near a score above the threshold (the law's)
     level = gaussian if law is None else threshold_map(law, spot, np.median(image), fp_p)
-    options = (background, noise_var, law)
-    back, back_source, var, source, law, pattern = background_and_noise(
-        image, spot, 3 * roi, level, estimate, *options
-    )
+    found = background_and_noise(image, spot, 3 * roi, level, estimate, background, noise_var, law)
+    back, back_source, var, source, law, pattern = found
     if np.any(var <= 0):
         raise BayespsfInputError("noise_var must be > 0 photons²")
     if law is None:  # the image's own noise, else five readout SDs of one frame (ADU check)
@@ -273,14 +286,17 @@ def _detect(
     check_background(back, tolerance, back_source)
     threshold = gaussian if law is None else threshold_map(law, spot, back, fp_p)
     score, amplitude = matched_filter(image - back, var, spot)
-    rows, cols, status, dy, dx = find_peaks(score, threshold, roi, min_distance)
-    shape = elongation(
-        image - back, spot_variance(law, var, back), rows, cols, dy, dx, psf_sd, pixel_size
-    )
-    threshold = np.broadcast_to(threshold, image.shape)
+    peaks = rows, cols, status, dy, dx = find_peaks(score, threshold, roi, min_distance)
+    variance = spot_variance(law, var, back)
 
     def at(values):  # a map's (or a number's) values at the peaks
         return np.broadcast_to(values, image.shape)[rows, cols]
+
+    if min_distance is None:  # the light rule
+        sides = (psf_sd / pixel_size, roi, fit, min_periphery(psf_sd, pixel_size))
+        status[crowded(peaks, at(amplitude), variance, at(var), *sides)] = STATUSES[2]
+    shape = elongation(image - back, variance, rows, cols, dy, dx, psf_sd, pixel_size)
+    threshold = np.broadcast_to(threshold, image.shape)
 
     values = (np.arange(rows.size), cols + dx, rows + dy, rows, cols, at(score), at(amplitude))
     values += (at(back), status, at(threshold), at(var), source)
@@ -299,7 +315,8 @@ def _detect(
         "fixed_pattern_var": pattern,
         "background_source": back_source,
         "roi": roi,
-        "min_distance": float(min_distance),
+        "fit": fit,
+        "min_distance": None if min_distance is None else float(min_distance),
         "counts": {s: int(np.count_nonzero(status == s)) for s in STATUSES},
         "saturated_pixels": 0 if saturated is None else int(np.count_nonzero(saturated)),
     }
@@ -337,8 +354,8 @@ def detect_movie(
     frames : slice or range, optional
         Consecutive frames to project (default all).
     **options
-        ``noise_var``, ``background``, ``false_positives``, ``roi``, ``min_distance``: as
-        ``detect``.
+        ``noise_var``, ``background``, ``false_positives``, ``roi``, ``fit``,
+        ``min_distance``: as ``detect``.
 
     Returns
     -------
@@ -364,17 +381,10 @@ def detect_movie(
     span = frame_span(movie, frames)
     level = saturation_level(movie.dtype, camera)
     image, counts = project_with_saturation(movie, projection, level, frames=span)
-    table = _detect_photons(
-        image,
-        len(span) if projection == "mean" or len(span) == 1 else None,
-        movie,
-        psf_sd,
-        pixel_size,
-        camera,
-        options,
-        None if counts is None else counts > 0,
-        f"{movie.path}: the {projection} projection of frames {span.start}-{span.stop - 1}",
-    )
+    averaged = len(span) if projection == "mean" or len(span) == 1 else None
+    what = f"{movie.path}: the {projection} projection of frames {span.start}-{span.stop - 1}"
+    mask = None if counts is None else counts > 0
+    table = _detect_photons(image, averaged, movie, psf_sd, pixel_size, camera, options, mask, what)
     table.attrs["detection"].update(projection=projection, frames=[span.start, span.stop])
     return table
 
@@ -486,13 +496,5 @@ def _detect_photons(image, frames, movie, psf_sd, pixel_size, camera, options, s
         if frames is not None and options["noise_var"] is None:
             options["noise_var"] = lambda back: camera_noise_variance(model, back, frames)
             law = pixel_law(model, frames)
-    return _detect(
-        image,
-        psf_sd,
-        pixel_size,
-        options.pop("noise_var"),
-        options.pop("background"),
-        **options,
-        law=law,
-        saturated=saturated,
-    )
+    given = options.pop("noise_var"), options.pop("background")
+    return _detect(image, psf_sd, pixel_size, *given, **options, law=law, saturated=saturated)

@@ -85,8 +85,9 @@ class RoiStack:
         photons with the camera's mean conversion (``Model.to_photons``: offset removed, times
         photons per ADU; the paper's Eq. photonConv), and its standard error (the ring's SD
         over the square root of its pixel count). The mean, not the median, because EMCCD
-        counts are skewed: their mean is unbiased for the expected background. The ring must
-        hold no other molecule (detection rejects neighbours whose ROIs overlap).
+        counts are skewed: their mean is unbiased for the expected background. The whole ring
+        is used: where neighbours' light reaches it, ``bayespsf.movie.geometry``'s
+        ``periphery_background`` masks it out (``find_molecules`` does).
 
         Parameters
         ----------

@@ -20,8 +20,10 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import fit_mle
 from bayespsf.io import run_record
 from bayespsf.model import Model
+from bayespsf.movie._metadata import resolve_pixel_size
 from bayespsf.movie.detect import detect_movie
-from bayespsf.movie.extract import RoiStack, check_sizes, iter_rois, open_movie, photon_model
+from bayespsf.movie.extract import RoiStack, iter_rois, open_movie, photon_model
+from bayespsf.movie.geometry import movie_geometry, periphery_background, periphery_masks
 from bayespsf.movie.psf_width import PsfWidth, resolve_psf_sd
 from bayespsf.movie.read import Movie
 from bayespsf.movie.select import Rules, report_markdown, select
@@ -55,6 +57,9 @@ class FoundMolecules:
         What identifies the run that found them (``selection_run``), for ``write``'s record.
     psf_width : PsfWidth or None
         The spot's SD used: given, or estimated with its error (``estimate_psf_sd``).
+    geometry : dict
+        The sides used, ``roi`` and ``fit`` (pixels), and their ``source``: ``given``, ``from
+        s0`` (``geometry_for_psf``) or one of each.
 
     See Also
     --------
@@ -69,16 +74,19 @@ class FoundMolecules:
     rules: Rules
     run: dict = field(default_factory=dict)
     psf_width: PsfWidth | None = None
+    geometry: dict = field(default_factory=dict)
 
     def report_markdown(self) -> str:
         """The selection report as markdown (``select.report_markdown``), the number of
-        candidates detected by status and the spot's SD (given or estimated)."""
+        candidates detected by status, the spot's SD (given or estimated) and the geometry."""
         detected = self.candidates["status"].value_counts()
         counts = ", ".join(f"{k}: {v}" for k, v in detected.items()) or "none"
         note = "" if self.psf_width is None else f"\nThe {self.psf_width.summary()}.\n"
-        return (
-            report_markdown(self.report, self.rules) + f"\nCandidates detected: {counts}.\n{note}"
-        )
+        if self.geometry:
+            roi, fit, source = (self.geometry[k] for k in ("roi", "fit", "source"))
+            note += f"\nROI {roi} x {roi} pixels, fitted centre {fit} x {fit} ({source}).\n"
+        text = report_markdown(self.report, self.rules)
+        return text + f"\nCandidates detected: {counts}.\n{note}"
 
 
 def fit_model(model: Model, fit: int) -> Model:
@@ -99,6 +107,7 @@ def frame_fits(
     block: int = 64,
     until: pd.Series | None = None,
     progress: bool | None = None,
+    periphery: np.ndarray | None = None,
 ) -> pd.DataFrame:
     """Per (molecule, frame): the maximum-likelihood fit of the central ROI and its SNR terms.
 
@@ -121,6 +130,9 @@ def frame_fits(
         molecule's bleaching step (a frame without a spot has no width to measure).
     progress : bool, optional
         A progress bar on stderr (default: when it is a terminal).
+    periphery : numpy.ndarray of bool, shape (molecules, roi, roi), optional
+        Each molecule's periphery pixels for the background (``periphery_masks``); default
+        the whole ring outside ``fit``.
 
     Returns
     -------
@@ -141,18 +153,10 @@ def frame_fits(
     3; ``sigma_b^2`` is the periphery's variance (its mean's squared SE times its pixels).
     """
     fitting = fit_model(model, fit)
-    ring_pixels = roi * roi - fit * fit
+    order = pd.Index(molecules["molecule"])
     parts = []
-    for stack in iter_rois(
-        movie,
-        molecules,
-        roi=roi,
-        fit=fit,
-        frames=frames,
-        block=block,
-        progress=progress,
-        desc="fits",
-    ):
+    cut = dict(roi=roi, fit=fit, frames=frames, block=block, progress=progress, desc="fits")
+    for stack in iter_rois(movie, molecules, **cut):
         keep = np.ones(len(stack), dtype=bool)
         if until is not None:
             end = stack.table["molecule"].map(until)
@@ -161,14 +165,16 @@ def frame_fits(
             continue
         stack = RoiStack(stack.counts[keep], stack.table[keep].reset_index(drop=True), fit)
         fits = fit_mle(stack.central(), fitting, laplace=False, crlb=False)
-        ring = stack.periphery_background(model)
+        ring = periphery_background(
+            stack, model, periphery, order.get_indexer(stack.table["molecule"])
+        )
         central = fitting.to_photons(stack.central())
         part = stack.table.copy()
         part["s_x"], part["s_y"] = fits["s_x"].to_numpy(), fits["s_y"].to_numpy()
         part["N_fit"], part["b_fit"] = fits["N"].to_numpy(), fits["b"].to_numpy()
         part["fit_converged"] = fits["converged"].to_numpy(bool)
         part["peak"] = central.max(axis=(-2, -1)) - ring["b"].to_numpy()
-        part["background_var"] = ring["b_se"].to_numpy() ** 2 * ring_pixels
+        part["background_var"] = ring["b_se"].to_numpy() ** 2 * ring["pixels"].to_numpy()
         parts.append(part)
     return pd.concat(parts, ignore_index=True)
 
@@ -178,8 +184,8 @@ def selection_run(
     model: Model,
     *,
     s0: float | None,
-    roi: int = 25,
-    fit: int = 15,
+    roi: int | None = None,
+    fit: int | None = None,
     false_positives: float = 0.01,
     projection: str = "mean",
     rules: Rules | None = None,
@@ -198,7 +204,9 @@ def selection_run(
         ``command`` (``"detect"``), ``movie`` (per file its ``file_fingerprint``, then the
         movie's shape, data type and channel; not its path: a moved movie is the same),
         ``camera`` (the model for ``fit`` x ``fit`` ROIs, its CIC and saturation), ``psf
-        sd`` (or ``"estimated"``), ``roi``, ``fit``, ``false positives``, ``projection``, ``rules``.
+        sd`` (or ``"estimated"``), ``roi`` and ``fit`` (pixels, or ``"from s0"`` where they
+        follow an estimated SD), ``geometry`` (their source, ``resolve_geometry``), ``false
+        positives``, ``projection``, ``rules``.
 
     Raises
     ------
@@ -206,11 +214,11 @@ def selection_run(
         Even or inconsistent ``roi`` and ``fit``, or a movie file that cannot be read.
     """
     movie = open_movie(movie)
-    check_sizes(roi, fit)
+    roi, fit, source = movie_geometry(movie, model, roi, fit, s0)
     files = movie.path if isinstance(movie.path, tuple) else (movie.path,)
     camera = [repr(model)]
     if isinstance(model, Model):
-        fitting = model.for_roi(fit)
+        fitting = model.for_roi(model.roi if fit is None else fit)
         camera = [repr(fitting), fitting.clock_induced_charge, fitting.saturation]
     shape = [*movie.shape, str(movie.dtype), movie.metadata.get("channel")]
     return {
@@ -218,8 +226,9 @@ def selection_run(
         "movie": {"files": [run_record.file_fingerprint(f) for f in files], "shape": shape},
         "camera": camera,
         "psf sd": "estimated" if s0 is None else s0,
-        "roi": roi,
-        "fit": fit,
+        "roi": "from s0" if roi is None else roi,
+        "fit": "from s0" if fit is None else fit,
+        "geometry": source,
         "false positives": false_positives,
         "projection": projection,
         "selection rules": asdict(Rules() if rules is None else rules),
@@ -231,8 +240,8 @@ def find_molecules(
     model: Model,
     *,
     s0: float | None = None,
-    roi: int = 25,
-    fit: int = 15,
+    roi: int | None = None,
+    fit: int | None = None,
     false_positives: float = 0.01,
     projection: str = "mean",
     rules: Rules | None = None,
@@ -250,9 +259,11 @@ def find_molecules(
     s0 : float, optional
         The spot's SD in nm (detector's template, traces' aperture); default estimated from
         the movie (``bayespsf.movie.estimate_psf_sd``, with ``model`` and ``fit``).
-    roi, fit : int, default 25 and 15
-        Odd sides in pixels of the cut around each molecule and of its fitted centre (the
-        paper's 25 and 15); the cut's periphery outside ``fit`` gives the background.
+    roi, fit : int, optional
+        Odd sides in pixels of the cut around each molecule and of its fitted centre; default
+        from the spot's SD (``geometry_for_psf``: the paper's 25 and 15 at s0 = 120 nm on
+        79 nm pixels). The cut's periphery outside ``fit``, less the pixels its neighbours'
+        light reaches (``periphery_masks``), gives the background.
     false_positives : float, default 0.01
         Expected false detections per projected image (``detect``).
     projection : {"mean", "median"}, default "mean"
@@ -269,9 +280,7 @@ def find_molecules(
     FoundMolecules
         Every stage's table, photons in detected photoelectrons (``photon_unit``):
 
-        - ``candidates``: ``detect``'s columns (``molecule``, ``x``, ``y``, ``row``, ``col``,
-          ``score``, ``amplitude``, ``background``, ``status``, ``threshold``,
-          ``noise_var``, ``noise_source``) and ``photon_unit``;
+        - ``candidates``: ``detect``'s columns and ``photon_unit``;
         - ``molecules``: one row per candidate with ``molecule``, ``x``, ``y`` (camera
           pixels, picasso's convention), ``steps``, ``bleach_frame`` (nullable integer),
           ``frames_before``, ``multiple_steps``, ``photons_mean``, ``drift_x``,
@@ -280,13 +289,15 @@ def find_molecules(
           detection have only ``molecule``, ``x``, ``y``, ``selected`` (False) and
           ``rejected_by`` (``detection: edge`` or ``detection: neighbour``) filled;
         - ``frames``: one row per (molecule, frame) of the accepted candidates: the trace's
-          ``photons``, ``photons_se``, ``b``, ``b_se``, ``x``, ``y``; the ROI's ``row0``,
+          ``photons``, ``photons_se``, ``photons_psf``, ``photons_psf_se``, ``b``, ``b_se``,
+          ``x``, ``y``; the ROI's ``row0``,
           ``col0``; the fit's ``s_x``, ``s_y`` (nm), ``N_fit``, ``b_fit``,
           ``fit_converged``; ``peak`` (``I0``, photons) and ``background_var``
           (``sigma_b^2``, photons²); ``before_bleach``, ``rejected_by``, ``valid`` and
           ``photon_unit`` (fits only before the bleaching step: NaN after it);
         - ``report``: the selection report (``select``);
-        - ``rules``: the rules applied; ``psf_width``: the SD used (given or estimated).
+        - ``rules``: the rules applied; ``psf_width``: the SD used (given or estimated);
+          ``geometry``: the sides used and their source.
 
     Raises
     ------
@@ -337,11 +348,6 @@ def find_molecules(
     rules = Rules() if rules is None else rules
     settings = dict(s0=s0, roi=roi, fit=fit, false_positives=false_positives, rules=rules)
     run = selection_run(movie, model, **settings, projection=projection)  # checks roi, fit
-    if roi > min(movie.shape[1:]):
-        raise BayespsfInputError(
-            f"roi ({roi}) is larger than the movie's frames ({movie.shape[1]} x {movie.shape[2]}): "
-            "every candidate would lie too close to an edge"
-        )
     if "photon_window" not in rules.skip and len(movie) < rules.min_valid_frames:
         raise BayespsfInputError(
             f"the movie has {len(movie)} frame(s), fewer than the {rules.min_valid_frames} "
@@ -349,36 +355,32 @@ def find_molecules(
             "photon_window or --rules none on the command line; Rules(min_valid_frames=...) or "
             "skip=('photon_window',) in Python)"
         )
-    width = resolve_psf_sd(movie, model, s0, fit=fit, false_positives=false_positives)
+    sides = {} if fit is None else {"fit": fit}
+    width = resolve_psf_sd(movie, model, s0, false_positives=false_positives, **sides)
+    roi, fit, source = movie_geometry(movie, model, roi, fit, width.sd)
+    if roi > min(movie.shape[1:]):
+        raise BayespsfInputError(
+            f"roi ({roi}) is larger than the movie's frames ({movie.shape[1]} x "
+            f"{movie.shape[2]}): every candidate would lie too close to an edge (geometry "
+            f"{source}; roi= or --roi states a smaller one)"
+        )
     rules = rules.for_psf(width.sd)  # the width range follows the spot's SD
-    candidates = detect_movie(
-        movie,
-        psf_sd=width.sd,
-        camera=model,
-        projection=projection,
-        false_positives=false_positives,
-        roi=roi,
-    )
+    options = dict(camera=model, projection=projection, false_positives=false_positives)
+    candidates = detect_movie(movie, psf_sd=width.sd, roi=roi, fit=fit, **options)
     accepted = candidates[candidates["status"] == "accepted"].reset_index(drop=True)
     if accepted.empty:
-        per_molecule = pd.DataFrame(
-            {
-                "molecule": accepted["molecule"],
-                "x": accepted["x"],
-                "y": accepted["y"],
-                "bleach_frame": pd.Series(dtype=float),
-                "selected": pd.Series(dtype=bool), "rejected_by": ""}
-        )  # fmt: skip
+        per_molecule = accepted[["molecule", "x", "y"]].assign(
+            bleach_frame=pd.Series(dtype=float), selected=pd.Series(dtype=bool), rejected_by=""
+        )
         frames = pd.DataFrame(columns=["molecule", "frame"])
         report = pd.DataFrame([{"rule": "no molecule accepted by detection"}])
     else:
-        per_molecule, per_frame = molecules_over_time(
-            movie, accepted, model, s0=width.sd, roi=roi, fit=fit, block=block, progress=progress
-        )
+        a = resolve_pixel_size(None, model, movie)
+        kept = periphery_masks(accepted, candidates, s0=width.sd, pixel_size=a, roi=roi, fit=fit)
+        cut = dict(roi=roi, fit=fit, block=block, progress=progress, periphery=kept)
+        per_molecule, per_frame = molecules_over_time(movie, accepted, model, s0=width.sd, **cut)
         until = per_molecule.set_index("molecule")["bleach_frame"]
-        fitted = frame_fits(
-            movie, accepted, model, roi=roi, fit=fit, block=block, until=until, progress=progress
-        )
+        fitted = frame_fits(movie, accepted, model, until=until, **cut)
         frames = per_frame.merge(
             fitted, on=["molecule", "frame"], how="left", suffixes=("", "_roi")
         )
@@ -386,15 +388,8 @@ def find_molecules(
         frames["before_bleach"] = (bleach.isna() | (frames["frame"] < bleach)).to_numpy(bool)
         per_molecule, frames, report = select(per_molecule, frames, rules)
     rejected = candidates[candidates["status"] != "accepted"]
-    others = pd.DataFrame(
-        {
-            "molecule": rejected["molecule"].to_numpy(),
-            "x": rejected["x"].to_numpy(),
-            "y": rejected["y"].to_numpy(),
-            "selected": False,
-            "rejected_by": "detection: " + rejected["status"].str.replace("rejected: ", ""),
-        }
-    )
+    reason = "detection: " + rejected["status"].str.replace("rejected: ", "")
+    others = rejected[["molecule", "x", "y"]].assign(selected=False, rejected_by=reason)
     columns = list(dict.fromkeys([*per_molecule.columns, *others.columns]))
     parts = [t for t in (per_molecule, others) if len(t)]  # pandas warns on empty parts
     molecules = pd.concat(parts, ignore_index=True) if parts else per_molecule
@@ -405,7 +400,8 @@ def find_molecules(
     unit = photon_model(model).photon_unit_label
     for table in (candidates, molecules, frames):
         table["photon_unit"] = unit
-    return FoundMolecules(candidates, molecules, frames, report, rules, run, width)
+    geometry = {"roi": roi, "fit": fit, "source": source}
+    return FoundMolecules(candidates, molecules, frames, report, rules, run, width, geometry)
 
 
 SELECTION_FILES = ("candidates.csv", "molecules.csv", "frames.csv", "selection.md")
@@ -463,7 +459,8 @@ def write(
         Files to copy verbatim into ``out``, by their name there (the command's camera file,
         as ``camera.toml``); their bytes are part of the run's record.
     about : mapping, optional
-        Kept in the record, not compared (the movie path); the spot's SD used is added.
+        Kept in the record, not compared (the movie path); the spot's SD and the geometry
+        used are added.
 
     Returns
     -------
@@ -480,6 +477,7 @@ def write(
     tables = "".join(t.to_csv() for t in (found.candidates, found.molecules, found.frames))
     run = found.run or {"command": "detect", "tables": run_record.bytes_digest(tables.encode())}
     width = {} if found.psf_width is None else {"psf sd": found.psf_width.record()}  # a result
+    width.update({"geometry": found.geometry} if found.geometry else {})
     copied = run_record.read_copies(copies)
     paths = run_record.claim_folder(
         out, run, SELECTION_FILES, force=force, copies=copied, about={**(about or {}), **width}

@@ -6,8 +6,8 @@ spot's SD. ``estimate_psf_sd`` measures it from the data:
 1. detection (``detect_movie``) on the mean projection of the first frames with a provisional
    SD (``PROVISIONAL_PIXELS`` = 1.3 pixels by default: a matched filter a few tens of percent
    too narrow or too wide still finds the bright spots);
-2. the brightest accepted candidates (``accepted``: away from the edges and from their
-   neighbours by a fitted ROI; neither saturated nor elongated);
+2. the brightest accepted candidates (``accepted``: away from the edges and from the
+   light of neighbours in a fitted ROI (``detect``); neither saturated nor elongated);
 3. with a camera, every frame of each spot's ROI fitted by maximum likelihood under the camera
    law with both widths free (``bayespsf.fit_mle``), its frames with signal kept (``N`` at
    least half the spot's 90th percentile: before bleaching, not blinked off) and the spot's
@@ -123,8 +123,9 @@ def estimate_psf_sd(
     provisional : float, optional
         The SD (nm) of the first detection; default ``PROVISIONAL_PIXELS`` pixels.
     fit : int, default 15
-        Odd side in pixels of the ROI fitted around each spot; candidates closer than this to
-        an edge or to each other are left out.
+        Odd side in pixels of the ROI fitted around each spot; candidates whose ROI crosses
+        an edge, or into whose ROI a neighbour puts light (``detect``'s neighbour rule), are
+        left out.
     frames : int, default 50
         The first frames used (projected for detection and fitted).
     spots : int, default 30
@@ -209,7 +210,9 @@ def _one_pass(movie, provisional, camera, pixel_size, fit, span, spots, false_po
         (found["status"] == "accepted") & (found["saturated"] == 0) & ~found["elongated"]
     ]
     chosen = usable.nlargest(spots, "amplitude")
-    if camera is None:
+    if chosen.empty:
+        widths = np.empty(0)
+    elif camera is None:
         widths = _projection_widths(movie, chosen, pixel_size, fit, span, provisional)
     else:
         widths = _frame_widths(movie, chosen, camera, pixel_size, fit, span)
@@ -273,14 +276,19 @@ def _projection_widths(movie, chosen, pixel_size, fit, span, provisional) -> np.
     for row, col in zip(chosen["row"], chosen["col"], strict=True):
         roi = image[row - half : row + half + 1, col - half : col + half + 1]
         back = float(np.median(np.concatenate([roi[0], roi[-1], roi[:, 0], roi[:, -1]])))
-        spot = max(float(roi.sum() - back * roi.size), 1e-9)
+        spot = float(roi.sum() - back * roi.size)
+        if not spot > 0 or not back >= 0:  # no light above its edges: no spot to measure
+            widths.append(np.nan)
+            continue
         start = [0.0, 0.0, np.log(provisional), np.log(provisional), np.log(spot), back]
 
         def residual(p, roi=roi):
             params = [p[0], p[1], np.exp(p[2]), np.exp(p[3]), np.exp(p[4]), p[5]]
             return (psf.expected_counts(params, fit, pixel_size) - roi).ravel()
 
-        result = optimize.least_squares(residual, start, x_scale="jac")
+        # the background (an image's counts, >= 0) is bounded below by 0; the rest is free
+        low = [-np.inf] * 5 + [0.0]
+        result = optimize.least_squares(residual, start, x_scale="jac", bounds=(low, np.inf))
         s_x, s_y = np.exp(result.x[2:4])
         good = result.success and max(s_x, s_y) < fit * pixel_size / 2
         widths.append(0.5 * (s_x + s_y) if good else np.nan)

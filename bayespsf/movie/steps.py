@@ -3,9 +3,10 @@
 ``bleach_steps`` finds the steps with PELT (Killick, Fearnhead & Eckley, J. Am. Stat. Assoc.
 107, 1590 (2012)) from ``ruptures`` (Truong, Oudre & Vayatis, Signal Process. 167, 107299
 (2020)), each level scored as a Gaussian with its own mean and variance (a trace is noisier
-where it is brighter), then places each step by the exact least-squares scan over its split
-points. The paper kept molecules whose trace shows a single bleaching step: DeSantis,
-DeCenzo, Li & Wang, Opt. Express 18 (2010), section "Data acquisition and selection".
+where it is brighter), then places each step inside its frame by the exact least-squares scan
+and tests it again against the penalty. The paper kept molecules whose trace shows a single
+bleaching step: DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010), section "Data
+acquisition and selection".
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ PENALTY = 4.0  # c of the penalty c * log(n); measured in tests/movie/test_movie
 MIN_SEGMENT = 3  # frames: a step needs a level on either side
 PRIOR_WEIGHT = 2.0  # pseudo-frames at the trace's noise variance in each segment's variance
 GRID = 150  # PELT's candidate change points: every frame up to this many, a grid beyond
+LIT = 0.1  # a frame holding less than this share of the old level counts at the new level
 
 
 @dataclass(frozen=True)
@@ -101,13 +103,16 @@ def bleach_steps(
     Parameters
     ----------
     trace : array_like, shape (n,)
-        Photons per frame (``traces(...)["photons"]`` of one molecule), in frame order.
+        Photons per frame of one molecule, in frame order: ``molecules_over_time`` gives
+        ``traces(...)["photons_psf"]``, the PSF-weighted photons, whose noise is the least
+        where the background dominates.
     frames : array_like of int, shape (n,), optional
         The frame number of each value (default ``0..n-1``).
     penalty : float, default ``PENALTY`` (4.0)
         ``c`` of the penalty ``c * log(n)`` charged per step.
     min_size : int, default ``MIN_SEGMENT`` (3)
-        Fewest frames of a level.
+        Fewest frames of a level (but the last, after a step within the last ``min_size -
+        1`` frames).
 
     Returns
     -------
@@ -137,9 +142,18 @@ def bleach_steps(
     parameters (a mean, a variance, a location) ``3 log n``; the default ``c = 4`` keeps the
     false-step rate on constant traces at 0.1–0.3% (docs/movies.md). Each step is
     then placed by the exact least-squares scan (a Gaussian likelihood with one variance)
-    over all split points between its neighbours. A one-frame level between its neighbours
-    is the frame in which a step happened (a fluorophore bleaching within a frame holds part
-    of that frame's exposure): the two change points around it count as one step.
+    over the frames between its neighbours, with the step inside a frame: a fluorophore
+    that bleaches at time ``T`` holds the fraction ``T - floor(T)`` of frame ``floor(T)``'s
+    exposure, so that frame is fitted between the two levels, and the change point is the
+    first frame at the new level, ``ceil(T)``, the frame ``bayespsf``'s movies call the
+    bleach frame (a frame holding less than a tenth of the old level, ``LIT``, counts at the
+    new one). Placing every frame's share at the nearer level instead would report
+    ``floor(T)`` whenever less than half of that frame is lit (half the time), one frame
+    early, and a dim step's noise then adds a second. The placed steps are tested again
+    against the penalty, and those that do not pay it (or leave a level shorter than
+    ``min_size``) are dropped, until every step reported pays it where it is reported.
+    Last, a step within the last ``min_size - 1`` frames (a molecule that bleaches as the
+    movie ends, which PELT's levels cannot hold) is added when it pays the penalty.
 
     References
     ----------
@@ -171,10 +185,15 @@ def bleach_steps(
         cost = _GaussianSegments(max(noise**2, floor), PRIOR_WEIGHT, min_size)
         jump = max(1, n // GRID)
         pelt = rpt.Pelt(custom_cost=cost, min_size=min_size, jump=jump).fit(y - np.median(y))
-        cuts = _refine(y, pelt.predict(pen=penalty * np.log(n))[:-1])
-        if jump > 1:
-            cuts = _refine(y, _eliminate(cost, cuts, penalty * np.log(n), min_size))
-        cuts = _merge_transitions(y, cuts)
+        pen = penalty * np.log(n)
+        cuts = pelt.predict(pen=pen)[:-1]
+        while True:  # each pass drops a point or ends: at most len(cuts) + 1 passes
+            cuts = _place(y, cuts)
+            kept = _eliminate(cost, cuts, pen, min_size)
+            if kept == cuts:
+                break
+            cuts = kept
+        cuts = _at_the_end(cost, cuts, pen, min_size)
     bounds = [0, *cuts, n]
     levels = tuple(float(y[lo:hi].mean()) for lo, hi in pairwise(bounds))
     bleach = cuts[-1] if cuts and levels[-1] < levels[-2] else None
@@ -188,61 +207,83 @@ def bleach_steps(
     )
 
 
-def _refine(y: np.ndarray, cuts: list[int]) -> list[int]:
-    """Each change point moved to the least-squares split of the span between its
-    neighbours: ``argmin_k SSE(lo:k) + SSE(k:hi)``, exactly, by cumulative sums."""
-    s = np.concatenate([[0.0], np.cumsum(y - y.mean())])
-    q = np.concatenate([[0.0], np.cumsum((y - y.mean()) ** 2)])
+def _place(y: np.ndarray, cuts: list[int]) -> list[int]:
+    """Each change point placed by least squares over the span between its neighbours, with
+    the step inside a frame: frame ``k`` holds a fraction ``f`` of its exposure at the old level
+    and the rest at the new one. For each ``k``, the levels are the means of the frames before
+    and after it, and ``f`` takes the value that fits frame ``k`` (its residual is zero when
+    the frame lies between the levels, the distance to the nearer level otherwise); the best
+    ``k`` minimises ``SSE(lo:k) + SSE(k+1:hi) + residual²``, exactly, by cumulative sums. The
+    change point is the first frame at the new level: ``k + 1`` when ``f > LIT``, else ``k``
+    (a frame lit for less than a tenth of its exposure counts as dark, so that a step at a
+    frame's edge, ``f`` = 0 within its noise, is not reported one frame late half the
+    time)."""
+    z = y - y.mean()
+    s = np.concatenate([[0.0], np.cumsum(z)])
+    q = np.concatenate([[0.0], np.cumsum(z * z)])
 
-    def sse(lo, hi):
-        return q[hi] - q[lo] - (s[hi] - s[lo]) ** 2 / (hi - lo)
+    def fit(lo, hi):
+        m = hi - lo
+        return q[hi] - q[lo] - (s[hi] - s[lo]) ** 2 / m, (s[hi] - s[lo]) / m
 
     cuts = list(cuts)
     for i in range(len(cuts)):
         lo = cuts[i - 1] if i else 0
         hi = cuts[i + 1] if i + 1 < len(cuts) else len(y)
-        k = np.arange(lo + 1, hi)
-        cuts[i] = int(k[np.argmin(sse(lo, k) + sse(k, hi))])
+        k = np.arange(lo + 1, hi - 1)  # at least one frame at each level
+        if not len(k):
+            continue
+        (sse_old, old), (sse_new, new) = fit(lo, k), fit(k + 1, hi)
+        outside = np.clip(np.abs(z[k] - (old + new) / 2) - np.abs(old - new) / 2, 0.0, None)
+        best = int(np.argmin(sse_old + sse_new + outside**2))
+        f = (z[k[best]] - new[best]) / (old[best] - new[best]) if old[best] != new[best] else 0.0
+        cuts[i] = int(k[best]) + (1 if f > LIT else 0)
     return cuts
-
-
-def _merge_transitions(y: np.ndarray, cuts: list[int]) -> list[int]:
-    """One step where two change points enclose a single frame whose level lies between its
-    neighbours' levels: the frame in which the step happened, which holds a fraction of the
-    exposure at each level (a fluorophore bleaching within a frame). The step's change point
-    is the first frame at the new level."""
-    bounds = [0, *cuts, len(y)]
-    level = [float(y[lo:hi].mean()) for lo, hi in pairwise(bounds)]
-    merged = []
-    for i, cut in enumerate(cuts):
-        after = i + 1 < len(cuts) and cuts[i + 1] == cut + 1
-        between = after and min(level[i], level[i + 2]) <= level[i + 1] <= max(
-            level[i], level[i + 2]
-        )
-        if not between:
-            merged.append(cut)
-    return merged
 
 
 def _eliminate(cost: _GaussianSegments, cuts: list[int], pen: float, min_size: int) -> list:
-    """Drop, one at a time, the change point whose removal lowers the penalised cost most
-    (or which leaves a level shorter than ``min_size``), until none does: PELT on a grid of
-    frames can place two points around a step that falls between grid points."""
+    """Drop, one at a time, the change point whose removal lowers the penalised cost most, until
+    none does; first, among those that leave a level shorter than ``min_size``, the one whose
+    removal costs least. PELT on a grid of frames can place two points around a step that
+    falls between grid points, and placing a step inside its frame (``_place``) moves points
+    that PELT scored elsewhere: every step kept pays its penalty where it is reported."""
     cuts = list(cuts)
     while cuts:
         b = [0, *cuts, len(cost.signal)]
-        gain = [
-            cost.error(b[i], b[i + 2])
-            - cost.error(b[i], b[i + 1])
-            - cost.error(b[i + 1], b[i + 2])
-            - (pen if min(b[i + 1] - b[i], b[i + 2] - b[i + 1]) >= min_size else np.inf)
-            for i in range(len(cuts))
-        ]
-        worst = int(np.argmin(gain))
-        if gain[worst] >= 0:
+        gain = np.array(
+            [
+                cost.error(b[i], b[i + 2])
+                - cost.error(b[i], b[i + 1])
+                - cost.error(b[i + 1], b[i + 2])
+                - pen
+                for i in range(len(cuts))
+            ]
+        )
+        short = np.array(
+            [min(b[i + 1] - b[i], b[i + 2] - b[i + 1]) < min_size for i in range(len(cuts))]
+        )
+        worst = (
+            int(np.argmin(np.where(short, gain, np.inf))) if short.any() else int(np.argmin(gain))
+        )
+        if not short[worst] and gain[worst] >= 0:
             break
         del cuts[worst]
     return cuts
+
+
+def _at_the_end(cost: _GaussianSegments, cuts: list[int], pen: float, min_size: int) -> list:
+    """A step within the trace's last ``min_size - 1`` frames (a molecule that bleaches as the
+    movie ends), which PELT cannot place: the best such split of the last level, kept when it
+    pays the penalty as any step does, and when the level before it keeps ``min_size``
+    frames."""
+    n = len(cost.signal)
+    lo = cuts[-1] if cuts else 0
+    ends = np.arange(max(lo + min_size, n - min_size + 1), n)
+    if not len(ends):
+        return cuts
+    gain = [cost.error(lo, n) - cost.error(lo, k) - cost.error(k, n) - pen for k in ends]
+    best = int(np.argmax(gain))
+    return [*cuts, int(ends[best])] if gain[best] > 0 else cuts
 
 
 __all__ = ["PENALTY", "BleachSteps", "bleach_steps"]

@@ -6,11 +6,13 @@ molecules for a single bleaching step" and required "no stage drift detected by 
 centroid vs time measurements" (criterion 1): DeSantis, DeCenzo, Li & Wang, Opt. Express 18
 (2010), section "Data acquisition and selection".
 
-``traces`` gives a fast per-frame photon estimate, an aperture sum (not a fit: the maximum
-likelihood path is ``bayespsf.fit_mle`` on ``cut_rois(...).central()``). ``bleach_steps``
-finds the steps of one trace with PELT (Killick, Fearnhead & Eckley, J. Am. Stat. Assoc. 107,
-1590 (2012)) from ``ruptures`` (Truong, Oudre & Vayatis, Signal Process. 167, 107299 (2020)),
-then places each step by the exact least-squares scan over its split points.
+``traces`` gives two fast per-frame photon estimates (not fits: the maximum likelihood path
+is ``bayespsf.fit_mle`` on ``cut_rois(...).central()``): an aperture sum, and the PSF-weighted
+sum (the matched filter), whose noise is the least where the background dominates and whose
+trace ``molecules_over_time`` searches for steps. ``bleach_steps`` finds the steps of one trace
+with PELT (Killick, Fearnhead & Eckley, J. Am. Stat. Assoc. 107, 1590 (2012)) from
+``ruptures`` (Truong, Oudre & Vayatis, Signal Process. 167, 107299 (2020)), then places each
+step inside its frame by the exact least-squares scan.
 """
 
 from __future__ import annotations
@@ -26,13 +28,16 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.model import Model
 from bayespsf.movie._metadata import resolve_pixel_size
 from bayespsf.movie.extract import iter_rois, molecule_pixels, open_movie, photon_model
+from bayespsf.movie.geometry import periphery_background
 from bayespsf.movie.steps import PENALTY, bleach_steps
 
 if TYPE_CHECKING:
     from bayespsf.cameras import Camera
     from bayespsf.movie.read import Movie
 
-COLUMNS = ("photons", "photons_se", "b", "b_se", "x", "y", "_order")  # traces's, then its order
+COLUMNS = (  # traces's, then its order
+    *("photons", "photons_se", "photons_psf", "photons_psf_se", "b", "b_se", "x", "y", "_order"),
+)
 MOLECULE_COLUMNS = (
     *("molecule", "x", "y", "steps", "bleach_frame", "frames_before", "multiple_steps"),
     *("photons_mean", "drift_x", "drift_x_se", "drift_y", "drift_y_se"),
@@ -52,6 +57,7 @@ def traces(
     frames: slice | range | None = None,
     block: int = 64,
     progress: bool | None = None,
+    periphery: np.ndarray | None = None,
 ) -> pd.DataFrame:
     """Photons, background and centroid of every molecule in every frame.
 
@@ -77,14 +83,19 @@ def traces(
         Frames read at a time.
     progress : bool, optional
         A progress bar on stderr (default: when it is a terminal).
+    periphery : numpy.ndarray of bool, shape (molecules, roi, roi), optional
+        Each molecule's periphery pixels for the background, its neighbours' light masked out
+        (``geometry.periphery_masks``); default the whole ring outside ``fit``.
 
     Returns
     -------
     pandas.DataFrame
         One row per (molecule, frame), ordered by molecule (as given), then frame:
-        ``molecule``, ``frame``, ``photons`` (estimate of N, photons), ``photons_se``, ``b``
-        and ``b_se`` (background photons per pixel from the periphery), ``x`` and ``y``
-        (centroid, camera pixels in picasso's convention; NaN where the net signal is <= 0).
+        ``molecule``, ``frame``, ``photons`` (aperture estimate of N, photons),
+        ``photons_se``, ``photons_psf`` (PSF-weighted estimate of N, photons) and
+        ``photons_psf_se``, ``b`` and ``b_se`` (background photons per pixel from the
+        periphery), ``x`` and ``y`` (centroid, camera pixels in picasso's convention; NaN
+        where the net signal is <= 0).
 
     Raises
     ------
@@ -104,8 +115,17 @@ def traces(
     pixel-integrated Gaussian of width ``s0`` at the molecule's sub-pixel position
     (``molecules.x, y``) that falls on those pixels. Its SE adds the camera variance of each
     aperture pixel, at the plug-in expected photons, and the aperture's share of the
-    background's SE. The centroid is the first moment of the background-subtracted central
-    ``fit`` × ``fit`` photons.
+    background's SE. ``photons_psf`` weights the background-subtracted photons of the central
+    ``fit`` × ``fit`` pixels by the matched filter ``g / Σ g²``, ``g`` that same Gaussian on
+    those pixels: the least-variance linear estimate of N when every pixel's noise is the
+    background's, as for a dim spot, whose step is the one that can hide. Its variance is
+    ``Σ g² v / (Σ g²)²`` against the aperture's ``n v / f²`` (``n`` pixels enclosing ``f``): at
+    s0 = 120 nm on 79 nm pixels and the default aperture, 30 v against 50 v, a 1.29 times
+    larger step in units of the noise (a bright spot, whose noise is its own shot noise, pays
+    about 27% more variance than in the aperture, at a step of tens of SDs). Its SE adds the
+    camera variance of each pixel at the plug-in expected photons, times its weight squared,
+    and the weights' sum times the background's SE. The centroid is the first moment of the
+    background-subtracted central ``fit`` × ``fit`` photons.
     """
     movie = open_movie(movie)
     model = photon_model(camera)
@@ -122,8 +142,10 @@ def traces(
     offsets = np.arange(fit) - (fit - 1) / 2
     disc = offsets[:, None] ** 2 + offsets[None, :] ** 2 <= radius**2
     unit = np.column_stack([dx * a, dy * a, np.full((len(ids), 2), s0), np.ones(len(ids))])
-    spot = psf.expected_counts(np.column_stack([unit, np.zeros(len(ids))]), fit, a)[:, disc]
+    shape = psf.expected_counts(np.column_stack([unit, np.zeros(len(ids))]), fit, a)
+    spot = shape[:, disc]
     enclosed = spot.sum(axis=1)
+    weights = shape / (shape**2).sum(axis=(1, 2))[:, None, None]  # the matched filter's
     parts = []
     for stack in iter_rois(
         movie,
@@ -136,18 +158,25 @@ def traces(
         desc="traces",
     ):
         m = np.repeat(np.arange(len(ids)), len(stack) // len(ids))
-        background = stack.periphery_background(model)
+        background = periphery_background(stack, model, periphery, m)
         b, b_se = background["b"].to_numpy(), background["b_se"].to_numpy()
         net = model.to_photons(stack.central()) - b[:, None, None]
         photons = net[:, disc].sum(axis=1) / enclosed[m]
         lam = np.clip(b, 0, None)[:, None] + np.clip(photons, 0, None)[:, None] * spot[m]
         variance = model.photon_variance(lam).sum(axis=1) + (disc.sum() * b_se) ** 2
+        w = weights[m]  # the PSF-weighted photons and their SE
+        weighted = (w * net).sum(axis=(1, 2))
+        level = np.clip(weighted, 0, None)[:, None, None] * shape[m]
+        lam = np.clip(b, 0, None)[:, None, None] + level
+        weighted_variance = (w**2 * model.photon_variance(lam)).sum(axis=(1, 2))
+        weighted_variance += (w.sum(axis=(1, 2)) * b_se) ** 2
         total = net.sum(axis=(1, 2))
         safe = np.where(total > 0, total, np.nan)  # no net signal: no centroid
         centre = (roi - 1) / 2
         x = stack.table["col0"] + centre + (net * offsets[None, None, :]).sum(axis=(1, 2)) / safe
         y = stack.table["row0"] + centre + (net * offsets[None, :, None]).sum(axis=(1, 2)) / safe
-        values = [photons, np.sqrt(variance) / enclosed[m], b, b_se, x, y, m]
+        values = [photons, np.sqrt(variance) / enclosed[m], weighted, np.sqrt(weighted_variance)]
+        values += [b, b_se, x, y, m]
         parts.append(
             stack.table[["molecule", "frame"]].assign(**dict(zip(COLUMNS, values, strict=True)))
         )
@@ -193,12 +222,13 @@ def molecules_over_time(
         ``bleach_steps``'s ``c``.
     **options
         Go to ``traces``: ``pixel_size``, ``roi``, ``fit``, ``aperture``, ``frames``,
-        ``block``, ``progress``.
+        ``block``, ``progress``, ``periphery``.
 
     Returns
     -------
     per_molecule : pandas.DataFrame
-        One row per molecule: ``molecule``, ``x``, ``y`` (as given), ``steps``,
+        One row per molecule: ``molecule``, ``x``, ``y`` (as given), ``steps`` (of the
+        ``photons_psf`` trace),
         ``bleach_frame`` (nullable integer: first frame without signal, NA if none),
         ``frames_before``, ``multiple_steps``, ``photons_mean`` (photons per frame before
         bleaching), ``drift_x``, ``drift_x_se``, ``drift_y``, ``drift_y_se`` (centroid slopes
@@ -226,7 +256,7 @@ def molecules_over_time(
         per_frame.groupby("molecule", sort=False),
         strict=True,
     ):
-        found = bleach_steps(one["photons"], frames=one["frame"], penalty=penalty)
+        found = bleach_steps(one["photons_psf"], frames=one["frame"], penalty=penalty)
         before = one.iloc[: found.frames_before]
         slope_x, se_x = drift(before["frame"], before["x"] * a)
         slope_y, se_y = drift(before["frame"], before["y"] * a)

@@ -145,24 +145,31 @@ def test_positions_are_picasso_pixel_coordinates_at_the_centroid_precision():
 
 
 def test_edge_and_neighbour_candidates_are_rejected_and_counted():
-    """A spot 8 px from the edge (its 25 x 25 ROI would cross it), a pair 10 px apart and a
-    diagonal pair 20 px apart in rows and columns (28 px apart, yet their ROIs overlap) are
-    rejected; two isolated spots are accepted."""
+    """A spot 8 px from the edge (its 25 x 25 ROI would cross it) is rejected; a pair 10 px
+    apart is rejected (each puts 5% of its 3000 photons, about 150, into the other's 15 x 15
+    window, 1.7 times the window's noise SD of about 87, background and shot noise); a diagonal
+    pair 20 px apart in rows and columns (each 12.5 px past the other's window, 8 spot SDs on
+    either axis: no light there) and two isolated spots are accepted. The paper's fixed rule
+    (``min_distance=roi``) rejects the diagonal pair too: their 25 x 25 ROIs overlap."""
     xs = [64.0, 30.0, 40.0, 75.0, 95.0, 20.0, 100.0]
     ys = [8.0, 60.0, 60.0, 20.0, 40.0, 105.0, 100.0]
-    table = detect(
-        _photons(Photon(), _image(xs, ys, 3000.0, 20.0), np.random.default_rng(5)),
-        psf_sd=S,
-        pixel_size=A,
-    )
+    image = _photons(Photon(), _image(xs, ys, 3000.0, 20.0), np.random.default_rng(5))
+    table = detect(image, psf_sd=S, pixel_size=A)
     assert list(table.columns) == list(COLUMNS)
     status = dict(zip(zip(table["row"], table["col"], strict=True), table["status"], strict=True))
     assert len(status) == 7
     assert status[(8, 64)] == "rejected: edge"
-    for key in ((60, 30), (60, 40), (20, 75), (40, 95)):
+    for key in ((60, 30), (60, 40)):
         assert status[key] == "rejected: neighbour"
-    assert status[(105, 20)] == status[(100, 100)] == "accepted"
+    for key in ((20, 75), (40, 95), (105, 20), (100, 100)):
+        assert status[key] == "accepted"
     assert table.attrs["detection"]["counts"] == {
+        "accepted": 4,
+        "rejected: edge": 1,
+        "rejected: neighbour": 2,
+    }
+    paper = detect(image, psf_sd=S, pixel_size=A, min_distance=25)
+    assert paper.attrs["detection"]["counts"] == {
         "accepted": 2,
         "rejected: edge": 1,
         "rejected: neighbour": 4,

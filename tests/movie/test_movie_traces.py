@@ -236,8 +236,8 @@ def test_a_step_within_a_frame_is_one_step():
     """Bleaching at a time T inside a frame leaves that frame at a fraction of the level (as
     bayespsf's movies and real exposures do): 300 traces of 120 frames, N 500–5000 with
     EMCCD-like noise (variance 2 N + 100), T uniform in [6, 114): one step, bleach frame
-    ceil(T) within +-1, for >= 97% (measured 295 of 300; 87 of 300 before partial frames were
-    read as the step's own frame: the partial frame was split off as a second step)."""
+    ceil(T) within +-1, for >= 97% (measured 300 of 300 with the partial frame fitted between
+    the levels; 87 of 300 where it is split off as a level of its own, a second step)."""
     rng = np.random.default_rng(11)
     t = np.arange(120)
     hits = 0
