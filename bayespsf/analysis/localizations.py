@@ -21,8 +21,11 @@ PLACE_COLUMNS = ("molecule", "frame", "row", "col")  # the ROI centre's movie pi
 _CONTEXT = ("status", "message", "method", "mle_converged", "gof_replicates", "z_why")
 
 
-def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
-    """The localisation table: picasso's columns, then bayespsf's, from posterior summary rows.
+def localizations(
+    posteriors: pd.DataFrame, pixel_size: float, estimate: str = "posterior"
+) -> pd.DataFrame:
+    """The localisation table: picasso's columns, then bayespsf's, from posterior summary rows
+    (or from maximum-likelihood fits).
 
     Parameters
     ----------
@@ -33,6 +36,10 @@ def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
         interval (``_q0025``, ``_q0975``) columns; optionally ``z_mean`` and ``z_sd`` (nm).
     pixel_size : float
         Pixel side in nm (> 0).
+    estimate : {"posterior", "mle"}, default "posterior"
+        Where picasso's columns come from: the posterior's means and SDs, or the MLE
+        (``<p>_mle``) and its Cramér-Rao bound (``crlb_<p>``) as ``lpx``, ``lpy``; then
+        ``posteriors`` needs those columns instead of the posterior's.
 
     Returns
     -------
@@ -49,8 +56,8 @@ def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
     Raises
     ------
     BayespsfInputError
-        A ``pixel_size`` that is not > 0, missing columns, or frames that are not whole
-        numbers >= 0.
+        A ``pixel_size`` that is not > 0, an unknown ``estimate``, missing columns, or frames
+        that are not whole numbers >= 0.
 
     See Also
     --------
@@ -58,9 +65,15 @@ def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
     bayespsf.io.write_locs : writes it for picasso, ThunderSTORM and as parquet.
     """
     a = scalar_in_range("pixel_size", pixel_size, 0.0, low_inclusive=False)
-    needed = [*PLACE_COLUMNS] + [
-        f"{p}_{stat}" for p in PARAMETER_NAMES for stat in ("mean", "sd", *INTERVAL)
-    ]
+    if estimate not in ("posterior", "mle"):
+        raise BayespsfInputError(f"estimate must be 'posterior' or 'mle', got {estimate!r}")
+    if estimate == "posterior":
+        value, spread = "{}_mean", "{}_sd"
+        needed = [f"{p}_{stat}" for p in PARAMETER_NAMES for stat in ("mean", "sd", *INTERVAL)]
+    else:
+        value, spread = "{}_mle", "crlb_{}"
+        needed = [c.format(p) for p in PARAMETER_NAMES for c in (value, spread)]
+    needed = [*PLACE_COLUMNS, *needed]
     missing = [c for c in needed if c not in posteriors.columns]
     if missing:
         raise BayespsfInputError(f"posteriors: no column(s) {', '.join(missing)}")
@@ -71,14 +84,14 @@ def localizations(posteriors: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
     locs = pd.DataFrame(
         {
             "frame": t["frame"].to_numpy(np.uint32),
-            "x": (t["col"] + t["x0_mean"] / a).to_numpy(np.float32),
-            "y": (t["row"] + t["y0_mean"] / a).to_numpy(np.float32),
-            "photons": t["N_mean"].to_numpy(np.float32),
-            "sx": (t["s_x_mean"] / a).to_numpy(np.float32),
-            "sy": (t["s_y_mean"] / a).to_numpy(np.float32),
-            "bg": t["b_mean"].to_numpy(np.float32),
-            "lpx": (t["x0_sd"] / a).to_numpy(np.float32),
-            "lpy": (t["y0_sd"] / a).to_numpy(np.float32),
+            "x": (t["col"] + t[value.format("x0")] / a).to_numpy(np.float32),
+            "y": (t["row"] + t[value.format("y0")] / a).to_numpy(np.float32),
+            "photons": t[value.format("N")].to_numpy(np.float32),
+            "sx": (t[value.format("s_x")] / a).to_numpy(np.float32),
+            "sy": (t[value.format("s_y")] / a).to_numpy(np.float32),
+            "bg": t[value.format("b")].to_numpy(np.float32),
+            "lpx": (t[spread.format("x0")] / a).to_numpy(np.float32),
+            "lpy": (t[spread.format("y0")] / a).to_numpy(np.float32),
         }
     )
     if "z_mean" in t:  # a z calibration was given (bayespsf.axial): picasso's z and lpz, nm

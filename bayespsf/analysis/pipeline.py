@@ -140,15 +140,17 @@ def valid_rois(
     return np.concatenate(counts).astype(np.float64), table
 
 
-def _estimates(counts, model: Model) -> pd.DataFrame:
-    """The MLE (``<p>_mle``, ``crlb_<p>``) and the paper's least squares (``<p>_lsq``)."""
+def _estimates(counts, model: Model, lsq: bool = True) -> pd.DataFrame:
+    """The MLE (``<p>_mle``, ``crlb_<p>``) and, with ``lsq``, the paper's least squares
+    (``<p>_lsq``)."""
     mle = fit_mle(counts, model, laplace=False)
-    lsq = fit_lsq(counts, model)
+    squares = fit_lsq(counts, model) if lsq else None
     out = pd.DataFrame(index=mle.index)
     for p in PARAMETER_NAMES:
         out[f"{p}_mle"] = mle[p].to_numpy()
         out[f"crlb_{p}"] = mle[f"crlb_{p}"].to_numpy()
-        out[f"{p}_lsq"] = lsq[p].where(lsq["converged"]).to_numpy()
+        if squares is not None:
+            out[f"{p}_lsq"] = squares[p].where(squares["converged"]).to_numpy()
     out["mle_converged"] = mle["converged"].to_numpy(bool)
     return out
 
@@ -169,8 +171,8 @@ def analyze(
     *,
     s0: float | None = None,
     out: str | Path,
-    roi: int = 25,
-    fit: int = 15,
+    roi: int | None = None,
+    fit: int | None = None,
     rules: Rules | None = None,
     method: str = "auto",
     backend: str = "numpy",
@@ -205,12 +207,13 @@ def analyze(
         that changes the results, ``copies``). The posteriors' store is ``out/posteriors``:
         a rerun of the same run continues, and a killed run loses no finished ROI; a folder
         that holds another run's results is refused before anything is computed.
-    roi : int, default 25
+    roi : int, optional
         Odd side in pixels of the cut around each molecule for detection, traces and the
-        selection's fits (the paper's 25 x 25; its periphery gives the background).
-    fit : int, default 15
+        selection's fits (its periphery gives the background); default from the spot's SD
+        (``bayespsf.movie.geometry_for_psf``: the paper's 25 at s0 = 120 nm, 79 nm pixels).
+    fit : int, optional
         Odd side in pixels of the central ROI whose posterior, MLE and least squares are
-        computed (the paper's 15 x 15).
+        computed; default from the spot's SD (the paper's 15 there).
     rules : Rules, optional
         The selection rules (default: the paper's numbers).
     method : {"auto", "laplace", "importance", "mcmc"}, default "auto"
@@ -373,6 +376,8 @@ def analyze(
     about = {"movie": str(movie.path)}  # recorded, not compared: a moved movie is the same
     found = find_molecules(movie, model, s0=s0, roi=roi, fit=fit, rules=rules, progress=progress)
     about["psf sd"] = found.psf_width.record()  # an estimate is a result: recorded, not compared
+    about["geometry"] = found.geometry
+    roi, fit = found.geometry["roi"], found.geometry["fit"]
     provenance = {**(provenance or {}), "psf sd": found.psf_width.summary()}
     claimed = claim_folder(out, run, ANALYSIS_FILES, force=force, copies=copied, about=about)
     paths = {**(files or {}), **claimed}

@@ -26,8 +26,11 @@ PSF_SD_HELP = (
     "the data)"
 )
 ROI_HELP = "ROI cut (default 25)"
-#: ``--roi`` of ``detect``, which names the paper's cut.
-ROI_PAPER_HELP = "ROI cut (default 25, the paper's)"
+#: ``--roi`` of ``detect`` and ``analyze``, whose geometry follows the spot's SD.
+ROI_PAPER_HELP = (
+    "ROI cut (default from the spot's SD: 8 s0 each side, the paper's 25 at s0 = 120 nm on "
+    "79 nm pixels)"
+)
 SEED_HELP = "random seed (default 0)"
 
 METHODS = ("auto", "mcmc", "importance", "laplace")
@@ -125,6 +128,25 @@ def add_selection(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_per_frame(parser: argparse.ArgumentParser, what: str) -> None:
+    """Add ``--per-frame`` (a flag): detection on every frame, each spot localised in its own
+    frame (blinking or moving molecules), instead of the projection, traces and rules.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    what : str
+        How each spot is localised (the end of the help text).
+    """
+    parser.add_argument(
+        "--per-frame",
+        action="store_true",
+        help="blinking or moving molecules (dSTORM, PAINT, tracking): detect on every frame "
+        f"and localise each spot in its own frame ({what}); no traces or selection rules",
+    )
+
+
 def add_psf_sd(
     parser: argparse.ArgumentParser, help: str = PSF_SD_HELP, required: bool = False
 ) -> None:
@@ -143,7 +165,8 @@ def add_psf_sd(
 
 
 def add_geometry(parser: argparse.ArgumentParser, roi_help: str = ROI_HELP) -> None:
-    """Add ``--roi`` (the ROI cut, default 25) and ``--fit`` (the fitted centre, default 15).
+    """Add ``--roi`` (the ROI cut) and ``--fit`` (the fitted centre), default None: the
+    command's default (``bayespsf.cli._shared.geometry``).
 
     Parameters
     ----------
@@ -152,8 +175,11 @@ def add_geometry(parser: argparse.ArgumentParser, roi_help: str = ROI_HELP) -> N
     roi_help : str, optional
         The help text of ``--roi``: ``ROI_HELP`` (default) or ``ROI_PAPER_HELP``.
     """
-    parser.add_argument("--roi", type=int, default=25, help=roi_help)
-    parser.add_argument("--fit", type=int, default=15, help="fitted centre (default 15)")
+    parser.add_argument("--roi", type=int, default=None, help=roi_help)
+    fit_help = "fitted centre (default 15)"
+    if roi_help == ROI_PAPER_HELP:
+        fit_help = "fitted centre (default from the spot's SD: 4.5 s0 each side, the paper's 15)"
+    parser.add_argument("--fit", type=int, default=None, help=fit_help)
 
 
 def add_method(parser: argparse.ArgumentParser, help: str) -> None:

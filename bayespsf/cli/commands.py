@@ -10,39 +10,20 @@ only when it runs, so that ``bayespsf --help`` loads no NumPy.
 from __future__ import annotations
 
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 
+from bayespsf.cli._shared import (
+    CommandError,
+    command_line,
+    geometry,
+    movie_model,
+    one_run,
+    output_folder,
+    selection_rules,
+)
+from bayespsf.cli.frames import per_frame
 from bayespsf.cli.parser import build_parser
 from bayespsf.errors import BayespsfInputError
-
-
-class CommandError(Exception):
-    """A problem the command reports as one line, ``bayespsf: ...``, with exit status 1.
-
-    ``main`` reports ``bayespsf.errors.BayespsfInputError``, which the library raises for bad
-    input, in the same way.
-    """
-
-
-def _output_folder(path: str, option: str = "--out", stem: bool = False) -> Path:
-    """``path`` as a folder (or, with ``stem``, a path stem) to write into: ``output_folder``
-    of ``bayespsf.io.run_record``, named by the command's flag."""
-    from bayespsf.io.run_record import output_folder
-
-    return output_folder(path, option, stem=stem)
-
-
-@contextmanager
-def _one_run(option: str = "--out"):
-    """Report a folder that holds another run's results (``RunConflict``) with the command's
-    own names: ``--out`` for the folder, ``--force`` to replace them."""
-    from bayespsf.io.run_record import RunConflict
-
-    try:
-        yield
-    except RunConflict as exc:
-        raise CommandError(exc.message(option, "--force")) from None
 
 
 def _scene_from(arg: str):
@@ -101,59 +82,6 @@ def _truth_table(path: str, n: int, unit: str):
     return values.to_numpy(float)
 
 
-def _movie_model(args):
-    """The movie, the camera file's model and the spot's SD (None: to be estimated)."""
-    from bayespsf.io import camera_scene, read_camera_file
-    from bayespsf.model import Model
-    from bayespsf.movie import read_movie
-    from bayespsf.movie.extract import check_sizes
-
-    check_sizes(args.roi, args.fit)
-    movie = read_movie(args.movie)
-    table = read_camera_file(args.camera)
-    stated = table.get("geometry", {}).get("pixel_size")
-    if args.pixel_size is not None and stated is not None and stated != args.pixel_size:
-        raise CommandError(
-            f"--pixel-size {args.pixel_size:g} nm, but {args.camera} states [geometry] "
-            f"pixel_size = {stated:g} nm: give one of them"
-        )
-    fallback = movie.pixel_size if args.pixel_size is None else args.pixel_size
-    if fallback is None and stated is None:
-        raise CommandError(
-            f"no pixel size: {args.movie}'s metadata give none and {args.camera} has no "
-            "[geometry] pixel_size; state it (nm): --pixel-size, or [geometry] pixel_size in "
-            f"{args.camera}"
-        )
-    scene = camera_scene(table, args.camera, args.fit, fallback, roi_name="--fit")
-    emitter = scene.to_dict().get("emitter", {})
-    s0 = args.psf_sd
-    if s0 is None and {"s0x", "s0y"} <= set(table.get("emitter", {})):
-        s0 = 0.5 * (emitter["s0x"] + emitter["s0y"])
-    if s0 is None and args.command == "calibrate-z":  # a z-stack's spots are out of focus
-        raise CommandError("give --psf-sd NM (the bead's in-focus SD), or [emitter] s0x, s0y")
-    return movie, Model.from_scene(scene), s0
-
-
-def _rules(args):
-    """The selection rules of ``--rules``, ``--min-valid-frames`` and ``--skip-rule``."""
-    from bayespsf.movie.select import RULES, Rules
-
-    if args.rules == "none":
-        if args.min_valid_frames is not None or args.skip_rule:
-            raise CommandError(
-                "--rules none keeps every accepted candidate: give --min-valid-frames or "
-                "--skip-rule only with --rules paper"
-            )
-        return Rules(skip=RULES)
-    settings = {} if args.min_valid_frames is None else {"min_valid_frames": args.min_valid_frames}
-    return Rules(**settings, skip=tuple(args.skip_rule))
-
-
-def _command_line(args) -> str:
-    """The command as typed (``bayespsf calibrate ...``), for the provenance of its files."""
-    return f"bayespsf {args.command} " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
-
-
 def _selfcheck(_args) -> int:
     """``bayespsf selfcheck``: the camera likelihoods of a typical EMCCD, checked and timed."""
     from bayespsf.cli import selfcheck
@@ -169,7 +97,7 @@ def _simulate(args) -> int:
 
     from bayespsf.simulation.pipeline import describe, scene_photon_label, simulate
 
-    out = _output_folder(args.out, stem=True)
+    out = output_folder(args.out, stem=True)
     scene = _scene_from(args.scene)
     if args.movie:
         return _simulate_movie(args, scene, out)
@@ -220,7 +148,7 @@ def _demo(args) -> int:
     """``bayespsf demo``: one molecule of paper-fig3, its posterior beside the theory."""
     from bayespsf.cli import demo
 
-    _, _, text = demo.run(_output_folder(args.out), seed=args.seed)
+    _, _, text = demo.run(output_folder(args.out), seed=args.seed)
     print(text)
     return 0
 
@@ -230,7 +158,7 @@ def _bench(args) -> int:
     from bayespsf.cli import bench
 
     plan = bench.QUICK if args.quick else bench.FULL
-    _output_folder(args.out)
+    output_folder(args.out)
     rows = bench.frontier(plan, workers=args.workers)
     command = "bayespsf bench" + (" --quick" if args.quick else "")
     print(bench.report(rows, args.out, command))
@@ -244,7 +172,7 @@ def _fit(args) -> int:
     from bayespsf.model import Model
     from bayespsf.parallel.batch import sample_many
 
-    out = _output_folder(args.out)
+    out = output_folder(args.out)
     rois = read_rois(args.rois)
     if args.scene:
         scene = _scene_from(args.scene)
@@ -296,16 +224,19 @@ def _detect(args) -> int:
     from bayespsf.io.run_record import check_folder, read_copies
     from bayespsf.movie.pipeline import SELECTION_FILES, find_molecules, selection_run, write
 
-    out = _output_folder(args.out)
-    movie, model, s0 = _movie_model(args)
-    settings = dict(s0=s0, roi=args.roi, fit=args.fit, false_positives=args.false_positives)
-    settings.update(projection=args.projection, rules=_rules(args))
+    out = output_folder(args.out)
+    movie, model, s0 = movie_model(args)
+    roi, fit = geometry(args)
+    if args.per_frame:
+        return per_frame(args, out, movie, model, s0, fit)
+    settings = dict(s0=s0, roi=roi, fit=fit, false_positives=args.false_positives)
+    settings.update(projection=args.projection, rules=selection_rules(args))
     copies = {"camera.toml": args.camera}  # the camera file used, verbatim
-    with _one_run():  # refused before the work, as write would refuse it after it
+    with one_run():  # refused before the work, as write would refuse it after it
         run = selection_run(movie, model, **settings)  # what write records: found.run
         check_folder(out, run, SELECTION_FILES, force=args.force, copies=read_copies(copies))
     found = find_molecules(movie, model, **settings)
-    with _one_run():
+    with one_run():
         paths = write(found, out, force=args.force, copies=copies, about={"movie": args.movie})
     selected = int(found.molecules["selected"].sum())
     print(f"{found.psf_width.summary()}" + (" (--psf-sd states it)" if s0 is None else ""))
@@ -319,22 +250,25 @@ def _analyze(args) -> int:
     from bayespsf.analysis.pipeline import analyze
     from bayespsf.io import read_z_calibration
 
-    out = _output_folder(args.out)
-    movie, model, s0 = _movie_model(args)
-    rules = _rules(args)
-    command = _command_line(args)
+    out = output_folder(args.out)
+    movie, model, s0 = movie_model(args)
+    roi, fit = geometry(args)
+    if args.per_frame:
+        return per_frame(args, out, movie, model, s0, fit)
+    rules = selection_rules(args)
+    command = command_line(args)
     camera_text = Path(args.camera).read_text(encoding="utf-8")
     z_calibration = None
     if args.z_calibration is not None:
         z_calibration = read_z_calibration(args.z_calibration)
-    with _one_run():  # a folder of another run is refused before anything is written
+    with one_run():  # a folder of another run is refused before anything is written
         result = analyze(
             movie,
             model,
             s0=s0,
             out=out,
-            roi=args.roi,
-            fit=args.fit,
+            roi=roi,
+            fit=fit,
             rules=rules,
             method=args.method,
             backend=args.backend,
@@ -376,7 +310,8 @@ def _calibrate_z(args) -> int:
         raise CommandError(f"--out {out} is a folder; give the calibration file's name")
     if args.frames_per_step < 1:
         raise CommandError(f"--frames-per-step must be >= 1, got {args.frames_per_step}")
-    movie, model, s0 = _movie_model(args)
+    movie, model, s0 = movie_model(args)
+    roi, fit = geometry(args)
     steps, extra = divmod(len(movie), args.frames_per_step)
     if steps == 0 or extra:
         raise CommandError(
@@ -385,9 +320,9 @@ def _calibrate_z(args) -> int:
         )
     z = zstack_positions(args.z_start, args.z_step, steps, args.frames_per_step)
     pick = None if args.bead is None else tuple(args.bead)
-    rois, bead = bead_rois(movie, model, s0=s0, fit=args.fit, roi=args.roi, bead=pick)
+    rois, bead = bead_rois(movie, model, s0=s0, fit=fit, roi=roi, bead=pick)
     widths = step_widths(rois, z, model, seed=args.seed, workers=args.workers)
-    command = _command_line(args)
+    command = command_line(args)
     source = {
         "command": command,
         "stack": str(args.movie),
@@ -429,8 +364,9 @@ def _calibrate(args) -> int:
     out = Path(args.out)
     if out.is_dir():
         raise CommandError(f"--out {out} is a folder; give the camera file's name")
-    _output_folder(str(out.parent))
-    width = resolve_psf_sd(args.movie, None, args.psf_sd, pixel_size=args.pixel_size, fit=args.fit)
+    output_folder(str(out.parent))
+    roi, fit = geometry(args)
+    width = resolve_psf_sd(args.movie, None, args.psf_sd, pixel_size=args.pixel_size, fit=fit)
     print(width.summary() + (" (--psf-sd states it)" if args.psf_sd is None else ""))
     calibration = calibrate_camera(
         args.movie,
@@ -439,13 +375,13 @@ def _calibrate(args) -> int:
         s0=width.sd,
         pixel_size=args.pixel_size,
         e_per_adu=args.e_per_adu,
-        roi=args.roi,
-        fit=args.fit,
+        roi=roi,
+        fit=fit,
         quantum_efficiency=args.quantum_efficiency,
         readout_sd=args.readout_sd,
-        rules=_rules(args),
+        rules=selection_rules(args),
     )
-    command = _command_line(args)
+    command = command_line(args)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(calibration.toml(command))
     print(calibration.summary())

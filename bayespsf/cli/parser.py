@@ -21,6 +21,7 @@ from bayespsf.cli._options import (
     add_method,
     add_movie,
     add_out,
+    add_per_frame,
     add_pixel_size,
     add_psf_sd,
     add_seed,
@@ -186,9 +187,11 @@ def _add_detect(commands) -> None:
         "--false-positives",
         type=float,
         default=0.01,
-        help="expected false detections per projected image (default 0.01)",
+        help="expected false detections per image: the projection, or each frame with "
+        "--per-frame (default 0.01)",
     )
     detect.add_argument("--projection", choices=("mean", "median"), default="mean")
+    add_per_frame(detect, "the MLE and its Cramér-Rao bound; writes candidates.csv, locs.*")
     add_out(detect, "bayespsf-detect")
     add_force(detect)
 
@@ -211,7 +214,7 @@ def _add_analyze(commands) -> None:
     add_camera(analyze)
     add_psf_sd(analyze)
     add_pixel_size(analyze)
-    add_geometry(analyze)
+    add_geometry(analyze, ROI_PAPER_HELP)
     add_selection(analyze)
     add_method(analyze, METHOD_BATCHED_HELP)
     analyze.add_argument("--ess", type=float, default=None, help="effective draws per ROI")
@@ -238,6 +241,7 @@ def _add_analyze(commands) -> None:
         help="the goodness-of-fit test's discrepancy (default likelihood; pearson is calibrated "
         "at a background of a few photons per pixel, where likelihood is conservative)",
     )
+    add_per_frame(analyze, "posterior, MLE and Cramér-Rao bound; writes candidates.csv, locs.*")
     add_out(analyze, "bayespsf-analyze")
     add_force(analyze)
 

@@ -205,7 +205,7 @@ def test_detect_sizes_and_spot_widths_that_cannot_work_are_one_line(tmp_path):
     base = ["detect", str(tmp_path / "movie.npy"), "--camera", str(camera)]
     for extra, words in (
         (["--fit", "14"], "fit must be odd"),
-        (["--psf-sd", "1e6"], r"psf_sd \(1e\+06 nm = 1e\+04 pixels of 100 nm\)"),
+        (["--psf-sd", "1e6"], r"s0 \(1e\+06 nm\) is 1e\+04 pixels of 100 nm"),
     ):
         with pytest.raises(SystemExit, match=words):
             cli.main([*base, "--psf-sd", "120", *extra])
@@ -331,14 +331,16 @@ def test_a_camera_file_roi_that_disagrees_is_refused_naming_both(tmp_path):
         f"{rois} then gives it)"
     )
     np.save(tmp_path / "movie.npy", np.full((80, 64, 64), 100, np.uint16))
-    with pytest.raises(SystemExit) as refused:
-        cli.main(
-            ["detect", str(tmp_path / "movie.npy"), "--camera", str(camera), "--psf-sd", "120"]
-        )
+    detect = ["detect", str(tmp_path / "movie.npy"), "--camera", str(camera), "--psf-sd", "120"]
+    with pytest.raises(SystemExit) as refused:  # a --fit that disagrees is refused
+        cli.main([*detect, "--fit", "15"])
     assert str(refused.value) == (
         f"bayespsf: {camera}: [geometry] roi = 11, but --fit is 15: set [geometry] roi = 15 in "
         f"{camera} or remove that key (--fit then gives it), or give --fit 11"
     )
+    # without --fit, the file's roi is the fitted window: the command goes on to the movie
+    with pytest.raises(SystemExit, match="every pixel is 100 ADU"):
+        cli.main(detect)
     camera.write_text(camera.read_text().replace("roi = 11", "roi = 15"))  # agreeing: fine
     fit = ["fit", rois, "--camera", str(camera), "--workers", "1", "--method", "laplace"]
     assert cli.main([*fit, "--out", str(tmp_path / "out")]) == 0

@@ -1,0 +1,109 @@
+"""What the subcommands share: ``CommandError``, the output folder of one run, the command line
+as typed, and the movie commands' camera model, spot SD and selection rules."""
+
+from __future__ import annotations
+
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+
+class CommandError(Exception):
+    """A problem the command reports as one line, ``bayespsf: ...``, with exit status 1.
+
+    ``main`` reports ``bayespsf.errors.BayespsfInputError``, which the library raises for bad
+    input, in the same way.
+    """
+
+
+def output_folder(path: str, option: str = "--out", stem: bool = False) -> Path:
+    """``path`` as a folder (or, with ``stem``, a path stem) to write into: ``output_folder``
+    of ``bayespsf.io.run_record``, named by the command's flag."""
+    from bayespsf.io import run_record
+
+    return run_record.output_folder(path, option, stem=stem)
+
+
+@contextmanager
+def one_run(option: str = "--out"):
+    """Report a folder that holds another run's results (``RunConflict``) with the command's
+    own names: ``--out`` for the folder, ``--force`` to replace them."""
+    from bayespsf.io.run_record import RunConflict
+
+    try:
+        yield
+    except RunConflict as exc:
+        raise CommandError(exc.message(option, "--force")) from None
+
+
+def geometry(args) -> tuple[int | None, int | None]:
+    """``--roi`` and ``--fit``, checked: for ``detect`` and ``analyze`` a side not given is
+    None (it follows the spot's SD: ``bayespsf.movie.geometry_for_psf``); ``calibrate`` and
+    ``calibrate-z`` take the paper's 25 and 15 pixels."""
+    from bayespsf.movie.extract import check_sizes
+
+    roi, fit = args.roi, args.fit
+    if args.command not in ("detect", "analyze"):
+        roi, fit = (25 if roi is None else roi), (15 if fit is None else fit)
+    check_sizes(_BIGGEST if roi is None else roi, 1 if fit is None else fit)
+    return roi, fit
+
+
+#: A stand-in for a missing ``--roi`` when ``--fit`` alone is checked.
+_BIGGEST = 2**31 - 1
+
+
+def movie_model(args):
+    """The movie, the camera file's model and the spot's SD (None: to be estimated); a
+    camera file's ``[geometry] roi`` becomes ``args.fit`` where ``--fit`` is not given."""
+    from bayespsf.io import camera_scene, read_camera_file
+    from bayespsf.model import Model
+    from bayespsf.movie import read_movie
+
+    movie = read_movie(args.movie)
+    table = read_camera_file(args.camera)
+    if args.fit is None:  # the camera file's ROI, where it states one, is the fitted window
+        args.fit = table.get("geometry", {}).get("roi")
+    _, fit = geometry(args)
+    stated = table.get("geometry", {}).get("pixel_size")
+    if args.pixel_size is not None and stated is not None and stated != args.pixel_size:
+        raise CommandError(
+            f"--pixel-size {args.pixel_size:g} nm, but {args.camera} states [geometry] "
+            f"pixel_size = {stated:g} nm: give one of them"
+        )
+    fallback = movie.pixel_size if args.pixel_size is None else args.pixel_size
+    if fallback is None and stated is None:
+        raise CommandError(
+            f"no pixel size: {args.movie}'s metadata give none and {args.camera} has no "
+            "[geometry] pixel_size; state it (nm): --pixel-size, or [geometry] pixel_size in "
+            f"{args.camera}"
+        )
+    # without a fitted window yet (it follows the spot's SD), the model's ROI is a stand-in
+    scene = camera_scene(table, args.camera, fit or 15, fallback, roi_name="--fit")
+    emitter = scene.to_dict().get("emitter", {})
+    s0 = args.psf_sd
+    if s0 is None and {"s0x", "s0y"} <= set(table.get("emitter", {})):
+        s0 = 0.5 * (emitter["s0x"] + emitter["s0y"])
+    if s0 is None and args.command == "calibrate-z":  # a z-stack's spots are out of focus
+        raise CommandError("give --psf-sd NM (the bead's in-focus SD), or [emitter] s0x, s0y")
+    return movie, Model.from_scene(scene), s0
+
+
+def selection_rules(args):
+    """The selection rules of ``--rules``, ``--min-valid-frames`` and ``--skip-rule``."""
+    from bayespsf.movie.select import RULES, Rules
+
+    if args.rules == "none":
+        if args.min_valid_frames is not None or args.skip_rule:
+            raise CommandError(
+                "--rules none keeps every accepted candidate: give --min-valid-frames or "
+                "--skip-rule only with --rules paper"
+            )
+        return Rules(skip=RULES)
+    settings = {} if args.min_valid_frames is None else {"min_valid_frames": args.min_valid_frames}
+    return Rules(**settings, skip=tuple(args.skip_rule))
+
+
+def command_line(args) -> str:
+    """The command as typed (``bayespsf calibrate ...``), for the provenance of its files."""
+    return f"bayespsf {args.command} " + " ".join(sys.argv[2:] if args.argv is None else args.argv)

@@ -1,0 +1,150 @@
+"""Per-frame localisation (``localize_frames``, ``bayespsf detect|analyze --per-frame``): every
+spot of every frame found and localised in its own frame, with error bars that hold against the
+simulation's truth."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bayespsf import Model, cli, load_scene, simulate_movie
+from bayespsf.analysis import localizations, localize_frames
+from bayespsf.errors import BayespsfInputError
+from bayespsf.io import CAMERA_KEYS
+from bayespsf.psf import PARAMETER_NAMES as NAMES
+
+
+def _scene(frames, molecules, side=96):
+    """paper-movie's molecules and camera on a Poisson background of 3 photons per pixel (the
+    model's: paper-movie's own truncated-Gaussian background is quieter than Poisson, and its
+    MLE errors read 0.91 +- 0.02 of the Cramér-Rao bound over 888 localisations)."""
+    return load_scene("paper-movie").replace(
+        background={"kind": "poisson", "mean": 3.0},
+        movie={
+            "frames": frames,
+            "height": side,
+            "width": side,
+            "molecules": molecules,
+            "dark_frames": 0,
+            "two_fluorophores": 0.0,
+            "moving": 0.0,
+        },
+    )
+
+
+@pytest.fixture(scope="module")
+def movie(tmp_path_factory):
+    """8 frames of 96 x 96 pixels with 6 immobile molecules (paper-movie's EMCCD, s0 120 nm)."""
+    scene = _scene(8, 6)
+    folder = tmp_path_factory.mktemp("per_frame")
+    made = simulate_movie(scene, seed=3, out=folder / "m")
+    camera = {k: v for k, v in scene.to_dict()["camera"].items() if k in CAMERA_KEYS["emccd"]}
+    lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
+    lines += ["[geometry]", "pixel_size = 79.0"]
+    (folder / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
+    truth = pd.read_csv(made.files["truth"])
+    return made.files["movie"], folder / "camera.toml", Model.from_scene(scene), truth
+
+
+def _matched(locs, truth, radius=1.0):
+    """Each localisation's nearest molecule that is on in its frame (NaN-free rows only), and
+    the localisations farther than ``radius`` pixels from every such molecule."""
+    on = truth[truth["on"]]
+    rows, false = [], 0
+    for _, loc in locs.iterrows():
+        here = on[on["frame"] == loc["frame"]]
+        distance = np.hypot(here["x"] - loc["x"], here["y"] - loc["y"])
+        if len(here) and distance.min() <= radius:
+            near = here.iloc[int(np.argmin(distance.to_numpy()))]
+            rows.append({**loc.to_dict(), "x_true": near["x"], "y_true": near["y"]})
+        else:
+            false += 1
+    return pd.DataFrame(rows), false
+
+
+def _z_scores(matched):
+    """The errors of x and y against the truth over their SDs (``lpx``, ``lpy``)."""
+    x = (matched["x"] - matched["x_true"]) / matched["lpx"]
+    return np.concatenate([x, (matched["y"] - matched["y_true"]) / matched["lpy"]])
+
+
+def test_every_spot_of_every_frame_is_localised_within_its_error_bar(movie, tmp_path):
+    path, _, model, truth = movie
+    found = localize_frames(path, model, s0=120.0, out=tmp_path / "d", posterior=False)
+    locs = found.locs
+    matched, false = _matched(locs, truth)
+    on = truth[truth["on"]]
+    # recall: every molecule that is on (its faintest frame here holds ~400 photons, far above
+    # the threshold's ~100) is found in every frame where it shines
+    assert len(matched) == len(on) == 8 * 6
+    # 0.01 false candidates per frame are stated: 0.08 expected over 8 frames, so at most one
+    assert false <= 1
+    # the MLE's errors against the truth, in units of its Cramér-Rao bound: SD 1 when the
+    # bound holds (1.01 +- 0.03 over 664 coordinates of this scene); 96 coordinates give the
+    # SD a standard error of ~0.07 (tolerance ~3 SE)
+    z = _z_scores(matched)
+    assert 0.78 < np.std(z) < 1.22 and abs(np.mean(z)) < 0.31
+    # the candidates table says which were localised, and the locs name the candidate
+    accepted = found.candidates[found.candidates["status"] == "accepted"]
+    assert sorted(locs["molecule"]) == sorted(accepted["molecule"])
+    assert {"locs.hdf5", "locs.yaml", "locs.csv", "locs.parquet", "candidates.csv"} <= set(
+        found.paths
+    )
+    assert "Per-frame localisation" in (tmp_path / "d" / "report.md").read_text()
+
+
+def test_posteriors_per_frame_cover_the_truth(tmp_path):
+    """The posterior path on a 2-frame movie of 4 molecules (8 windows), one process."""
+    scene = _scene(2, 4, side=80)
+    made = simulate_movie(scene, seed=11, out=tmp_path / "m")
+    truth = pd.read_csv(made.files["truth"])
+    found = localize_frames(
+        made.files["movie"], Model.from_scene(scene), s0=120.0, out=tmp_path / "a", workers=1
+    )
+    locs = found.locs
+    assert (locs["status"] == "converged").all() and locs["x0_mean"].notna().all()
+    matched, false = _matched(locs, truth)
+    assert len(matched) == 8 and false == 0
+    # posterior SDs against the truth: 16 coordinates, |z| < 3.5 for each (a 3.5-SD miss has
+    # probability 0.7% over 16 normal draws)
+    z = _z_scores(matched)
+    assert np.all(np.abs(z) < 3.5)
+    # the MLE and least squares are kept beside the posterior; the store holds the chunk
+    assert {"x0_mle", "crlb_x0", "x0_lsq", "gof_p"} <= set(locs.columns)
+    assert (tmp_path / "a" / "posteriors" / "chunk-00000" / "summary.csv").exists()
+
+
+def test_the_command_line_runs_per_frame_and_refuses_trace_options(movie, tmp_path, capsys):
+    path, camera, _, _ = movie
+    base = ["detect", str(path), "--camera", str(camera), "--psf-sd", "120", "--per-frame"]
+    assert cli.main([*base, "--out", str(tmp_path / "d")]) == 0
+    printed = capsys.readouterr().out
+    assert "48 localisations in 8 of 8 frames" in printed
+    record = json.loads((tmp_path / "d" / "run.json").read_text())
+    assert record["run"]["per frame"] is True and record["run"]["command"] == "detect"
+    locs = pd.read_csv(tmp_path / "d" / "locs.csv")
+    assert len(locs) == 48  # ThunderSTORM's table, one row per localisation
+    # options that need a trace or a projection are refused by name
+    for extra in (["--rules", "none"], ["--skip-rule", "snr"], ["--roi", "25"]):
+        with pytest.raises(SystemExit, match=f"{extra[0]}.*not with --per-frame"):
+            cli.main([*base, *extra, "--out", str(tmp_path / "x")])
+    # another run's folder is refused before any work
+    with pytest.raises(SystemExit, match="--force"):
+        cli.main([*base, "--fit", "13", "--out", str(tmp_path / "d")])
+
+
+def test_localizations_from_the_mle_and_bad_estimate():
+    table = pd.DataFrame(
+        {"molecule": [0], "frame": [2], "row": [10], "col": [20]}
+        | {f"{p}_mle": [v] for p, v in zip(NAMES, [79, -79, 120, 158, 900, 5], strict=True)}
+        | {f"crlb_{p}": [v] for p, v in zip(NAMES, [7.9, 15.8, 3, 3, 30, 0.2], strict=True)}
+    )
+    locs = localizations(table, 79.0, estimate="mle")
+    assert locs.loc[0, ["x", "y", "sx", "sy", "lpx", "lpy"]].tolist() == pytest.approx(
+        [21.0, 9.0, 120 / 79, 2.0, 0.1, 0.2], rel=1e-6
+    )
+    with pytest.raises(BayespsfInputError, match="estimate must be"):
+        localizations(table, 79.0, estimate="map")
+    with pytest.raises(BayespsfInputError, match="x0_mean"):
+        localizations(table, 79.0)
