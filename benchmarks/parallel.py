@@ -1,12 +1,17 @@
-"""Parallel throughput: ``sample_many`` on one process, two local worker processes and a Dask
-cluster, and a dataset of 10^5 ROIs on two workers (targets: two workers >= 1.8x one; 10^5
-emccd-typical posteriors in <= 10 minutes on 2 cores).
+"""Parallel throughput: ``sample_many`` on one process, on local worker processes and on a Dask
+cluster of as many one-thread workers, for each number of workers asked, and a dataset of 10^5
+ROIs on the most workers (targets: two workers >= 1.8x one; on 16 cores, 16 local workers >=
+14x one and a 16-worker Dask cluster >= 12x; 10^5 emccd-typical posteriors in <= 10 minutes on
+2 cores).
 
-Run it on an otherwise idle machine: the speed-up of two workers means nothing when other jobs
-share the cores.
+Run it on an otherwise idle machine: a speed-up means nothing when other jobs share the cores.
+The table names the machine and the command.
 
-    python benchmarks/parallel.py            # full run, rewrites its section of README.md
-    python benchmarks/parallel.py --quick    # a small run that prints only (the tests)
+    python benchmarks/parallel.py                        # 1 and 2 workers; rewrites its section
+                                                         # of README.md
+    python benchmarks/parallel.py --workers 1,2,4,8,16   # the scaling table on a bigger machine
+                                                         # (printed; --publish writes it too)
+    python benchmarks/parallel.py --quick                # a small run that prints only (tests)
 """
 
 from __future__ import annotations
@@ -17,11 +22,12 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import sys  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-from _report import publish_table, quick_run  # noqa: E402
+from _report import machine, publish  # noqa: E402
 
 from bayespsf import load_scene, simulate  # noqa: E402
 from bayespsf.model import Model  # noqa: E402
@@ -34,10 +40,11 @@ def _timed(function):
     return out, time.perf_counter() - started
 
 
-def parallel(n: int, dataset: int) -> pd.DataFrame:
+def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.DataFrame:
     """``sample_many(method="auto")`` on ``n`` emccd-typical ROIs (N = 1000) in this process,
-    on two local worker processes and on a Dask ``LocalCluster`` of two one-thread workers;
-    then a ``dataset`` of ROIs on two local workers (target: 10^5 in <= 10 minutes)."""
+    then for each number ``w`` > 1 of ``workers`` on ``w`` local worker processes and on a Dask
+    ``LocalCluster`` of ``w`` one-thread workers; then a ``dataset`` of ROIs (0: none) on the
+    most local workers."""
     from distributed import Client, LocalCluster
 
     scene = load_scene("emccd-typical")
@@ -46,7 +53,7 @@ def parallel(n: int, dataset: int) -> pd.DataFrame:
     sample_many(counts[:4], model, workers=1)  # warm-up
     rows = []
 
-    def row(how, result, seconds, reference=None):
+    def row(how, w, result, seconds, reference=None):
         count = len(result)
         same = (
             np.nan
@@ -58,6 +65,7 @@ def parallel(n: int, dataset: int) -> pd.DataFrame:
         rows.append(
             {
                 "how": how,
+                "workers": w,
                 "ROIs": count,
                 "seconds": seconds,
                 "ROIs/s": count / seconds,
@@ -66,30 +74,63 @@ def parallel(n: int, dataset: int) -> pd.DataFrame:
         )
 
     one, seconds = _timed(lambda: sample_many(counts[:n], model, workers=1))
-    row("one process", one, seconds)
-    two, seconds = _timed(lambda: sample_many(counts[:n], model, workers=2))
-    row("two local worker processes", two, seconds, one)
-    with (
-        LocalCluster(
-            n_workers=2, threads_per_worker=1, dashboard_address=None, processes=True
-        ) as cluster,
-        Client(cluster) as client,
-    ):
-        sample_many(counts[:4], model, executor=client)  # the workers' imports and tables
-        dask, seconds = _timed(lambda: sample_many(counts[:n], model, executor=client))
-    row("Dask LocalCluster, 2 workers x 1 thread", dask, seconds, one)
-    data, seconds = _timed(lambda: sample_many(counts[:dataset], model, workers=2))
-    row("two local worker processes (dataset)", data, seconds)
+    row("one process", 1, one, seconds)
+    for w in (w for w in workers if w > 1):
+        local, seconds = _timed(lambda w=w: sample_many(counts[:n], model, workers=w))
+        row("local worker processes", w, local, seconds, one)
+        if not dask:
+            continue
+        with (
+            LocalCluster(
+                n_workers=w, threads_per_worker=1, dashboard_address=None, processes=True
+            ) as cluster,
+            Client(cluster) as client,
+        ):
+            sample_many(counts[: 2 * w], model, executor=client)  # the workers' imports, tables
+            result, seconds = _timed(lambda c=client: sample_many(counts[:n], model, executor=c))
+        row("Dask LocalCluster, 1 thread per worker", w, result, seconds, one)
+    if dataset:
+        most = max(workers)
+        data, seconds = _timed(lambda: sample_many(counts[:dataset], model, workers=most))
+        row("local worker processes (dataset)", most, data, seconds)
     table = pd.DataFrame(rows)
     table["speed-up vs one process"] = table["ROIs/s"] / table["ROIs/s"].iloc[0]
+    table["per worker"] = table["speed-up vs one process"] / table["workers"]
     return table
 
 
 def main(argv=None):
-    quick = quick_run(__doc__, argv)
-    table = parallel(*((16, 32) if quick else (4000, 100_000)))
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="a small run that prints only")
+    parser.add_argument(
+        "--workers", default="1,2", help="comma-separated numbers of workers (default 1,2)"
+    )
+    parser.add_argument("--rois", type=int, default=4000, help="ROIs per timing (default 4000)")
+    parser.add_argument(
+        "--dataset", type=int, default=100_000, help="ROIs of the dataset run (0: none)"
+    )
+    parser.add_argument("--no-dask", action="store_true", help="local processes only")
+    parser.add_argument(
+        "--publish", action="store_true", help="write the table into README.md with --workers"
+    )
+    args = parser.parse_args(argv)
+    workers = sorted({int(w) for w in args.workers.split(",")})
+    if workers[0] < 1:
+        parser.error(f"--workers: whole numbers >= 1, got {args.workers}")
+    n, dataset = (16, min(32, args.dataset)) if args.quick else (args.rois, args.dataset)
+    table = parallel(n, dataset, workers, dask=not args.no_dask)
     intro = '`sample_many` (default `method="auto"`, emccd-typical, N = 1000):'
-    publish_table("parallel", intro, table, quick)
+    flags = [] if argv is None else list(argv)
+    flags = sys.argv[1:] if argv is None else flags
+    command = " ".join(["python benchmarks/parallel.py", *flags])
+    text = (
+        f"{intro}\n\n{table.to_markdown(index=False, floatfmt='.3g')}\n\n"
+        f"Command: `{command}` on {machine()}."
+    )
+    default = args.workers == "1,2" and not args.no_dask
+    publish("parallel", text, args.quick or not (default or args.publish))
     return table
 
 

@@ -151,6 +151,10 @@ def test_parallel_benchmark_quick():
     table = parallel.main(["--quick"])
     assert len(table) == 4 and np.all(table["ROIs/s"] > 0)
     assert table["same posteriors as one process"].iloc[1:3].tolist() == [True, True]
+    # a list of workers: one row per local run and per Dask run, the dataset on the most
+    table = parallel.main(["--quick", "--workers", "3,1", "--no-dask", "--dataset", "0"])
+    assert table["workers"].tolist() == [1, 3]
+    assert table["same posteriors as one process"].iloc[1:].tolist() == [True]
 
 
 def test_first_use_benchmark_quick():
