@@ -42,9 +42,11 @@ WAY = "give a new --out folder, or --force to replace them"
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    """Two 20-frame movies of one bleaching molecule (for analyze: 16 and 8 valid frames), two
-    80-frame movies (detect's rules need 75), the camera file and one with another gain, and
-    a folder that `analyze` finished on the first movie."""
+    """Two 20-frame movies of one bleaching molecule (for analyze: 15 and 8 valid frames; the
+    first bleaches during frame 17, its truth's bleach frame is 18, and the photon window
+    removes the part-lit frame 17 and two bright ones), two 80-frame movies (detect's rules
+    need 75), the camera file and one with another gain, and a folder that `analyze` finished
+    on the first movie."""
     folder = tmp_path_factory.mktemp("folders")
     scene = bayespsf.load_scene("paper-movie")
     short = {"frames": 20, "height": 48, "width": 48, "bleach_mean": 12.0}
@@ -113,7 +115,7 @@ def test_analyze_refuses_another_movie_camera_or_setting_before_writing_anything
     assert snapshot(out) == before
     # the same run again continues (the posteriors are not made again)
     posteriors = {k: v for k, v in before.items() if k.startswith("posteriors/molecule")}
-    assert len(posteriors) == 16
+    assert len(posteriors) == 15
     assert analyze(data["a0"], data["camera"], out) == 0
     after = snapshot(out)
     assert {k: after[k] for k in posteriors} == posteriors
@@ -285,7 +287,7 @@ def test_a_killed_analyze_process_resumes(data, tmp_path):
         analyze(data["a1"], data["camera"], out)
     assert analyze(data["a0"], data["camera"], out) == 0
     locs = pd.read_parquet(out / "locs.parquet")
-    assert len(list((out / "posteriors").glob("molecule-*.nc"))) == len(locs) == 16
+    assert len(list((out / "posteriors").glob("molecule-*.nc"))) == len(locs) == 15
     assert {p.name for p in out.iterdir()} <= {*ANALYSIS_FILES, RECORD_NAME, "camera.toml"}
 
 
