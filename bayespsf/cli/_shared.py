@@ -45,12 +45,8 @@ def geometry(args) -> tuple[int | None, int | None]:
     roi, fit = args.roi, args.fit
     if args.command not in ("detect", "analyze"):
         roi, fit = (25 if roi is None else roi), (15 if fit is None else fit)
-    check_sizes(_BIGGEST if roi is None else roi, 1 if fit is None else fit)
+    check_sizes(roi, fit, missing_ok=True)
     return roi, fit
-
-
-#: A stand-in for a missing ``--roi`` when ``--fit`` alone is checked.
-_BIGGEST = 2**31 - 1
 
 
 def movie_model(args):

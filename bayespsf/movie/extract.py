@@ -141,16 +141,19 @@ def photon_model(camera) -> Model:
     return model
 
 
-def check_sizes(roi, fit) -> None:
-    """``roi`` and ``fit`` odd whole numbers with ``fit <= roi``, else an error naming them."""
+def check_sizes(roi, fit, missing_ok: bool = False) -> None:
+    """``roi`` and ``fit`` odd whole numbers with ``fit <= roi``, else an error naming them;
+    with ``missing_ok`` a side that is None is left out (it follows the spot's SD)."""
     for name, value in (("roi", roi), ("fit", fit)):
+        if missing_ok and value is None:
+            continue
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
             raise BayespsfInputError(f"{name} must be an odd whole number >= 1, got {value!r}")
         if value % 2 == 0:
             raise BayespsfInputError(
                 f"{name} must be odd (a central pixel holds the molecule), got {value}"
             )
-    if fit > roi:
+    if roi is not None and fit is not None and fit > roi:
         raise BayespsfInputError(f"fit ({fit}) must be at most roi ({roi})")
 
 

@@ -152,17 +152,8 @@ def resolve_geometry(roi, fit, s0, pixel_size) -> tuple[int | None, int | None, 
         A side that is not an odd whole number >= 1, or a ``fit`` above ``roi`` (naming
         which came from s0), or any error of ``geometry_for_psf``.
     """
-    for name, value in (("roi", roi), ("fit", fit)):
-        if value is not None and not (
-            isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= 1
-        ):
-            raise BayespsfInputError(f"{name} must be an odd whole number >= 1, got {value!r}")
-        if value is not None and value % 2 == 0:
-            raise BayespsfInputError(
-                f"{name} must be odd (a central pixel holds the molecule), got {value}"
-            )
+    check_sizes(roi, fit, missing_ok=True)
     if roi is not None and fit is not None:
-        check_sizes(roi, fit)
         return int(roi), int(fit), "given"
     if roi is None and fit is None:
         source = "from s0"
