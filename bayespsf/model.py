@@ -408,7 +408,12 @@ class Model:
         lam = self._detected(
             psf.expected_counts_unchecked(params, self.roi, self.pixel_size, self.pixel_model)
         )
-        return self.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
+        return self.pixel_log_likelihood(counts, lam).sum(axis=(-2, -1))
+
+    def pixel_log_likelihood(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
+        """Per-pixel log p of validated ``counts`` given ``expected`` photoelectrons, unchecked:
+        the law of ``log_likelihood_unchecked`` (``bayespsf.inference.fused``'s nodes)."""
+        return self.camera._log_likelihood(counts, expected)
 
     def to_photons(self, counts: ArrayLike) -> np.ndarray:
         """Counts converted to N's unit with the camera's mean conversion (offset removed,

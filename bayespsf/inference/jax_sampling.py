@@ -39,7 +39,7 @@ from bayespsf.inference.batched import LAPLACE_WEIGHT_SD, MAX_DRAWS_PER_ESS, PIL
 from bayespsf.inference.importance import CHAINS, KHAT_MAX, first_batch
 from bayespsf.inference.jax_mle import bucket
 from bayespsf.inference.jax_model import JaxModel
-from bayespsf.inference.jax_psis import psis
+from bayespsf.inference.psis import psis
 from bayespsf.inference.summary import QUANTILES, RANK_DRAWS
 from bayespsf.model import LOG_PARAMETERS
 
@@ -172,7 +172,7 @@ def _weighted(z, log_ratio, k_resample, k_rank, truth):
     ESS, the number kept and the draws (index -1: not kept)."""
     _, jnp = _jax()
     size = z.shape[0]
-    log_w, khat = psis(log_ratio)
+    log_w, khat = psis(log_ratio, xp=jnp)
     w = jnp.exp(log_w)
     ess = 1.0 / jnp.sum(w * w)
     ess = jnp.where(jnp.isfinite(khat) & jnp.isfinite(ess), ess, 0.0)

@@ -1,4 +1,5 @@
-"""The summary row of one molecule's posterior, and coverage over a table of rows.
+"""The summary row of a molecule's posterior (``draws_row``; ``draws_rows`` for many at once),
+and coverage over a table of rows.
 
 A row holds, per parameter, the posterior mean, SD, quantiles (the central 50/68/90/95%
 intervals), ESS and autocorrelation time, and, when the truth is known, the truth and its rank
@@ -18,6 +19,7 @@ from bayespsf.psf import PARAMETER_NAMES
 
 QUANTILES = (0.025, 0.05, 0.16, 0.25, 0.5, 0.75, 0.84, 0.95, 0.975)
 RANK_DRAWS = 99  # ranks 0..99: a histogram of 100 equally likely values under calibration
+BLOCK = 64  # most posteriors summarised in one array operation (~1 MB at 400 draws)
 
 
 def quantile_column(name: str, q: float) -> str:
@@ -49,40 +51,189 @@ def draws_row(
     ``tau`` and ``ess`` per parameter (default 1 and ``info["ess"]``). The goodness of fit
     in ``info`` (``bayespsf.inference.gof.FIT_KEYS``) ends the row where present.
     """
-    method = info.get("method", "mcmc")
+    return _rows(
+        [flat],
+        [index],
+        [seed],
+        [info],
+        None if truth is None else [truth],
+        [independent],
+        [tau],
+        [ess],
+    )[0]
+
+
+def draws_rows(draws, indices, seeds, infos, truths=None) -> list[dict]:
+    """The summary rows of many posteriors' equally weighted draws, each equal to its
+    ``draws_row``.
+
+    The posteriors with the same number of draws are summarised together, up to ``BLOCK``
+    at a time, in a few array operations; only the ranks' draws are chosen one posterior at
+    a time (each from its own seed's generator).
+
+    Parameters
+    ----------
+    draws : sequence of ndarray, each shape (k_i, 6)
+        Each posterior's independent draws of ``x0 y0 s_x s_y N b`` (``k_i`` may differ).
+    indices, seeds : sequence of int
+        Each posterior's molecule and seed (its ranks' draws come from the seed).
+    infos : sequence of dict
+        Each posterior's sampler information, as ``draws_row`` reads it.
+    truths : array_like, shape (n, 6), optional
+        The true parameters: adds the truth and rank columns.
+
+    Returns
+    -------
+    list of dict
+        ``[draws_row(d, i, s, info, t) for ...]``: the same keys in the same order, and the
+        same values bit for bit.
+
+    Raises
+    ------
+    BayespsfInputError
+        If ``indices``, ``seeds``, ``infos`` or ``truths`` do not hold one entry per
+        posterior.
+    """
+    n = len(draws)
+    if not len(indices) == len(seeds) == len(infos) == n:
+        raise BayespsfInputError(
+            f"draws_rows needs one index, seed and info per posterior; got {n} posteriors, "
+            f"{len(indices)} indices, {len(seeds)} seeds and {len(infos)} infos"
+        )
+    if truths is not None and len(truths) != n:
+        raise BayespsfInputError(f"truths must hold {n} rows, got {len(truths)}")
+    return _rows(draws, indices, seeds, infos, truths, [None] * n, [None] * n, [None] * n)
+
+
+def _quantiles_of_sorted(ordered: np.ndarray) -> np.ndarray:
+    """``np.quantile(x, QUANTILES)`` of each row ``x`` of ``ordered`` (..., k), sorted along
+    its last axis, as (..., 9): numpy's linear method (Hyndman & Fan type 7) in numpy's own
+    arithmetic, so the values are numpy's bit for bit, without numpy's partition of each row
+    for each quantile."""
+    k = ordered.shape[-1]
+    virtual = (k - 1) * np.asarray(QUANTILES)
+    below = np.floor(virtual)
+    above = below + 1
+    top = virtual >= k - 1  # the largest value (numpy's index -1)
+    below[top], above[top] = -1, -1
+    below, above = below.astype(np.intp), above.astype(np.intp)
+    gamma = virtual - below
+    low, high = ordered[..., below], ordered[..., above]
+    step = high - low
+    values = low + step * gamma
+    np.subtract(high, step * (1 - gamma), out=values, where=gamma >= 0.5)
+    values[np.isnan(ordered[..., -1])] = np.nan  # NaN sorts last: a row with one has NaNs
+    return values
+
+
+def _statistics(group: np.ndarray) -> np.ndarray:
+    """Mean, SD and ``QUANTILES`` (n, 6, 11) of each posterior in ``group`` (n, k, 6): the
+    values ``x.mean(axis=0)``, ``x.std(axis=0, ddof=1)`` and ``np.quantile(x, QUANTILES,
+    axis=0)`` give one posterior ``x`` at a time. Side by side in a (k, 6 n) array, the draws
+    are summed in the order of those of one (k, 6) posterior."""
+    n, k, p = group.shape
+    columns = group.transpose(1, 0, 2).reshape(k, n * p)
+    means = columns.mean(axis=0).reshape(n, p, 1)
+    sds = columns.std(axis=0, ddof=1).reshape(n, p, 1)
+    ordered = np.ascontiguousarray(group.transpose(0, 2, 1))  # (n, 6, k)
+    ordered.sort(axis=-1)
+    return np.concatenate([means, sds, _quantiles_of_sorted(ordered)], axis=-1)
+
+
+def _row_head(index, seed, info: dict, count: int) -> dict:
+    """The columns of a row before its parameters'."""
     converged = bool(info.get("converged", False))
-    row = {
+    return {
         "molecule": int(index),
         "seed": int(seed),
         "converged": converged,
         "status": "converged" if converged else "not converged",
         "message": info.get("diagnosis", ""),
-        "method": method,
+        "method": info.get("method", "mcmc"),
         "why": info.get("why", ""),
         "steps": int(info.get("steps", 0)),
-        "draws": int(flat.shape[0]),
+        "draws": int(count),
         "acceptance": float(info.get("acceptance", np.nan)),
         "seconds": float(info.get("seconds", np.nan)),
     }
-    quantiles = np.quantile(flat, QUANTILES, axis=0)
-    means, sds = flat.mean(axis=0), flat.std(axis=0, ddof=1)
-    spaced = flat if independent is None else independent
-    # a posterior too short for RANK_DRAWS near-independent draws (a capped run) gets no rank
-    ranked = truth is not None and len(spaced) >= RANK_DRAWS
-    if ranked:
-        pick = np.random.default_rng([seed, 1]).choice(len(spaced), RANK_DRAWS, replace=False)
-    for k, name in enumerate(PARAMETER_NAMES):
-        row[f"{name}_mean"] = float(means[k])
-        row[f"{name}_sd"] = float(sds[k])
-        for q, value in zip(QUANTILES, quantiles[:, k], strict=True):
-            row[quantile_column(name, q)] = float(value)
-        row[f"{name}_tau"] = 1.0 if tau is None else float(tau[k])
-        row[f"{name}_ess"] = float(info["ess"] if ess is None else ess[k])
-        if truth is not None:
-            row[f"{name}_truth"] = float(truth[k])
-            row[f"{name}_rank"] = int(np.sum(spaced[pick, k] < truth[k])) if ranked else np.nan
-    row |= {key: info[key] for key in FIT_KEYS if key in info}  # the goodness of fit
-    return row
+
+
+def _blocks(arrays, least: int = 0):
+    """The positions of ``arrays`` of at least ``least`` rows, in blocks of at most ``BLOCK``
+    arrays of the same number of rows: what one array operation takes."""
+    groups: dict[int, list[int]] = {}
+    for i, a in enumerate(arrays):
+        if len(a) >= least:
+            groups.setdefault(len(a), []).append(i)
+    for members in groups.values():
+        for start in range(0, len(members), BLOCK):  # arrays that stay in the cache
+            yield members[start : start + BLOCK]
+
+
+def _rank_block(spaced: np.ndarray, seeds, truths: np.ndarray) -> np.ndarray:
+    """The truth's rank (n, 6) among ``RANK_DRAWS`` of each posterior's near-independent
+    draws ``spaced`` (n, k, 6), drawn from its seed."""
+    picks = np.stack(
+        [
+            np.random.default_rng([seed, 1]).choice(spaced.shape[1], RANK_DRAWS, replace=False)
+            for seed in seeds
+        ]
+    )
+    n, k, p = spaced.shape
+    picked = spaced.reshape(n * k, p)[picks + k * np.arange(n)[:, None]]  # (n, RANK_DRAWS, 6)
+    return np.sum(picked < truths[:, None], axis=1)
+
+
+def _rows(draws, indices, seeds, infos, truths, independents, taus, esses) -> list[dict]:
+    """``draws_rows`` with, per posterior, ``draws_row``'s ``independent``, ``tau`` and
+    ``ess`` (each None or as ``draws_row`` takes it)."""
+    n = len(draws)
+    if n == 0:
+        return []
+    draws = [np.asarray(d) for d in draws]
+    known = truths is not None
+    # per posterior and parameter: mean, sd, the quantiles, tau, ess, and truth and rank,
+    # as the Python floats (and ints) that float() and int() give one value at a time
+    table = np.empty((n, 6, 15 if known else 13), dtype=object)
+    for block in _blocks(draws):
+        table[block, :, :11] = _statistics(np.stack([draws[i] for i in block]))
+    table[:, :, 11] = np.array([(1.0,) * 6 if t is None else t for t in taus], dtype=float)
+    table[:, :, 12] = np.array(
+        [(f["ess"],) * 6 if e is None else e for f, e in zip(infos, esses, strict=True)],
+        dtype=float,
+    )
+    if known:
+        truths = np.asarray(truths, dtype=float).reshape(n, 6)
+        table[:, :, 13] = truths
+        table[:, :, 14] = np.nan  # a posterior too short to rank (a capped run) has no rank
+        spaced = [
+            d if s is None else np.asarray(s) for d, s in zip(draws, independents, strict=True)
+        ]
+        for block in _blocks(spaced, least=RANK_DRAWS):
+            table[block, :, 14] = _rank_block(
+                np.stack([spaced[i] for i in block]), [seeds[i] for i in block], truths[block]
+            )
+    keys = [
+        key
+        for name in PARAMETER_NAMES
+        for key in (
+            f"{name}_mean",
+            f"{name}_sd",
+            *(quantile_column(name, q) for q in QUANTILES),
+            f"{name}_tau",
+            f"{name}_ess",
+            *((f"{name}_truth", f"{name}_rank") if known else ()),
+        )
+    ]
+    rows = []
+    for index, seed, info, d, values in zip(
+        indices, seeds, infos, draws, table.reshape(n, -1).tolist(), strict=True
+    ):
+        row = _row_head(index, seed, info, d.shape[0])
+        row.update(zip(keys, values, strict=True))
+        row |= {key: info[key] for key in FIT_KEYS if key in info}  # the goodness of fit
+        rows.append(row)
+    return rows
 
 
 def molecule_row(posterior, index: int, seed: int) -> dict:
@@ -140,6 +291,7 @@ __all__ = [
     "central_interval",
     "coverage",
     "draws_row",
+    "draws_rows",
     "molecule_row",
     "quantile_column",
 ]

@@ -38,10 +38,7 @@ from bayespsf._runtime import one_blas_thread, progress_bar
 from bayespsf._validate import real_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.backends import check_backend
-from bayespsf.inference.summary import (
-    draws_row,
-    molecule_row,
-)
+from bayespsf.inference.summary import draws_rows, molecule_row
 from bayespsf.model import Model
 from bayespsf.parallel.device import device_posteriors
 from bayespsf.parallel.executors import _parallelism, molecule_seed, run_tasks, task_runner
@@ -419,16 +416,25 @@ def _posteriors_of_chunk(task):
     outcomes = cheap_posteriors(stack, model, fits, seeds, settings)
     seconds = (time.perf_counter() - started) / len(indices)
     checks = _model_checks(stack, model, seeds, check, fits) if check else [{}] * len(indices)
+    made = [k for k, outcome in enumerate(outcomes) if outcome["draws"] is not None]
+    infos = {k: dict(outcomes[k]["info"], seconds=seconds) for k in made}
+    rows = draws_rows(  # the summary rows of all the chunk's posteriors at once
+        [outcomes[k]["draws"] for k in made],
+        [int(indices[k]) for k in made],
+        [seeds[k] for k in made],
+        list(infos.values()),
+        None if truths is None else truths[made],
+    )
+    rows = dict(zip(made, rows, strict=True))
     results = []
     for k, (index, outcome) in enumerate(zip(indices, outcomes, strict=True)):
         if outcome["draws"] is None:
             verdict = {"requested": settings.method, "why": outcome["info"]["why"]}
             results.append((int(index), None, verdict | ({"check": checks[k]} if check else {})))
             continue
-        outcome = {**outcome, "info": dict(outcome["info"], seconds=seconds)}
+        outcome = {**outcome, "info": infos[k]}
         truth = None if truths is None else truths[k]
-        row = draws_row(outcome["draws"], int(index), seeds[k], outcome["info"], truth)
-        row |= checks[k]
+        row = rows[k] | checks[k]
         if store is not None:
             post = as_posterior(outcome, stack[k], model, truth, scene)
             post.tree.attrs["summary_row"] = json.dumps(row)

@@ -117,7 +117,10 @@ def test_the_largest_roi_runs_in_bounded_memory_and_an_endless_chain_is_refused(
     # ESS); now a failed importance run, the chain refused by name, one row
     status, message, why = out["without background"]
     assert status == "failed" and message == out["chain"], out
-    assert why.endswith("chain: importance sampling failed (k-hat inf, ESS 0 of 520 draws)")
+    assert why.endswith(
+        "chain: importance sampling from the Laplace Student-t failed "
+        "(k-hat inf, ESS 0 of 520 draws)"
+    )
 
 
 def test_blocks_of_the_largest_roi_are_bounded_and_smaller_rois_keep_theirs():

@@ -179,3 +179,25 @@ def test_laplace_branch_posteriors_are_calibrated():
     assert len(laplace) >= 0.5 * len(table)
     _assert_calibrated(table)
     _assert_calibrated(laplace)
+
+
+def test_auto_goes_on_from_the_laplace_gaussian_where_its_pilot_is_near():
+    # At N = 1 000 every pilot weight SD is 0.12-0.2: auto continues the pilot with the
+    # Laplace Gaussian as proposal. Its posterior means must agree with method="importance"
+    # (the Student-t proposal, other random streams): each has a Monte Carlo SD of at most
+    # sd / sqrt(400), so their difference has SD <= 0.071 posterior SDs; 5 of those (0.35)
+    # bounds all 40 x 4 differences (chance of a false failure ~1e-4). An SD from ESS 400 has a
+    # relative MC error of ~1/sqrt(800) = 3.5%, a ratio of two ~5%: 0.8-1.25 is 4.5 SDs
+    scene = scene_at(1000)
+    counts, _ = simulate(scene, 40, seed=31)
+    model = Model.from_scene(scene)
+    auto = sample_many(counts, model, seed=3, workers=1, method="auto")
+    t = sample_many(counts, model, seed=3, workers=1, method="importance")
+    assert (auto["method"] == "importance").all()
+    assert auto["why"].str.contains("importance sampling from the Laplace Gaussian").all()
+    assert t["why"].str.contains("importance sampling from the Laplace Student-t").all()
+    for name in ("x0", "s_x", "N", "b"):
+        difference = (auto[f"{name}_mean"] - t[f"{name}_mean"]) / t[f"{name}_sd"]
+        assert difference.abs().max() <= 0.35, (name, difference.abs().max())
+        sd_ratio = auto[f"{name}_sd"] / t[f"{name}_sd"]
+        assert sd_ratio.between(0.8, 1.25).all(), (name, sd_ratio.min(), sd_ratio.max())

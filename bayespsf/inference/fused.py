@@ -1,0 +1,270 @@
+"""The log posterior of many draws of many ROIs, without a draws x pixels array of the law.
+
+Within one ROI's batch of draws each pixel's count is fixed and only its expected value
+``lam = N Py[i] Px[j] + b`` moves, over the narrow range that the draws span. The camera's
+log-likelihood of that count is a smooth function of ``lam`` there, so for each pixel it is
+evaluated at ``DEGREE + 1`` Chebyshev nodes (first kind) in ``sqrt(lam)`` spanning the batch's
+range, and every draw reads the pixel's interpolating polynomial (Clenshaw's recurrence, in a
+compiled loop over draws that the compiler vectorises): ~20 arithmetic operations and a square
+root per pixel and draw, where the EMCCD ``table`` tier costs ~40 operations, a logarithm and
+two square roots and the ``exact`` tiers a quadrature. The law itself is called only at the
+nodes (``Model.pixel_log_likelihood``, so every camera, tier and pixel map works unchanged);
+the spot's 1-D factors ``Px``, ``Py`` (``roi`` values per axis and draw, not ``roi**2``) come
+from the same compiled pass, as ``bayespsf.psf.expected_counts`` computes them.
+
+Every interpolant is checked against the law at ``CHECKS``: the two ends of its range and two
+midpoints between nodes (``x = +-1/2``), where a Chebyshev interpolant's error peaks. A ROI
+with a pixel whose interpolant misses the law there by more than ``TOLERANCE`` in log p, or
+whose law is not finite at a node, or whose range reaches ``lam <= 0``, is scored by
+``Model.log_posterior`` itself. ``TOLERANCE`` (1e-6) is 40x below the ``table`` tier's own
+error against the exact law (4e-5, ``benchmarks/README.md``). Measured against
+``Model.log_posterior`` on Laplace draws of 100 ROIs (``tests/inference/test_fused.py`` holds
+the bound): a draw's log posterior within 2e-7 (median 2e-8) for the EMCCD table, 5e-9 for the
+photon-counting camera, 3e-9 for the sCMOS exact tier; the wider Student-t draws of
+``method="importance"`` within 2.3e-6, with a few ROIs in a hundred sent to the law itself.
+The interpolants are a ROI's own, so a ROI scores the same in any stack; a draw's value
+depends on the other draws of its batch (the range) within that tolerance.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from bayespsf.model import LOG_PARAMETERS
+
+DEGREE = 8  # the interpolant's degree: DEGREE + 1 law evaluations per pixel and batch
+TOLERANCE = 1e-6  # the largest |interpolant - law| in log p at the check points
+GROUP_PIXELS = 2**22  # law evaluations per call at the nodes and check points (32 MB arrays)
+EXACT_DRAWS = 4096  # draws per Model.log_posterior call where the law is needed itself
+EXACT_PIXELS = 2**22  # ... and pixels per call (401 x 401: 26 draws, not 4096 in 5.3 GB)
+_FLAGS = {"contract", "reassoc", "nsz", "arcp"}  # vectorise the loops; keep inf and NaN exact
+_INV_SQRT2 = 1.0 / math.sqrt(2.0)
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+
+_K = np.arange(DEGREE + 1)
+NODES = np.cos(np.pi * (_K + 0.5) / (DEGREE + 1))  # the Chebyshev points of the first kind
+# the two ends and two midpoints between nodes (x = +-1, +-1/2), where the error peaks
+CHECKS = np.cos(np.pi * np.array([0, 3, 6, 9]) / (DEGREE + 1))
+_TO_COEFFICIENTS = np.cos(np.outer(_K, np.arccos(NODES))) * (2.0 / (DEGREE + 1))
+_TO_COEFFICIENTS[0] *= 0.5
+_AT_CHECKS = np.cos(np.outer(_K, np.arccos(CHECKS)))  # T_k at the check points
+POINTS = np.concatenate([NODES, CHECKS])  # where the law is evaluated
+
+
+def score(model, stack: np.ndarray, draws: list[np.ndarray]) -> list[np.ndarray]:
+    """``Model.log_posterior`` of ``draws[i]`` (k_i, 6) in sampling coordinates given ROI
+    ``stack[i]`` (validated counts, ``check_counts``), for every ROI at once.
+
+    Parameters
+    ----------
+    model : Model
+        The model of the ROIs.
+    stack : ndarray, shape (m, roi, roi)
+        Counts of the ROIs, already validated.
+    draws : list of ndarray
+        ``m`` arrays ``(k_i, 6)``: draws of ``z = (x0, y0, log s_x, log s_y, log N, b)``.
+
+    Returns
+    -------
+    list of ndarray
+        ``m`` arrays ``(k_i,)``: the log posterior up to the constant of
+        ``Model.log_posterior``, ``-inf`` outside the prior's support; within ``TOLERANCE``
+        per pixel of it (module docstring).
+    """
+    sizes = np.array([len(z) for z in draws], dtype=np.int64)
+    out = [np.empty(0) for _ in draws]
+    per_roi = (2 * DEGREE + 3) * model.roi**2
+    group = max(1, GROUP_PIXELS // per_roi)
+    for first in range(0, len(draws), group):
+        rois = np.arange(first, min(first + group, len(draws)))
+        rois = rois[sizes[rois] > 0]
+        if rois.size:
+            scored = _score_group(model, stack[rois], [draws[i] for i in rois])
+            for i, values in zip(rois, scored, strict=True):
+                out[i] = values
+    return out
+
+
+def _score_group(model, stack, draws):
+    sizes = np.array([len(z) for z in draws], dtype=np.int64)
+    z = np.concatenate(draws)
+    which = np.repeat(np.arange(len(draws)), sizes)
+    with np.errstate(over="ignore"):  # exp overflow -> inf -> outside the prior's support
+        p = model.from_unconstrained(z)
+    total = model.log_prior(p) + z[:, LOG_PARAMETERS].sum(axis=1)
+    inside = np.isfinite(total)
+    total[~inside] = -np.inf
+    p, kept = p[inside], which[inside]
+    starts = np.concatenate([[0], np.cumsum(np.bincount(kept, minlength=len(draws)))])
+    roi, a = model.roi, float(model.pixel_size)
+    sampled = model.pixel_model == "sampled"
+    px, py = np.empty((roi, len(p))), np.empty((roi, len(p)))
+    _axis(p[:, 0], p[:, 2], roi, a, sampled, px)
+    _axis(p[:, 1], p[:, 3], roi, a, sampled, py)
+    n = p[:, 4] * model.photoelectrons_per_photon
+    b = p[:, 5] * model.photoelectrons_per_photon + model.clock_induced_charge
+    low = np.full((len(draws), roi, roi), np.inf)
+    high = np.full((len(draws), roi, roi), -np.inf)
+    _ranges(px, py, n, b, starts, low, high)
+    mid, half, coef, usable = _interpolants(model, stack, low, high, starts)
+    likelihood = np.zeros(len(p))
+    _evaluate(px, py, n, b, starts, mid, 1.0 / half, coef, usable, likelihood)
+    total[inside] += likelihood
+    exact = np.flatnonzero(~usable & (np.diff(starts) > 0))
+    if exact.size:  # ROIs whose interpolants missed the check: the law itself
+        again = np.flatnonzero(np.isin(which, exact) & inside)
+        step = min(EXACT_DRAWS, max(1, EXACT_PIXELS // model.roi**2))
+        for first in range(0, again.size, step):
+            part = again[first : first + step]
+            total[part] = model.log_posterior(z[part], stack, which=which[part])
+    return np.split(total, np.cumsum(sizes)[:-1])
+
+
+def _interpolants(model, stack, low, high, starts):
+    """Per ROI and pixel the interval ``mid +- half`` in ``sqrt(lam)``, the Chebyshev
+    coefficients ``(m, roi, roi, DEGREE + 1)`` of the law there and, per ROI, whether every
+    pixel's interpolant passed the check (module docstring)."""
+    m, roi = low.shape[0], low.shape[1]
+    mid, half = np.empty((m, roi, roi)), np.empty((m, roi, roi))
+    positive = np.empty(m, dtype=np.bool_)
+    lam = np.empty((m, POINTS.size, roi, roi))  # (m, points, roi, roi): camera maps broadcast
+    _points(low, high, np.diff(starts) == 0, POINTS, mid, half, positive, lam)
+    values = model.pixel_log_likelihood(stack[:, None], lam)
+    coef = np.empty((m, roi, roi, DEGREE + 1))
+    usable = np.empty(m, dtype=np.bool_)
+    _fit(values, _TO_COEFFICIENTS, _AT_CHECKS, TOLERANCE, positive, coef, usable)
+    return mid, half, coef, usable
+
+
+@numba.njit(cache=True, nogil=True)
+def _points(low, high, empty, points, mid, half, positive, lam):
+    """Each pixel's interval in ``sqrt(lam)`` and the expected values at its nodes and check
+    points; ``positive[r]`` is False where a range reaches ``lam <= 0`` (a ROI without draws
+    gets a valid interval that is never read)."""
+    for r in range(low.shape[0]):
+        positive[r] = True
+        for i in range(low.shape[1]):
+            for j in range(low.shape[2]):
+                lo, hi = (1.0, 1.0) if empty[r] else (low[r, i, j], high[r, i, j])
+                if not lo > 0.0:
+                    positive[r], lo, hi = False, 1.0, 1.0
+                a, b = math.sqrt(lo), math.sqrt(hi)
+                mid[r, i, j], half[r, i, j] = 0.5 * (b + a), max(0.5 * (b - a), 1e-300)
+                for k in range(points.size):
+                    root = mid[r, i, j] + half[r, i, j] * points[k]
+                    lam[r, k, i, j] = root * root
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit(values, to_coefficients, at_checks, tolerance, positive, coef, usable):
+    """Chebyshev coefficients from the law at the nodes (``values[:, :DEGREE + 1]``); a ROI
+    is usable where every pixel's interpolant is within ``tolerance`` of the law at the check
+    points and the law is finite at its nodes."""
+    nodes = to_coefficients.shape[0]
+    for r in range(values.shape[0]):
+        usable[r] = positive[r]
+        for i in range(values.shape[2]):
+            for j in range(values.shape[3]):
+                for k in range(nodes):
+                    total = 0.0
+                    for n in range(nodes):
+                        total += to_coefficients[k, n] * values[r, n, i, j]
+                    coef[r, i, j, k] = total
+                for c in range(at_checks.shape[1]):
+                    approx = 0.0
+                    for k in range(nodes):
+                        approx += coef[r, i, j, k] * at_checks[k, c]
+                    if not abs(approx - values[r, nodes + c, i, j]) <= tolerance:
+                        usable[r] = False  # also NaN: a law not finite at a node or check
+
+
+@numba.njit(cache=True, nogil=True)
+def _axis(centre, width, roi, a, sampled, out):
+    """The spot's 1-D factor along one axis, ``out[j, d]`` for pixel ``j`` and draw ``d``: the
+    Gaussian's mass in the pixel (``bayespsf.psf.expected_counts``: a pixel wholly on one side
+    of the centre as a difference of upper tails, so that it keeps its relative precision far
+    from the spot), or with ``sampled`` its density at the pixel centre times ``a``."""
+    for d in range(centre.shape[0]):
+        c, w = centre[d], width[d]
+        if sampled:
+            for j in range(roi):
+                u = ((j - 0.5 * (roi - 1)) * a - c) / w
+                out[j, d] = a * _INV_SQRT_2PI * math.exp(-0.5 * u * u) / w
+            continue
+        near = ((0.0 - 0.5 * roi) * a - c) / w
+        near_tail = 0.5 * math.erfc(abs(near) * _INV_SQRT2)
+        for j in range(roi):
+            far = ((j + 1.0 - 0.5 * roi) * a - c) / w
+            far_tail = 0.5 * math.erfc(abs(far) * _INV_SQRT2)
+            if near >= 0.0:
+                out[j, d] = near_tail - far_tail
+            elif far <= 0.0:
+                out[j, d] = far_tail - near_tail
+            else:
+                out[j, d] = 1.0 - near_tail - far_tail
+            near, near_tail = far, far_tail
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FLAGS)
+def _ranges(px, py, n, b, starts, low, high):
+    """The smallest and largest expected value of each ROI's pixels over its draws."""
+    roi = px.shape[0]
+    for r in range(starts.size - 1):
+        first, last = starts[r], starts[r + 1]
+        photons, background = n[first:last], b[first:last]
+        for i in range(roi):
+            row = py[i, first:last]
+            for j in range(roi):
+                column = px[j, first:last]
+                smallest, largest = np.inf, -np.inf
+                for d in range(last - first):
+                    lam = photons[d] * row[d] * column[d] + background[d]
+                    smallest = min(smallest, lam)
+                    largest = max(largest, lam)
+                low[r, i, j], high[r, i, j] = smallest, largest
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FLAGS)
+def _evaluate(px, py, n, b, starts, mid, inv_half, coef, usable, out):
+    """Add each pixel's interpolated log-likelihood to ``out[d]`` (Clenshaw, degree 8)."""
+    roi = px.shape[0]
+    for r in range(starts.size - 1):
+        if not usable[r]:
+            continue
+        first, last = starts[r], starts[r + 1]
+        total, photons, background = out[first:last], n[first:last], b[first:last]
+        for i in range(roi):
+            row = py[i, first:last]
+            for j in range(roi):
+                column = px[j, first:last]
+                c = coef[r, i, j]
+                m, h = mid[r, i, j], inv_half[r, i, j]
+                c0, c1, c2, c3, c4, c5, c6, c7, c8 = (
+                    c[0],
+                    c[1],
+                    c[2],
+                    c[3],
+                    c[4],
+                    c[5],
+                    c[6],
+                    c[7],
+                    c[8],
+                )
+                for d in range(last - first):
+                    x = (math.sqrt(photons[d] * row[d] * column[d] + background[d]) - m) * h
+                    x2 = 2.0 * x
+                    b8 = c8
+                    b7 = c7 + x2 * b8
+                    b6 = c6 + x2 * b7 - b8
+                    b5 = c5 + x2 * b6 - b7
+                    b4 = c4 + x2 * b5 - b6
+                    b3 = c3 + x2 * b4 - b5
+                    b2 = c2 + x2 * b3 - b4
+                    b1 = c1 + x2 * b2 - b3
+                    total[d] += c0 + x * b1 - b2
+
+
+__all__ = ["CHECKS", "DEGREE", "NODES", "TOLERANCE", "score"]
