@@ -61,6 +61,7 @@ from bayespsf.psf import PARAMETER_NAMES
 PILOT = 64  # Laplace draws scored to judge the Laplace (auto)
 LAPLACE_WEIGHT_SD = 0.05  # the largest pilot weight SD at which auto uses the Laplace
 GAUSSIAN_WEIGHT_SD = 1.0  # ... and at which it goes on with the Laplace Gaussian as proposal
+GAUSSIAN_MARGIN = 1.05  # its pilot predicts its ESS per draw, 1 / (1 + sd(w)**2), closely
 MAX_DRAWS_PER_ESS = 50  # an importance run scores at most this many draws per unit of ESS
 
 
@@ -89,10 +90,11 @@ def random_streams(seed: int):
     return {"start": start, "chain": rest, "draws": draws, "resample": resample, "laplace": laplace}
 
 
-def score(model, stack, draws: list[np.ndarray]) -> list[np.ndarray]:
+def score(model, stack, draws: list[np.ndarray], kept: list | None = None) -> list[np.ndarray]:
     """Log posterior of ``draws[i]`` (k_i, 6) given ROI ``stack[i]``, all ROIs' draws scored
-    together (``bayespsf.inference.fused.score``)."""
-    return fused.score(model, stack, draws)
+    together (``bayespsf.inference.fused.score``; ``kept``: the ROIs' interpolants from their
+    previous batch, updated)."""
+    return fused.score(model, stack, draws, kept)
 
 
 def cheap_posteriors(stack, model, fits, seeds, settings) -> list[dict]:
@@ -179,8 +181,8 @@ def _cholesky(cov):
 def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.ndarray, dict]:
     """Laplace draws where accepted (``laplace``: ROI -> centre and covariance in z); returns
     the ROIs still to do and, for those whose pilot weight SD is at most
-    ``GAUSSIAN_WEIGHT_SD``, the pilot (draws, log proposal density, log posterior, and the
-    random stream it came from) to go on with."""
+    ``GAUSSIAN_WEIGHT_SD``, the pilot (draws, log proposal density, log posterior, the
+    random stream it came from and its interpolants) to go on with."""
     factors = {i: _cholesky(laplace[i][1]) for i in todo}
     usable = [i for i in todo if factors[i] is not None]
     rngs = {i: np.random.default_rng(streams[i]["laplace"]) for i in usable}
@@ -189,13 +191,14 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.nd
         u = rngs[i].standard_normal((PILOT, 6))
         pilots_z.append(laplace[i][0] + u @ factors[i].T)
         log_g.append(-0.5 * np.sum(u * u, axis=1))
-    scored = score(model, stack[usable], pilots_z) if usable else []
+    kept = [None] * len(usable)  # the pilot's interpolants, for the runs that continue it
+    scored = score(model, stack[usable], pilots_z, kept) if usable else []
     left = [i for i in todo if factors[i] is None]
     for i in left:
         out[i]["info"]["why"] = "chain: the Laplace covariance is not positive definite"
     wanted = CHAINS * int(np.ceil(settings.ess / CHAINS))
     pilots = {}
-    for i, z, lp, lg in zip(usable, pilots_z, scored, log_g, strict=True):
+    for i, z, lp, lg, interpolants in zip(usable, pilots_z, scored, log_g, kept, strict=True):
         weight_sd = _weight_sd(lp - lg)
         passed = weight_sd <= LAPLACE_WEIGHT_SD
         if settings.method == "auto" and not passed:
@@ -205,7 +208,7 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.nd
             )
             left.append(i)
             if weight_sd <= GAUSSIAN_WEIGHT_SD:
-                pilots[i] = (z, lg, lp, rngs[i])
+                pilots[i] = (z, lg, lp, rngs[i], interpolants)
             continue
         u = rngs[i].standard_normal((2 * wanted, 6))
         z = laplace[i][0] + u @ factors[i].T
@@ -239,11 +242,14 @@ def _importance(stack, model, todo, laplace, streams, settings, out, pilots) -> 
     Laplace Gaussian, continuing its pilot; then the rest, and those whose Gaussian run
     failed, from the Laplace Student-t."""
     max_draws = int(MAX_DRAWS_PER_ESS * settings.ess)
-    runs = {}
-    for i, (z, log_g, lp, rng) in pilots.items():
+    runs, kept = {}, {}
+    for i, (z, log_g, lp, rng, interpolants) in pilots.items():
         proposal = GaussianProposal(*laplace[i])
-        runs[i] = ImportanceRun(proposal, settings.ess, max_draws, rng, first=(z, log_g, lp))
-    _advance(stack, model, runs)
+        runs[i] = ImportanceRun(
+            proposal, settings.ess, max_draws, rng, first=(z, log_g, lp), margin=GAUSSIAN_MARGIN
+        )
+        kept[i] = interpolants
+    _advance(stack, model, runs, kept)
     failed = []
     for i, run in runs.items():
         if not _accept(i, run, "the Laplace Gaussian", model, streams, settings, out):
@@ -257,20 +263,21 @@ def _importance(stack, model, todo, laplace, streams, settings, out, pilots) -> 
             out[i]["info"]["why"] = "chain: the Laplace covariance is not positive definite"
             continue
         runs[i] = ImportanceRun(proposal, settings.ess, max_draws, random)
-    _advance(stack, model, runs)
+    _advance(stack, model, runs, {})
     for i, run in runs.items():
         _accept(i, run, "the Laplace Student-t", model, streams, settings, out)
 
 
-def _advance(stack, model, runs: dict) -> None:
+def _advance(stack, model, runs: dict, kept: dict) -> None:
     """Run importance runs to the end together: each round scores every active run's batch
-    in one call, and smooths the weights of the runs with equally many draws together (runs
-    that start with scored draws are judged first)."""
-    _judge(runs, {i: run.log_ratio for i, run in runs.items() if run.log_ratio.size})
+    in one call (``kept``: each ROI's interpolants, reused while they span its draws), and
+    smooths the weights of the runs with equally many draws together."""
     active = [i for i, run in runs.items() if not run.done]
     while active:
         batches = [runs[i].propose() for i in active]
-        scored = score(model, stack[active], batches)
+        interpolants = [kept.get(i) for i in active]
+        scored = score(model, stack[active], batches, interpolants)
+        kept.update(zip(active, interpolants, strict=True))
         _judge(runs, {i: runs[i].add(lp) for i, lp in zip(active, scored, strict=True)})
         active = [i for i in active if not runs[i].done]
 

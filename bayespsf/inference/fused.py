@@ -38,6 +38,7 @@ from bayespsf.model import LOG_PARAMETERS
 DEGREE = 8  # the interpolant's degree: DEGREE + 1 law evaluations per pixel and batch
 TOLERANCE = 1e-6  # the largest |interpolant - law| in log p at the check points
 GROUP_PIXELS = 2**22  # law evaluations per call at the nodes and check points (32 MB arrays)
+WIDEN = 2.5  # a kept interpolant spans this many times its first batch's range
 EXACT_DRAWS = 4096  # draws per Model.log_posterior call where the law is needed itself
 EXACT_PIXELS = 2**22  # ... and pixels per call (401 x 401: 26 draws, not 4096 in 5.3 GB)
 _FLAGS = {"contract", "reassoc", "nsz", "arcp"}  # vectorise the loops; keep inf and NaN exact
@@ -54,7 +55,9 @@ _AT_CHECKS = np.cos(np.outer(_K, np.arccos(CHECKS)))  # T_k at the check points
 POINTS = np.concatenate([NODES, CHECKS])  # where the law is evaluated
 
 
-def score(model, stack: np.ndarray, draws: list[np.ndarray]) -> list[np.ndarray]:
+def score(
+    model, stack: np.ndarray, draws: list[np.ndarray], kept: list | None = None
+) -> list[np.ndarray]:
     """``Model.log_posterior`` of ``draws[i]`` (k_i, 6) in sampling coordinates given ROI
     ``stack[i]`` (validated counts, ``check_counts``), for every ROI at once.
 
@@ -66,6 +69,12 @@ def score(model, stack: np.ndarray, draws: list[np.ndarray]) -> list[np.ndarray]
         Counts of the ROIs, already validated.
     draws : list of ndarray
         ``m`` arrays ``(k_i, 6)``: draws of ``z = (x0, y0, log s_x, log s_y, log N, b)``.
+    kept : list, optional
+        For callers that score a ROI's draws batch by batch: ``m`` entries, each None or the
+        interpolants a previous call left for that ROI, updated in place. A ROI whose draws
+        all lie within its kept interpolants' ranges reuses them; new ones span ``WIDEN``
+        times the draws' range (checked as always), so that the next batch of draws from the
+        same proposal likely falls inside.
 
     Returns
     -------
@@ -82,13 +91,16 @@ def score(model, stack: np.ndarray, draws: list[np.ndarray]) -> list[np.ndarray]
         rois = np.arange(first, min(first + group, len(draws)))
         rois = rois[sizes[rois] > 0]
         if rois.size:
-            scored = _score_group(model, stack[rois], [draws[i] for i in rois])
-            for i, values in zip(rois, scored, strict=True):
-                out[i] = values
+            previous = None if kept is None else [kept[i] for i in rois]
+            scored = _score_group(model, stack[rois], [draws[i] for i in rois], previous)
+            for k, i in enumerate(rois):
+                out[i] = scored[k]
+                if kept is not None:
+                    kept[i] = previous[k]
     return out
 
 
-def _score_group(model, stack, draws):
+def _score_group(model, stack, draws, kept):
     sizes = np.array([len(z) for z in draws], dtype=np.int64)
     z = np.concatenate(draws)
     which = np.repeat(np.arange(len(draws)), sizes)
@@ -97,8 +109,9 @@ def _score_group(model, stack, draws):
     total = model.log_prior(p) + z[:, LOG_PARAMETERS].sum(axis=1)
     inside = np.isfinite(total)
     total[~inside] = -np.inf
-    p, kept = p[inside], which[inside]
-    starts = np.concatenate([[0], np.cumsum(np.bincount(kept, minlength=len(draws)))])
+    p = p[inside]
+    per_roi = np.bincount(which[inside], minlength=len(draws))
+    starts = np.concatenate([[0], np.cumsum(per_roi)])
     roi, a = model.roi, float(model.pixel_size)
     sampled = model.pixel_model == "sampled"
     px, py = np.empty((roi, len(p))), np.empty((roi, len(p)))
@@ -109,7 +122,7 @@ def _score_group(model, stack, draws):
     low = np.full((len(draws), roi, roi), np.inf)
     high = np.full((len(draws), roi, roi), -np.inf)
     _ranges(px, py, n, b, starts, low, high)
-    mid, half, coef, usable = _interpolants(model, stack, low, high, starts)
+    mid, half, coef, usable = _reused_or_built(model, stack, low, high, starts, kept)
     likelihood = np.zeros(len(p))
     _evaluate(px, py, n, b, starts, mid, 1.0 / half, coef, usable, likelihood)
     total[inside] += likelihood
@@ -123,7 +136,42 @@ def _score_group(model, stack, draws):
     return np.split(total, np.cumsum(sizes)[:-1])
 
 
-def _interpolants(model, stack, low, high, starts):
+def _reused_or_built(model, stack, low, high, starts, kept):
+    """The interpolants of each ROI: its kept ones where they span its draws' range, else new
+    ones (``WIDEN`` times that range where ``kept`` is given, which is then updated; the
+    draws' range itself where the wider one misses the check)."""
+    if kept is None:
+        return _interpolants(model, stack, low, high, starts, 1.0)
+    m, roi = low.shape[0], low.shape[1]
+    mid, half = np.ones((m, roi, roi)), np.ones((m, roi, roi))
+    coef, usable = np.zeros((m, roi, roi, DEGREE + 1)), np.zeros(m, dtype=np.bool_)
+    have = np.array([r for r, old in enumerate(kept) if old is not None], dtype=np.int64)
+    if have.size:
+        mid[have] = np.stack([kept[r][0] for r in have])
+        half[have] = np.stack([kept[r][1] for r in have])
+        spanned = _spans(mid[have], half[have], low[have], high[have])
+        usable[have] = spanned
+        coef[have[spanned]] = np.stack([kept[r][2] for r in have[spanned]]) if spanned.any() else 0
+    for widen in (WIDEN, 1.0):  # a wide range can miss the check where the draws' own pass
+        build = np.flatnonzero(~usable & (np.diff(starts) > 0))
+        if build.size:
+            rows = np.concatenate([[0], np.cumsum(np.diff(starts)[build])])
+            made = _interpolants(model, stack[build], low[build], high[build], rows, widen)
+            mid[build], half[build], coef[build], usable[build] = made
+    for r in range(m):
+        kept[r] = (mid[r], half[r], coef[r]) if usable[r] else None
+    return mid, half, coef, usable
+
+
+def _spans(mid, half, low, high) -> np.ndarray:
+    """Per ROI, whether its intervals ``mid +- half`` in ``sqrt(lam)`` (m, roi, roi) hold
+    every pixel's ``[low, high]``."""
+    slack = 1e-9 * half
+    inside = (np.sqrt(low) >= mid - half - slack) & (np.sqrt(high) <= mid + half + slack)
+    return np.all(inside, axis=(1, 2))
+
+
+def _interpolants(model, stack, low, high, starts, widen):
     """Per ROI and pixel the interval ``mid +- half`` in ``sqrt(lam)``, the Chebyshev
     coefficients ``(m, roi, roi, DEGREE + 1)`` of the law there and, per ROI, whether every
     pixel's interpolant passed the check (module docstring)."""
@@ -131,7 +179,7 @@ def _interpolants(model, stack, low, high, starts):
     mid, half = np.empty((m, roi, roi)), np.empty((m, roi, roi))
     positive = np.empty(m, dtype=np.bool_)
     lam = np.empty((m, POINTS.size, roi, roi))  # (m, points, roi, roi): camera maps broadcast
-    _points(low, high, np.diff(starts) == 0, POINTS, mid, half, positive, lam)
+    _points(low, high, np.diff(starts) == 0, POINTS, widen, mid, half, positive, lam)
     values = model.pixel_log_likelihood(stack[:, None], lam)
     coef = np.empty((m, roi, roi, DEGREE + 1))
     usable = np.empty(m, dtype=np.bool_)
@@ -140,10 +188,11 @@ def _interpolants(model, stack, low, high, starts):
 
 
 @numba.njit(cache=True, nogil=True)
-def _points(low, high, empty, points, mid, half, positive, lam):
-    """Each pixel's interval in ``sqrt(lam)`` and the expected values at its nodes and check
-    points; ``positive[r]`` is False where a range reaches ``lam <= 0`` (a ROI without draws
-    gets a valid interval that is never read)."""
+def _points(low, high, empty, points, widen, mid, half, positive, lam):
+    """Each pixel's interval in ``sqrt(lam)`` (``widen`` times the draws' range about its
+    middle, its lower end no lower than half the draws' lowest) and the expected values at
+    its nodes and check points; ``positive[r]`` is False where a range reaches ``lam <= 0``
+    (a ROI without draws gets a valid interval that is never read)."""
     for r in range(low.shape[0]):
         positive[r] = True
         for i in range(low.shape[1]):
@@ -152,7 +201,13 @@ def _points(low, high, empty, points, mid, half, positive, lam):
                 if not lo > 0.0:
                     positive[r], lo, hi = False, 1.0, 1.0
                 a, b = math.sqrt(lo), math.sqrt(hi)
-                mid[r, i, j], half[r, i, j] = 0.5 * (b + a), max(0.5 * (b - a), 1e-300)
+                spread = 0.5 * widen * (b - a)
+                lower = max(0.5 * (a + b) - spread, 0.5 * a)
+                upper = 0.5 * (a + b) + spread
+                mid[r, i, j], half[r, i, j] = (
+                    0.5 * (upper + lower),
+                    max(0.5 * (upper - lower), 1e-300),
+                )
                 for k in range(points.size):
                     root = mid[r, i, j] + half[r, i, j] * points[k]
                     lam[r, k, i, j] = root * root
@@ -208,7 +263,7 @@ def _axis(centre, width, roi, a, sampled, out):
             near, near_tail = far, far_tail
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FLAGS)
+@numba.njit(cache=True, nogil=True, fastmath=True)  # finite inputs: min/max vectorise
 def _ranges(px, py, n, b, starts, low, high):
     """The smallest and largest expected value of each ROI's pixels over its draws."""
     roi = px.shape[0]
@@ -219,12 +274,23 @@ def _ranges(px, py, n, b, starts, low, high):
             row = py[i, first:last]
             for j in range(roi):
                 column = px[j, first:last]
-                smallest, largest = np.inf, -np.inf
-                for d in range(last - first):
-                    lam = photons[d] * row[d] * column[d] + background[d]
-                    smallest = min(smallest, lam)
-                    largest = max(largest, lam)
-                low[r, i, j], high[r, i, j] = smallest, largest
+                # four running extremes: one waits on the latency of each min and max
+                s0 = s1 = s2 = s3 = np.inf
+                l0 = l1 = l2 = l3 = -np.inf
+                d = 0
+                while d + 4 <= last - first:
+                    a0 = photons[d] * row[d] * column[d] + background[d]
+                    a1 = photons[d + 1] * row[d + 1] * column[d + 1] + background[d + 1]
+                    a2 = photons[d + 2] * row[d + 2] * column[d + 2] + background[d + 2]
+                    a3 = photons[d + 3] * row[d + 3] * column[d + 3] + background[d + 3]
+                    s0, s1, s2, s3 = min(s0, a0), min(s1, a1), min(s2, a2), min(s3, a3)
+                    l0, l1, l2, l3 = max(l0, a0), max(l1, a1), max(l2, a2), max(l3, a3)
+                    d += 4
+                for e in range(d, last - first):
+                    lam = photons[e] * row[e] * column[e] + background[e]
+                    s0, l0 = min(s0, lam), max(l0, lam)
+                low[r, i, j] = min(min(s0, s1), min(s2, s3))
+                high[r, i, j] = max(max(l0, l1), max(l2, l3))
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FLAGS)

@@ -117,19 +117,27 @@ class ImportanceRun:
     with the smoothed weights of many ROIs computed together); each keeps its own random
     stream, so a ROI's draws do not depend on its neighbours. ``first`` (draws, their log
     proposal density and log posterior) are draws of the same proposal scored already (a
-    pilot): they are added, and the run is judged before its first batch (``judge``).
+    pilot): they are added and size the first batch by their raw ESS; the run is judged
+    (k-hat, ESS) from its first batch on, as a pilot's tail is too short for k-hat.
+    ``margin``: each batch after the first scores this factor more draws than the ESS per
+    draw so far predicts are needed (1.2; less where that prediction is sharp).
     """
 
-    def __init__(self, proposal, ess: float, max_draws: int, random, first=None):
+    def __init__(self, proposal, ess: float, max_draws: int, random, first=None, margin=1.2):
         self.proposal, self.ess, self.max_draws, self.random = proposal, ess, max_draws, random
+        self.margin = margin
         self.batch = min(first_batch(ess), max_draws)
         self._z, self._log_ratio, self._pending = [], [], None
         self.done = False
         self.weights, self.khat, self.achieved = None, np.nan, 0.0
-        if first is not None:
+        if first is not None:  # sized by its raw ESS: k-hat from a pilot's tail is noise
             z, log_g, log_posterior = first
             self._pending = (z, log_g)
-            self.add(log_posterior)
+            ratio = self.add(log_posterior)
+            with np.errstate(invalid="ignore"):
+                w = np.exp(ratio - ratio.max())
+                raw = np.sum(w) ** 2 / np.sum(w * w)
+            self._size(raw if np.isfinite(raw) else 1.0, len(ratio))
 
     def propose(self) -> np.ndarray:
         z, log_g = self.proposal.draw(self.batch, self.random)
@@ -160,8 +168,12 @@ class ImportanceRun:
         if self.achieved >= self.ess or self.khat > KHAT_MAX or scored >= self.max_draws:
             self.done = True
             return
-        # the ESS per draw so far predicts the draws still needed (plus 20%)
-        needed = int(1.2 * (self.ess - self.achieved) * scored / max(self.achieved, 1.0))
+        self._size(self.achieved, scored)
+
+    def _size(self, achieved: float, scored: int) -> None:
+        """The next batch: the draws still needed as the ESS per draw so far predicts them,
+        times the margin."""
+        needed = int(self.margin * (self.ess - achieved) * scored / max(achieved, 1.0))
         self.batch = int(np.clip(needed, MIN_BATCH // 2, self.max_draws - scored))
 
     def take(self, log_posterior: np.ndarray) -> None:

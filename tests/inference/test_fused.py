@@ -111,3 +111,21 @@ def test_spot_factors_match_the_psf(pixel_model):
     want = spot(params, roi, a)
     assert want.min() < 1e-12  # far tails are in the test
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
+
+
+def test_kept_interpolants_serve_the_next_batch_within_the_tolerance():
+    # a pilot of 64 draws, then 400 more from the same Gaussian: the pilot's interpolants,
+    # widened, span most ROIs' second batch and are reused; either way every draw is within
+    # the tolerance of the law
+    model, stack, pilot = laplace_draws("emccd-typical", 10, 64, False, seed=4)
+    _, _, more = laplace_draws("emccd-typical", 10, 400, False, seed=4)
+    kept = [None] * 10
+    fused.score(model, stack, pilot, kept)
+    first = [None if k is None else k[2] for k in kept]
+    assert sum(k is not None for k in kept) >= 8  # the widened interpolants pass the check
+    got = fused.score(model, stack, more, kept)
+    pairs = zip(kept, first, strict=True)
+    reused = sum(k is not None and f is not None and np.array_equal(k[2], f) for k, f in pairs)
+    assert reused >= 5, reused
+    for g, w in zip(got, reference(model, stack, more), strict=True):
+        assert np.abs(g - w).max() <= model.roi**2 * fused.TOLERANCE
