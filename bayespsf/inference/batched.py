@@ -182,7 +182,8 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.nd
     """Laplace draws where accepted (``laplace``: ROI -> centre and covariance in z); returns
     the ROIs still to do and, for those whose pilot weight SD is at most
     ``GAUSSIAN_WEIGHT_SD``, the pilot (draws, log proposal density, log posterior, the
-    random stream it came from and its interpolants) to go on with."""
+    random stream it came from, its interpolants and the covariance's Cholesky factor) to go
+    on with."""
     factors = {i: _cholesky(laplace[i][1]) for i in todo}
     usable = [i for i in todo if factors[i] is not None]
     rngs = {i: np.random.default_rng(streams[i]["laplace"]) for i in usable}
@@ -208,7 +209,7 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.nd
             )
             left.append(i)
             if weight_sd <= GAUSSIAN_WEIGHT_SD:
-                pilots[i] = (z, lg, lp, rngs[i], interpolants)
+                pilots[i] = (z, lg, lp, rngs[i], interpolants, factors[i])
             continue
         u = rngs[i].standard_normal((2 * wanted, 6))
         z = laplace[i][0] + u @ factors[i].T
@@ -243,8 +244,8 @@ def _importance(stack, model, todo, laplace, streams, settings, out, pilots) -> 
     failed, from the Laplace Student-t."""
     max_draws = int(MAX_DRAWS_PER_ESS * settings.ess)
     runs, kept = {}, {}
-    for i, (z, log_g, lp, rng, interpolants) in pilots.items():
-        proposal = GaussianProposal(*laplace[i])
+    for i, (z, log_g, lp, rng, interpolants, cholesky) in pilots.items():
+        proposal = GaussianProposal(*laplace[i], cholesky=cholesky)
         runs[i] = ImportanceRun(
             proposal, settings.ess, max_draws, rng, first=(z, log_g, lp), margin=GAUSSIAN_MARGIN
         )

@@ -33,17 +33,17 @@ import math
 import numba
 import numpy as np
 
+from bayespsf.inference import spot_factors
 from bayespsf.model import LOG_PARAMETERS
 
 DEGREE = 8  # the interpolant's degree: DEGREE + 1 law evaluations per pixel and batch
 TOLERANCE = 1e-6  # the largest |interpolant - law| in log p at the check points
 GROUP_PIXELS = 2**22  # law evaluations per call at the nodes and check points (32 MB arrays)
+GROUP_DRAWS = 2**14  # draws per group: the spot's factors, (roi, draws), in a few MB
 WIDEN = 2.5  # a kept interpolant spans this many times its first batch's range
 EXACT_DRAWS = 4096  # draws per Model.log_posterior call where the law is needed itself
 EXACT_PIXELS = 2**22  # ... and pixels per call (401 x 401: 26 draws, not 4096 in 5.3 GB)
 _FLAGS = {"contract", "reassoc", "nsz", "arcp"}  # vectorise the loops; keep inf and NaN exact
-_INV_SQRT2 = 1.0 / math.sqrt(2.0)
-_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 _K = np.arange(DEGREE + 1)
 NODES = np.cos(np.pi * (_K + 0.5) / (DEGREE + 1))  # the Chebyshev points of the first kind
@@ -53,6 +53,7 @@ _TO_COEFFICIENTS = np.cos(np.outer(_K, np.arccos(NODES))) * (2.0 / (DEGREE + 1))
 _TO_COEFFICIENTS[0] *= 0.5
 _AT_CHECKS = np.cos(np.outer(_K, np.arccos(CHECKS)))  # T_k at the check points
 POINTS = np.concatenate([NODES, CHECKS])  # where the law is evaluated
+_NODE_MATRICES = (POINTS, _TO_COEFFICIENTS, _AT_CHECKS)
 
 
 def score(
@@ -85,10 +86,7 @@ def score(
     """
     sizes = np.array([len(z) for z in draws], dtype=np.int64)
     out = [np.empty(0) for _ in draws]
-    per_roi = (2 * DEGREE + 3) * model.roi**2
-    group = max(1, GROUP_PIXELS // per_roi)
-    for first in range(0, len(draws), group):
-        rois = np.arange(first, min(first + group, len(draws)))
+    for rois in _groups(sizes, POINTS.size * model.roi**2):
         rois = rois[sizes[rois] > 0]
         if rois.size:
             previous = None if kept is None else [kept[i] for i in rois]
@@ -98,6 +96,21 @@ def score(
                 if kept is not None:
                     kept[i] = previous[k]
     return out
+
+
+def _groups(sizes: np.ndarray, per_roi: int) -> list[np.ndarray]:
+    """Consecutive ROIs in groups of at most ``GROUP_PIXELS`` law evaluations at their nodes
+    and ``GROUP_DRAWS`` draws (one ROI at least): working arrays that stay in cache, instead
+    of page faults and misses on arrays of tens of MB."""
+    groups, first, draws = [], 0, 0
+    most = max(1, GROUP_PIXELS // per_roi)
+    for i, size in enumerate(sizes):
+        if i > first and (i - first >= most or draws + size > GROUP_DRAWS):
+            groups.append(np.arange(first, i))
+            first, draws = i, 0
+        draws += size
+    groups.append(np.arange(first, len(sizes)))
+    return groups
 
 
 def _score_group(model, stack, draws, kept):
@@ -114,9 +127,8 @@ def _score_group(model, stack, draws, kept):
     starts = np.concatenate([[0], np.cumsum(per_roi)])
     roi, a = model.roi, float(model.pixel_size)
     sampled = model.pixel_model == "sampled"
-    px, py = np.empty((roi, len(p))), np.empty((roi, len(p)))
-    _axis(p[:, 0], p[:, 2], roi, a, sampled, px)
-    _axis(p[:, 1], p[:, 3], roi, a, sampled, py)
+    px = spot_factors.factors(p[:, 0], p[:, 2], roi, a, starts, sampled, _NODE_MATRICES)
+    py = spot_factors.factors(p[:, 1], p[:, 3], roi, a, starts, sampled, _NODE_MATRICES)
     n = p[:, 4] * model.photoelectrons_per_photon
     b = p[:, 5] * model.photoelectrons_per_photon + model.clock_induced_charge
     low = np.full((len(draws), roi, roi), np.inf)
@@ -234,33 +246,6 @@ def _fit(values, to_coefficients, at_checks, tolerance, positive, coef, usable):
                         approx += coef[r, i, j, k] * at_checks[k, c]
                     if not abs(approx - values[r, nodes + c, i, j]) <= tolerance:
                         usable[r] = False  # also NaN: a law not finite at a node or check
-
-
-@numba.njit(cache=True, nogil=True)
-def _axis(centre, width, roi, a, sampled, out):
-    """The spot's 1-D factor along one axis, ``out[j, d]`` for pixel ``j`` and draw ``d``: the
-    Gaussian's mass in the pixel (``bayespsf.psf.expected_counts``: a pixel wholly on one side
-    of the centre as a difference of upper tails, so that it keeps its relative precision far
-    from the spot), or with ``sampled`` its density at the pixel centre times ``a``."""
-    for d in range(centre.shape[0]):
-        c, w = centre[d], width[d]
-        if sampled:
-            for j in range(roi):
-                u = ((j - 0.5 * (roi - 1)) * a - c) / w
-                out[j, d] = a * _INV_SQRT_2PI * math.exp(-0.5 * u * u) / w
-            continue
-        near = ((0.0 - 0.5 * roi) * a - c) / w
-        near_tail = 0.5 * math.erfc(abs(near) * _INV_SQRT2)
-        for j in range(roi):
-            far = ((j + 1.0 - 0.5 * roi) * a - c) / w
-            far_tail = 0.5 * math.erfc(abs(far) * _INV_SQRT2)
-            if near >= 0.0:
-                out[j, d] = near_tail - far_tail
-            elif far <= 0.0:
-                out[j, d] = far_tail - near_tail
-            else:
-                out[j, d] = 1.0 - near_tail - far_tail
-            near, near_tail = far, far_tail
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)  # finite inputs: min/max vectorise

@@ -97,9 +97,11 @@ class GaussianProposal:
     the Gaussian's shows as k-hat above ``KHAT_MAX``, and the ROI goes on to the t.
     """
 
-    def __init__(self, centre, scale):
+    def __init__(self, centre, scale, cholesky=None):
         self.centre = np.asarray(centre, dtype=np.float64)
-        self.cholesky = np.linalg.cholesky(np.asarray(scale, dtype=np.float64))
+        if cholesky is None:
+            cholesky = np.linalg.cholesky(np.asarray(scale, dtype=np.float64))
+        self.cholesky = cholesky  # of ``scale``, where the caller has it already
 
     def draw(self, n: int, random) -> tuple[np.ndarray, np.ndarray]:
         """``n`` draws (``random``: a NumPy Generator or RandomState) and their log density

@@ -412,7 +412,7 @@ def _posteriors_of_chunk(task):
 
     indices, stack, model, seeds, truths, settings, scene, store, check = task
     started = time.perf_counter()
-    fits = fit_mle(stack, model)
+    fits = fit_mle(stack, model, crlb=bool(check))  # the bound only for the model checks
     outcomes = cheap_posteriors(stack, model, fits, seeds, settings)
     seconds = (time.perf_counter() - started) / len(indices)
     checks = _model_checks(stack, model, seeds, check, fits) if check else [{}] * len(indices)
