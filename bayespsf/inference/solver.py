@@ -28,7 +28,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from bayespsf.psf.gaussian import axis_factor, axis_factors
+from bayespsf.psf.gaussian import axis_curvature, axis_factor, axis_factors
 
 DECREMENT = 1e-10  # Newton decrement (in log-likelihood units) below which a ROI has converged
 STATIONARY = 1e-4  # ... and where no step lowers -log L, the decrement that still counts as one
@@ -252,37 +252,73 @@ def gradient(model, counts, p, x=None, y=None):
 
 
 def observed_information(model, counts, p):
-    """The Hessian of ``-log L`` in the parameters, by central differences of the analytic
-    gradient (forward at b = 0), symmetrised: (n, 6, 6). ``fit_mle``'s steps: 1e-3 pixel in
-    position, 1e-4 relative in s_x, s_y, N, and max(1e-4 b, 1e-4) in b. A step in x0 or s_x
-    leaves the spot's factor along y as it is (and conversely; a step in N or b, both), so
-    only the factor that changes is recomputed."""
-    a = model.pixel_size
-    n = len(p)
-    steps = np.column_stack(
-        [
-            np.full(n, 1e-3 * a),
-            np.full(n, 1e-3 * a),
-            1e-4 * p[:, 2],
-            1e-4 * p[:, 3],
-            1e-4 * p[:, 4],
-            np.maximum(1e-4 * p[:, 5], 1e-4),
-        ]
+    """The Hessian of ``-log L`` in the parameters, (n, 6, 6): over the pixels, the law's
+    curvature in the expected count times ``J J'``, minus its score times the expected
+    count's second derivatives (from the spot's 1-D factors and their curvatures,
+    ``psf.gaussian.axis_curvature``; analytic). The law's curvature is a central difference
+    of its score, ``1e-4 max(lam, 1)`` each way (forward where that would go below 0): near
+    ``lam = 0`` (no background) a secant over 1e-4 photons, as steps of the background give,
+    where the law's tangent curvature is unbounded."""
+    lam, x, y = _expected_and_factors(model, p)
+    camera = model.camera
+    step = 1e-4 * np.maximum(lam, 1.0)  # at least the 1e-4 photons of the old b step
+    low, high = np.maximum(lam - step, 0.0), lam + step
+    curvature = (camera._score(counts, high) - camera._score(counts, low)) / (high - low)
+    xc = axis_curvature(p[:, 0], p[:, 2], model.roi, model.pixel_size, model.pixel_model)
+    yc = axis_curvature(p[:, 1], p[:, 3], model.roi, model.pixel_size, model.pixel_model)
+    hessian = np.empty((len(p), 6, 6))
+    _hessian_pixels(
+        np.ascontiguousarray(x),
+        np.ascontiguousarray(y),
+        np.ascontiguousarray(xc),
+        np.ascontiguousarray(yc),
+        np.ascontiguousarray(p[:, 4], dtype=np.float64),
+        float(model.photoelectrons_per_photon),
+        np.ascontiguousarray(camera._score(counts, lam), dtype=np.float64),
+        np.ascontiguousarray(curvature, dtype=np.float64),
+        hessian,
     )
-    x, y = axis_factors(p, model.roi, model.pixel_size, model.pixel_model)
-    hessian = np.empty((n, 6, 6))
-    for k in range(6):
-        upper, lower = p.copy(), p.copy()
-        upper[:, k] += steps[:, k]
-        lower[:, k] -= steps[:, k]
-        if k == 5:
-            lower[:, 5] = np.maximum(lower[:, 5], 0.0)
-        span = upper[:, k] - lower[:, k]
-        same = {"x": None if k in (0, 2) else x, "y": None if k in (1, 3) else y}
-        hessian[:, k] = (
-            gradient(model, counts, upper, **same) - gradient(model, counts, lower, **same)
-        ) / span[:, None]
-    return 0.5 * (hessian + np.swapaxes(hessian, 1, 2))
+    return hessian
+
+
+@numba.njit(cache=True, nogil=True)
+def _hessian_pixels(x, y, xc, yc, photons, scale, score, curvature, hessian):
+    """``sum_pixels -curvature J J' - score K`` per ROI, ``K`` the expected count's second
+    derivatives: ``c N`` times the products of the factors' derivatives (``c N Py Px''`` for
+    x0 twice, ``c N Py' Px'`` for x0 and y0, ...), ``c`` times one factor's derivative times
+    the other factor for N and a position or width, and 0 for N twice and for b."""
+    roi = x.shape[2]
+    jac = np.empty(6)
+    k = np.zeros((6, 6))
+    h = np.empty((6, 6))
+    for r in range(x.shape[0]):
+        spot = scale * photons[r]
+        h[:] = 0.0
+        for i in range(roi):
+            py, dy, wy = y[r, 0, i], y[r, 1, i], y[r, 2, i]
+            for j in range(roi):
+                px, dx, wx = x[r, 0, j], x[r, 1, j], x[r, 2, j]
+                jac[0], jac[1] = spot * py * dx, spot * dy * px
+                jac[2], jac[3] = spot * py * wx, spot * wy * px
+                jac[4], jac[5] = scale * py * px, scale
+                row, column = spot * py, spot * px
+                k[0, 0], k[0, 2], k[2, 2] = row * xc[r, 0, j], row * xc[r, 1, j], row * xc[r, 2, j]
+                k[1, 1], k[1, 3], k[3, 3] = (
+                    yc[r, 0, i] * column,
+                    yc[r, 1, i] * column,
+                    yc[r, 2, i] * column,
+                )
+                k[0, 1], k[0, 3] = spot * dy * dx, spot * wy * dx
+                k[1, 2], k[2, 3] = spot * dy * wx, spot * wy * wx
+                k[0, 4], k[2, 4] = scale * py * dx, scale * py * wx
+                k[1, 4], k[3, 4] = scale * dy * px, scale * wy * px
+                c, s = curvature[r, i, j], score[r, i, j]
+                for a in range(6):
+                    for b in range(a, 6):
+                        h[a, b] -= c * jac[a] * jac[b] + s * k[a, b]
+        for a in range(6):
+            for b in range(a, 6):
+                hessian[r, a, b] = hessian[r, b, a] = h[a, b]
 
 
 def maximise(model, counts: np.ndarray, starts: np.ndarray, held=None):

@@ -391,6 +391,31 @@ def axis_factor(
     return np.stack(_axis(centre, width, roi, a, pixel_model, True), axis=-2)
 
 
+def axis_curvature(
+    centre: np.ndarray, width: np.ndarray, roi: int, a: float, pixel_model: str = "integrated"
+) -> np.ndarray:
+    """The second derivatives of ``axis_factor``'s fractions, unvalidated: by the centre twice,
+    by the centre and the width, and by the width twice, shape ``(..., 3, roi)``.
+
+    Integrated, per pixel edge ``z`` (edge minus centre, over the width ``w``) and taken as the
+    pixel's far edge's value minus its near edge's: ``-z phi(z) / w**2``,
+    ``(1 - z**2) phi(z) / w**2`` and ``z (2 - z**2) phi(z) / w**2``. Sampled, with ``m`` the
+    fraction and ``u`` the pixel centre's standardised position: ``m (u**2 - 1) / w**2``,
+    ``m u (u**2 - 3) / w**2`` and ``m (u**4 - 5 u**2 + 2) / w**2``.
+    """
+    w2 = (width * width)[..., None]
+    if pixel_model == "integrated":
+        z = ((np.arange(roi + 1) - roi / 2.0) * a - centre[..., None]) / width[..., None]
+        phi = _INV_SQRT_2PI * np.exp(-0.5 * z * z)
+        edges = (-z * phi, (1.0 - z * z) * phi, z * (2.0 - z * z) * phi)
+        return np.stack([(e[..., 1:] - e[..., :-1]) / w2 for e in edges], axis=-2)
+    u = (_centres(roi, a) - centre[..., None]) / width[..., None]
+    m = (a * _INV_SQRT_2PI) * np.exp(-0.5 * u * u) / width[..., None]
+    u2 = u * u
+    curvatures = (u2 - 1.0, u * (u2 - 3.0), u2 * u2 - 5.0 * u2 + 2.0)
+    return np.stack([m * c / w2 for c in curvatures], axis=-2)
+
+
 def _fraction_derivatives(z, width):
     phi = _INV_SQRT_2PI * np.exp(-0.5 * z * z)
     zphi = z * phi

@@ -54,3 +54,37 @@ def test_factor_sums_equal_the_full_jacobian_contractions(case):
     scale = diagonal[:, :, None] * diagonal[:, None, :]
     assert np.all(np.abs(metric - want_metric) <= 1e-12 * scale)
     assert np.all(metric == np.swapaxes(metric, 1, 2))
+
+
+@pytest.mark.parametrize("case", ["emccd-typical", "scmos-typical", "sampled", "incident"])
+def test_observed_information_is_the_derivative_of_the_gradient(case):
+    # the analytic Hessian (the law's curvature times J J' minus its score times the expected
+    # count's second derivatives) against central differences of the analytic gradient with
+    # steps of 1e-3 pixel and 1e-4 relative: both are within ~1e-7 of the exact Hessian (the
+    # differences' O(h^2) and the law's curvature by a difference of its score), so 1e-5 of
+    # each entry's scale sqrt(H_kk H_qq) holds with room and fails for a wrong term
+    if case == "sampled":
+        scene, model = _sampled()
+    elif case == "incident":
+        scene, model = _incident_photons()
+    else:
+        scene = load_scene(case)
+        model = Model.from_scene(scene)
+    counts, truth = simulate(scene, 12, seed=7)
+    counts = model.check_counts(counts)
+    p = truth[NAMES].to_numpy(float)
+    got = solver.observed_information(model, counts, p)
+    steps = np.array([0.1, 0.1, 0.0, 0.0, 0.0, 0.0]) + 1e-4 * np.abs(p) * [0, 0, 1, 1, 1, 1]
+    steps[:, 5] = np.maximum(steps[:, 5], 1e-4)
+    want = np.empty_like(got)
+    for k in range(6):
+        up, down = p.copy(), p.copy()
+        up[:, k] += steps[:, k]
+        down[:, k] -= steps[:, k]
+        want[:, k] = (solver.gradient(model, counts, up) - solver.gradient(model, counts, down)) / (
+            2 * steps[:, k, None]
+        )
+    want = 0.5 * (want + np.swapaxes(want, 1, 2))
+    diagonal = np.abs(np.diagonal(want, axis1=1, axis2=2))
+    scale = np.sqrt(diagonal[:, :, None] * diagonal[:, None, :])
+    assert np.all(np.abs(got - want) <= 1e-5 * scale)
