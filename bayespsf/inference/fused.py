@@ -10,7 +10,10 @@ root per pixel and draw, where the EMCCD ``table`` tier costs ~40 operations, a 
 two square roots and the ``exact`` tiers a quadrature. The law itself is called only at the
 nodes (``Model.pixel_log_likelihood``, so every camera, tier and pixel map works unchanged);
 the spot's 1-D factors ``Px``, ``Py`` (``roi`` values per axis and draw, not ``roi**2``) come
-from the same compiled pass, as ``bayespsf.psf.expected_counts`` computes them.
+from ``bayespsf.inference.spot_factors``. Groups of at most ``GROUP_DRAWS`` draws keep the
+working arrays in cache. A caller that scores a ROI batch by batch can keep its interpolants
+(``kept``): they are built over ``WIDEN`` times the first batch's range and reused while they
+span the next batch (checked as always).
 
 Every interpolant is checked against the law at ``CHECKS``: the two ends of its range and two
 midpoints between nodes (``x = +-1/2``), where a Chebyshev interpolant's error peaks. A ROI
