@@ -1,10 +1,14 @@
 """The accuracy-time frontier (see :mod:`bayespsf.cli.bench`): every EMCCD likelihood tier at ESS
 targets 100 / 400 / 1000 / 4000 and the MLE + CRLB and Laplace ends, for 12 molecules of the
 `emccd-typical` scene at N = 200, 1000 and 5000 (the `exact` tier: 2 molecules per N, ESS 100 and
-400). Writes benchmarks/results/frontier.{md,csv,png} and frontier-summary.csv, and its section of
+400). Where JAX is installed, also the JAX backend's `importance` and `auto` for the tiers it
+supports, each N's molecules as one stack timed after a warm-up call (compilation excluded);
+without JAX those rows are skipped and the output says so. Writes
+benchmarks/results/frontier.{md,csv,png} and frontier-summary.csv, and its section of
 benchmarks/README.md.
 
-    python benchmarks/frontier.py [--workers K]   # full run (~20 minutes on 2 cores)
+    python benchmarks/frontier.py [--workers K]   # full run (~20 minutes on 2 cores; the JAX
+                                                  # rows on the CPU add ~25)
     python benchmarks/frontier.py --quick         # = bayespsf bench --quick, to a temp folder
     python benchmarks/frontier.py --from-csv      # tables and figure again from frontier.csv
 """

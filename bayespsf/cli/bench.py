@@ -15,6 +15,16 @@ inverse observed information). For each run, per molecule:
 The ``table`` tier is also run by Laplace importance sampling (``method="importance"``, PSIS,
 falling back to MCMC where k-hat > 0.7) at the same ESS targets.
 
+Where JAX is installed, the JAX backend adds rows ``importance (JAX)`` and ``auto (JAX)``:
+``sample_many(..., backend="jax", method=...)`` for the tiers it supports (``table``,
+``high-gain``, ``gaussian``, ``poisson``; ``--quick``: ``table`` at ESS 100) at the same ESS
+targets, scored like the NumPy rows. The backend works on stacks: each photon level's molecules
+run as one stack, timed after a warm-up call on the same stack (compilation excluded), and a
+molecule's time is the stack's over its molecules. The backend pads a stack to its fixed chunk
+sizes, so a stack of a few molecules pays for a whole chunk: a larger stack costs less per
+molecule. On the CPU, JAX's programs use every core, where each NumPy row runs in one worker
+process. Without JAX these rows are skipped, and the run and its report say so.
+
 The reference is a long ``table``-tier run (ESS 40 000 on every parameter), corrected to the
 ``exact`` law by importance weights on 400 of its draws (the weighted against the unweighted SD
 of those draws; the table is within 4e-5 of exact per pixel, so the correction is small and it
@@ -26,6 +36,7 @@ its section of ``benchmarks/README.md``).
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 
@@ -36,6 +47,7 @@ from bayespsf import load_scene, simulate
 from bayespsf._runtime import best_time
 from bayespsf.inference.estimators import fit_mle
 from bayespsf.inference.sampling import sample_posterior
+from bayespsf.inference.summary import quantile_column
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.theory import crlb
@@ -57,6 +69,8 @@ class Plan:
     reweighted_draws: int = 400
     scene: str = "emccd-typical"
     seed: int = 2026
+    jax_tiers: tuple = ("table", "high-gain", "gaussian", "poisson")
+    jax_budgets: tuple | None = None  # the JAX rows' ESS targets (None: ``budgets``)
 
 
 FULL = Plan()
@@ -69,7 +83,12 @@ QUICK = Plan(
     exact_molecules=0,
     reference_ess=4000.0,
     reweighted_draws=50,
+    jax_tiers=("table",),
+    jax_budgets=(100,),
 )
+JAX_METHODS = ("importance", "auto")
+JAX_MISSING = 'JAX rows skipped: JAX is not installed (pip install "bayespsf[jax]").'
+REFERENCE = ("ref mean", "ref sd", "ref exact correction", "ref converged", "ref ess")
 
 
 def _row(level, n_photons, k, method, tier, budget, seconds, unit, sd, mean, q68, q95, truth):
@@ -206,10 +225,65 @@ def molecule(task) -> list[dict]:
         )
         rows.append(row)
     for row in rows:
-        row.update(reference, **{"MLE seconds": unit})
-        row["sd error"] = row["sd"] / reference["ref sd"] - 1.0
-        row["mean offset"] = (row["mean"] - reference["ref mean"]) / reference["ref sd"]
+        _score(row, {**reference, "MLE seconds": unit})
     return rows
+
+
+def _score(row: dict, reference: dict) -> None:
+    """Add the reference columns to ``row`` and its errors against the reference."""
+    row.update(reference)
+    row["sd error"] = row["sd"] / reference["ref sd"] - 1.0
+    row["mean offset"] = (row["mean"] - reference["ref mean"]) / reference["ref sd"]
+
+
+def jax_installed() -> bool:
+    """Whether the JAX backend can run here (``check_backend("jax")`` passes)."""
+    from bayespsf.errors import BayespsfInputError
+    from bayespsf.inference.backends import check_backend
+
+    try:
+        check_backend("jax")
+    except BayespsfInputError:
+        return False
+    return True
+
+
+def jax_rows(plan: Plan, tasks: list, rows: list[dict], progress=print) -> list[dict]:
+    """The JAX backend's rows (module docstring): per photon level, tier, method and ESS
+    target, the level's molecules as one stack through ``sample_many(backend="jax")``, timed
+    after a warm-up call on the same stack; scored against the references of ``rows`` (the
+    NumPy rows of the same molecules, which also give each molecule's MLE time)."""
+    from bayespsf.inference.backends import device_name
+    from bayespsf.parallel import sample_many
+
+    known = {(r["N"], r["molecule"]): r for r in rows}
+    out = []
+    for level, n_photons in plan.photons.items():
+        part = [task for task in tasks if task[0] == level]
+        stack, scene = np.stack([task[3] for task in part]), part[0][5]
+        seed = int(np.random.SeedSequence([plan.seed, n_photons, 2]).generate_state(1)[0])
+        budgets = plan.jax_budgets or plan.budgets
+        for tier, method, budget in itertools.product(plan.jax_tiers, JAX_METHODS, budgets):
+            model = Model.from_scene(scene, likelihood=tier)
+            run = {"seed": seed, "workers": 1, "progress": False, "backend": "jax"}
+            run |= {"method": method, "ess": budget}
+            sample_many(stack, model, **run)  # compiles the stack's programs: not timed
+            start = time.perf_counter()
+            table = sample_many(stack, model, **run)
+            seconds = (time.perf_counter() - start) / len(part)
+            for task, (_, r) in zip(part, table.iterrows(), strict=True):
+                k, truth = task[2], task[4]
+                first = known[(n_photons, k)]
+                q = [r[quantile_column("s_x", p)] for p in (0.025, 0.16, 0.84, 0.975)]
+                row = _row(level, n_photons, k, f"{method} (JAX)", tier, budget, seconds,
+                           first["MLE seconds"], r["s_x_sd"], r["s_x_mean"], q[1:3],
+                           q[::3], truth)  # fmt: skip
+                row.update(converged=bool(r["converged"]), steps=r["steps"], ess=r["s_x_ess"])
+                row.update(fell_back_to_mcmc=r["method"] == "mcmc", device=device_name())
+                _score(row, {key: first[key] for key in (*REFERENCE, "MLE seconds")})
+                out.append(row)
+            progress(f"frontier: JAX, {level} N, {tier}, {method}, ESS {budget}")
+    return out
 
 
 def frontier(plan: Plan = FULL, workers: int | None = None, progress=print) -> pd.DataFrame:
@@ -236,6 +310,10 @@ def frontier(plan: Plan = FULL, workers: int | None = None, progress=print) -> p
             for i, result in enumerate(pool.map(molecule, tasks)):
                 rows += result
                 progress(f"frontier: {i + 1}/{len(tasks)} molecules")
+    if not jax_installed():  # after the pool: no worker is forked from a process running JAX
+        progress(JAX_MISSING)
+    elif plan.jax_tiers:
+        rows += jax_rows(plan, tasks, rows, progress)
     return pd.DataFrame(rows)
 
 
@@ -311,11 +389,12 @@ def figure(summary: pd.DataFrame, path) -> None:
     fig, axes = plt.subplots(1, len(levels), figsize=(4.2 * len(levels), 4), squeeze=False)
     for ax, level in zip(axes[0], levels, strict=True):
         part = summary[summary["level"] == level]
-        curves = part[part["method"].isin(["posterior", "importance"])]
+        curves = part[part["ESS target"].notna()]
         for i, ((method, tier), g) in enumerate(curves.groupby(["method", "tier"])):
             g = g.sort_values("ESS target")
-            label = tier if method == "posterior" else f"{tier}, importance (PSIS)"
-            style = "o-" if method == "posterior" else "s--"
+            label = {"posterior": tier, "importance": f"{tier}, importance (PSIS)"}
+            label = label.get(method, f"{tier}, {method}")
+            style = {"posterior": "o-", "importance": "s--"}.get(method, "^:")
             ax.plot(g["time / MLE"], g["SD error (median |.|)"], style, color=f"C{i}", label=label)
             for _, r in g.iterrows():
                 ax.annotate(
@@ -353,7 +432,20 @@ def figure(summary: pd.DataFrame, path) -> None:
     plt.close(fig)
 
 
-__all__ = ["FULL", "QUICK", "Plan", "figure", "frontier", "molecule", "summarise", "which_tier"]
+__all__ = [
+    "FULL",
+    "JAX_METHODS",
+    "JAX_MISSING",
+    "QUICK",
+    "Plan",
+    "figure",
+    "frontier",
+    "jax_installed",
+    "jax_rows",
+    "molecule",
+    "summarise",
+    "which_tier",
+]
 
 
 def report(rows: pd.DataFrame, out, command: str) -> str:
@@ -370,6 +462,18 @@ def report(rows: pd.DataFrame, out, command: str) -> str:
     summary.to_csv(out / "frontier-summary.csv", index=False)
     figure(summary, out / "frontier.png")
     correction = rows.groupby(["N", "molecule"])["ref exact correction"].first().abs().max()
+    on_jax = rows["method"].str.endswith("(JAX)")
+    if on_jax.any():
+        jax_note = (
+            '\n\nRows `(JAX)`: `sample_many(backend="jax")` on '
+            f"{', '.join(rows.loc[on_jax, 'device'].astype(str).unique())}, each level's "
+            "molecules as one stack, timed after a warm-up call on the same stack (compilation "
+            "excluded); time per molecule = the stack's time / its molecules (the backend pads a "
+            "stack to fixed chunk sizes, so a small stack pays for a whole chunk; on the CPU, "
+            "JAX uses every core)."
+        )
+    else:
+        jax_note = "" if jax_installed() else "\n\n" + JAX_MISSING
     shown = summary.drop(columns=["coverage 68% SE", "coverage 95% SE", "seconds"])
     text = (
         f"Command: `{command}` on {machine()}.\n\n"
@@ -379,7 +483,9 @@ def report(rows: pd.DataFrame, out, command: str) -> str:
         + shown.to_markdown(index=False, floatfmt=".3g")
         + f"\n\nReference: `table` tier at ESS {rows['ref ess'].min():.0f}+ (smallest over "
         f"molecules) corrected to the exact law; the largest correction of its SD was "
-        f"{correction:.1e} (relative). Figure: frontier.png; every run: frontier.csv.\n"
+        f"{correction:.1e} (relative). Figure: frontier.png; every run: frontier.csv."
+        + jax_note
+        + "\n"
     )
     (out / "frontier.md").write_text(text)
     return text
