@@ -15,14 +15,14 @@ working arrays in cache. A caller that scores a ROI batch by batch can keep its 
 (``kept``): they are built over ``WIDEN`` times the first batch's range and reused while they
 span the next batch (checked as always).
 
-Every interpolant is checked against the law at ``CHECKS``: the two ends of its range and two
-midpoints between nodes (``x = +-1/2``), where a Chebyshev interpolant's error peaks. A ROI
-with a pixel whose interpolant misses the law there by more than ``TOLERANCE`` in log p, or
+Every interpolant is checked against the law at ``chebyshev.CHECKS``: the two ends of its range
+and two midpoints between nodes (``x = +-1/2``), where a Chebyshev interpolant's error peaks. A
+ROI with a pixel whose interpolant misses the law there by more than ``TOLERANCE`` in log p, or
 whose law is not finite at a node, or whose range reaches ``lam <= 0``, is scored by
-``Model.log_posterior`` itself. ``TOLERANCE`` (1e-6) is 40x below the ``table`` tier's own
-error against the exact law (4e-5, ``benchmarks/README.md``). Measured against
-``Model.log_posterior`` on Laplace draws of 100 ROIs (``tests/inference/test_fused.py`` holds
-the bound): a draw's log posterior within 2e-7 (median 2e-8) for the EMCCD table, 5e-9 for the
+``Model.log_posterior`` itself. ``TOLERANCE`` (1e-6) is 40x below the ``table`` tier's own error
+against the exact law (4e-5, ``benchmarks/README.md``). Measured against ``Model.log_posterior``
+on Laplace draws of 100 ROIs (``tests/inference/test_fused.py`` holds the bound): a draw's log
+posterior within 2e-7 (median 2e-8) for the EMCCD table, 5e-9 for the
 photon-counting camera, 3e-9 for the sCMOS exact tier; the wider Student-t draws of
 ``method="importance"`` within 2.3e-6, with a few ROIs in a hundred sent to the law itself.
 The interpolants are a ROI's own, so a ROI scores the same in any stack; a draw's value
@@ -37,9 +37,16 @@ import numba
 import numpy as np
 
 from bayespsf.inference import spot_factors
+from bayespsf.inference.chebyshev import (
+    AT_CHECKS,
+    DEGREE,
+    POINTS,
+    TO_COEFFICIENTS,
+    clenshaw,
+    terms,
+)
 from bayespsf.model import LOG_PARAMETERS
 
-DEGREE = 8  # the interpolant's degree: DEGREE + 1 law evaluations per pixel and batch
 TOLERANCE = 1e-6  # the largest |interpolant - law| in log p at the check points
 GROUP_PIXELS = 2**22  # law evaluations per call at the nodes and check points (32 MB arrays)
 GROUP_DRAWS = 2**14  # draws per group: the spot's factors, (roi, draws), in a few MB
@@ -47,16 +54,6 @@ WIDEN = 2.5  # a kept interpolant spans this many times its first batch's range
 EXACT_DRAWS = 4096  # draws per Model.log_posterior call where the law is needed itself
 EXACT_PIXELS = 2**22  # ... and pixels per call (401 x 401: 26 draws, not 4096 in 5.3 GB)
 _FLAGS = {"contract", "reassoc", "nsz", "arcp"}  # vectorise the loops; keep inf and NaN exact
-
-_K = np.arange(DEGREE + 1)
-NODES = np.cos(np.pi * (_K + 0.5) / (DEGREE + 1))  # the Chebyshev points of the first kind
-# the two ends and two midpoints between nodes (x = +-1, +-1/2), where the error peaks
-CHECKS = np.cos(np.pi * np.array([0, 3, 6, 9]) / (DEGREE + 1))
-_TO_COEFFICIENTS = np.cos(np.outer(_K, np.arccos(NODES))) * (2.0 / (DEGREE + 1))
-_TO_COEFFICIENTS[0] *= 0.5
-_AT_CHECKS = np.cos(np.outer(_K, np.arccos(CHECKS)))  # T_k at the check points
-POINTS = np.concatenate([NODES, CHECKS])  # where the law is evaluated
-_NODE_MATRICES = (POINTS, _TO_COEFFICIENTS, _AT_CHECKS)
 
 
 def score(
@@ -130,8 +127,8 @@ def _score_group(model, stack, draws, kept):
     starts = np.concatenate([[0], np.cumsum(per_roi)])
     roi, a = model.roi, float(model.pixel_size)
     sampled = model.pixel_model == "sampled"
-    px = spot_factors.factors(p[:, 0], p[:, 2], roi, a, starts, sampled, _NODE_MATRICES)
-    py = spot_factors.factors(p[:, 1], p[:, 3], roi, a, starts, sampled, _NODE_MATRICES)
+    px = spot_factors.factors(p[:, 0], p[:, 2], roi, a, starts, sampled)
+    py = spot_factors.factors(p[:, 1], p[:, 3], roi, a, starts, sampled)
     n = p[:, 4] * model.photoelectrons_per_photon
     b = p[:, 5] * model.photoelectrons_per_photon + model.clock_induced_charge
     low = np.full((len(draws), roi, roi), np.inf)
@@ -198,7 +195,7 @@ def _interpolants(model, stack, low, high, starts, widen):
     values = model.pixel_log_likelihood(stack[:, None], lam)
     coef = np.empty((m, roi, roi, DEGREE + 1))
     usable = np.empty(m, dtype=np.bool_)
-    _fit(values, _TO_COEFFICIENTS, _AT_CHECKS, TOLERANCE, positive, coef, usable)
+    _fit(values, TO_COEFFICIENTS, AT_CHECKS, TOLERANCE, positive, coef, usable)
     return mid, half, coef, usable
 
 
@@ -283,7 +280,7 @@ def _ranges(px, py, n, b, starts, low, high):
 
 @numba.njit(cache=True, nogil=True, fastmath=_FLAGS)
 def _evaluate(px, py, n, b, starts, mid, inv_half, coef, usable, out):
-    """Add each pixel's interpolated log-likelihood to ``out[d]`` (Clenshaw, degree 8)."""
+    """Add each pixel's interpolated log-likelihood to ``out[d]`` (``chebyshev.clenshaw``)."""
     roi = px.shape[0]
     for r in range(starts.size - 1):
         if not usable[r]:
@@ -294,31 +291,11 @@ def _evaluate(px, py, n, b, starts, mid, inv_half, coef, usable, out):
             row = py[i, first:last]
             for j in range(roi):
                 column = px[j, first:last]
-                c = coef[r, i, j]
+                c = terms(coef[r, i, j])
                 m, h = mid[r, i, j], inv_half[r, i, j]
-                c0, c1, c2, c3, c4, c5, c6, c7, c8 = (
-                    c[0],
-                    c[1],
-                    c[2],
-                    c[3],
-                    c[4],
-                    c[5],
-                    c[6],
-                    c[7],
-                    c[8],
-                )
                 for d in range(last - first):
                     x = (math.sqrt(photons[d] * row[d] * column[d] + background[d]) - m) * h
-                    x2 = 2.0 * x
-                    b8 = c8
-                    b7 = c7 + x2 * b8
-                    b6 = c6 + x2 * b7 - b8
-                    b5 = c5 + x2 * b6 - b7
-                    b4 = c4 + x2 * b5 - b6
-                    b3 = c3 + x2 * b4 - b5
-                    b2 = c2 + x2 * b3 - b4
-                    b1 = c1 + x2 * b2 - b3
-                    total[d] += c0 + x * b1 - b2
+                    total[d] += clenshaw(c, x)
 
 
-__all__ = ["CHECKS", "DEGREE", "NODES", "TOLERANCE", "score"]
+__all__ = ["GROUP_DRAWS", "TOLERANCE", "WIDEN", "score"]

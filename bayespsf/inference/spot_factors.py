@@ -7,14 +7,15 @@ its relative precision. That is one ``erfc`` per edge and draw, ~19 ns each in c
 (the C library's, not vectorised), 32 per draw of a 15 x 15 ROI: the largest cost of scoring
 a draw. Over one ROI's batch of draws an edge's ``z`` moves over a narrow range, so, as
 ``bayespsf.inference.fused`` does for the camera law, ``log Q`` of each edge is interpolated
-there: Chebyshev nodes (``fused.NODES``) on the edge's range, the tail of the side its range
-lies on (``log_ndtr(-z)``, or ``log_ndtr(z)`` on the left; an edge within one width of the
-centre takes ``1 - Q`` of the other side near ``z = 0``, where it is exact enough), checked at
-``fused.CHECKS`` to ``TOLERANCE`` in ``log Q``. The draws then cost a vectorised polynomial
-and NumPy's vectorised ``exp`` per edge. A ROI with an edge whose interpolant misses the
-check, or whose range spans both sides beyond one width, takes the ``erfc`` per draw.
-``TOLERANCE`` (1e-11, relative in ``Q``) moves a pixel's expected count by at most 2e-11
-relative, its log-likelihood by ~1e-9 at a count 50 from its expectation.
+there: Chebyshev nodes (``bayespsf.inference.chebyshev``) on the edge's range, the tail of the
+side its range lies on (``log_ndtr(-z)``, or ``log_ndtr(z)`` on the left; an edge within one
+width of the centre takes ``1 - Q`` of the other side near ``z = 0``, where it is exact enough),
+checked at its check points to ``TOLERANCE`` in ``log Q``. The draws then cost a vectorised
+polynomial and NumPy's vectorised ``exp`` per edge. A ROI with an edge whose interpolant misses
+the check, or whose range spans both sides beyond one width, takes the ``erfc`` per draw.
+``TOLERANCE`` (1e-9 in ``log Q``, so relative in ``Q``) moves a pixel's mass by at most 2e-9
+relative (measured: 2e-10), and its log-likelihood by ~1e-7 at a count 50 from its
+expectation, within ``fused``'s 1e-6 per pixel.
 """
 
 from __future__ import annotations
@@ -25,13 +26,15 @@ import numba
 import numpy as np
 from scipy import special
 
+from bayespsf.inference.chebyshev import AT_CHECKS, DEGREE, POINTS, TO_COEFFICIENTS, clenshaw, terms
+
 TOLERANCE = 1e-9  # the largest |interpolant - log Q| at the check points
 NEAR = 1.0  # an edge's range may reach this many widths across the centre
 _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
-def factors(centre, width, roi: int, a: float, starts, sampled: bool, nodes) -> np.ndarray:
+def factors(centre, width, roi: int, a: float, starts, sampled: bool) -> np.ndarray:
     """The spot's 1-D factor ``(roi, n)`` along one axis for draws ``centre``, ``width`` (n,)
     grouped by ROI (``starts``: each ROI's first draw, then n).
 
@@ -48,10 +51,6 @@ def factors(centre, width, roi: int, a: float, starts, sampled: bool, nodes) -> 
     sampled : bool
         The density at the pixel centre times ``a`` (``sampled_gaussian``) instead of the
         mass in the pixel.
-    nodes : tuple
-        ``(points, to_coefficients, at_checks)`` of ``bayespsf.inference.fused``: the
-        Chebyshev nodes then check points on [-1, 1], and the matrices that give the
-        coefficients from the node values and the interpolant at the check points.
 
     Returns
     -------
@@ -71,12 +70,10 @@ def factors(centre, width, roi: int, a: float, starts, sampled: bool, nodes) -> 
     upper = low >= -NEAR  # log Q of the right side; else of the left
     usable = np.all(upper | (high <= NEAR), axis=1) & ~empty
     mid, half = 0.5 * (high + low), np.maximum(0.5 * (high - low), 1e-300)
-    points, to_coefficients, at_checks = nodes
-    z = mid[..., None] + half[..., None] * points
+    z = mid[..., None] + half[..., None] * POINTS
     values = special.log_ndtr(np.where(upper[..., None], -z, z))
-    degree = to_coefficients.shape[0]
-    coef = np.einsum("kn,men->mek", to_coefficients, values[..., :degree])
-    error = np.einsum("mek,kc->mec", coef, at_checks) - values[..., degree:]
+    coef = np.einsum("kn,men->mek", TO_COEFFICIENTS, values[..., : DEGREE + 1])
+    error = np.einsum("mek,kc->mec", coef, AT_CHECKS) - values[..., DEGREE + 1 :]
     usable &= np.all(np.abs(error) <= TOLERANCE, axis=(1, 2))
     log_tail = np.zeros((roi + 1, len(centre)))  # 0 where not interpolated: read nowhere
     _log_tails(centre, scale, roi, a, starts, usable, mid, 1.0 / half, coef, log_tail)
@@ -135,8 +132,8 @@ def _edge_ranges(centre, scale, roi, a, starts, low, high):
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract", "reassoc", "nsz", "arcp"})
 def _log_tails(centre, scale, roi, a, starts, usable, mid, inv_half, coef, out):
-    """The interpolated ``log Q`` of each usable ROI's edges, ``out[k, d]`` (Clenshaw, degree
-    8, unrolled so that the loop over draws vectorises)."""
+    """The interpolated ``log Q`` of each usable ROI's edges, ``out[k, d]``
+    (``chebyshev.clenshaw``)."""
     for r in range(starts.size - 1):
         if not usable[r]:
             continue
@@ -144,30 +141,10 @@ def _log_tails(centre, scale, roi, a, starts, usable, mid, inv_half, coef, out):
         centres, scales = centre[first:last], scale[first:last]
         for k in range(roi + 1):
             edge = (k - 0.5 * roi) * a
-            m, h, c = mid[r, k], inv_half[r, k], coef[r, k]
-            c0, c1, c2, c3, c4, c5, c6, c7, c8 = (
-                c[0],
-                c[1],
-                c[2],
-                c[3],
-                c[4],
-                c[5],
-                c[6],
-                c[7],
-                c[8],
-            )
+            m, h, c = mid[r, k], inv_half[r, k], terms(coef[r, k])
             row = out[k, first:last]
             for d in range(last - first):
-                x = ((edge - centres[d]) * scales[d] - m) * h
-                x2 = 2.0 * x
-                b7 = c7 + x2 * c8
-                b6 = c6 + x2 * b7 - c8
-                b5 = c5 + x2 * b6 - b7
-                b4 = c4 + x2 * b5 - b6
-                b3 = c3 + x2 * b4 - b5
-                b2 = c2 + x2 * b3 - b4
-                b1 = c1 + x2 * b2 - b3
-                row[d] = c0 + x * b1 - b2
+                row[d] = clenshaw(c, ((edge - centres[d]) * scales[d] - m) * h)
 
 
 @numba.njit(cache=True, nogil=True)

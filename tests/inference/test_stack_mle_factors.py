@@ -17,6 +17,17 @@ def _incident_photons():
     return scene, Model(15, 100.0, emccd.camera, clock_induced_charge=0.02, quantum_efficiency=0.6)
 
 
+def _case(case):
+    """The scene and model of a test case: a shipped scene's, the sampled pixel model, or
+    incident photons with CIC."""
+    if case == "sampled":
+        return _sampled()
+    if case == "incident":
+        return _incident_photons()
+    scene = load_scene(case)
+    return scene, Model.from_scene(scene)
+
+
 def _sampled():
     scene = load_scene("ideal")
     base = Model.from_scene(scene)
@@ -32,13 +43,7 @@ def test_factor_sums_equal_the_full_jacobian_contractions(case):
     # sqrt(M_kk M_qq) for the metric; an off-diagonal entry that cancels to ~0 is judged
     # against that scale, not itself). Cases: two camera laws, the sampled pixel model, and
     # incident photons (a Jacobian scaled by the quantum efficiency) with CIC
-    if case == "sampled":
-        scene, model = _sampled()
-    elif case == "incident":
-        scene, model = _incident_photons()
-    else:
-        scene = load_scene(case)
-        model = Model.from_scene(scene)
+    scene, model = _case(case)
     counts, truth = simulate(scene, 5, seed=3)
     p = truth[NAMES].to_numpy() * [1.0, 1.0, 1.1, 0.9, 1.2, 1.0] + [7.0, -5.0, 0, 0, 0, 0.5]
     lam, jac = model.expected_and_jacobian(p)
@@ -63,13 +68,7 @@ def test_observed_information_is_the_derivative_of_the_gradient(case):
     # steps of 1e-3 pixel and 1e-4 relative: both are within ~1e-7 of the exact Hessian (the
     # differences' O(h^2) and the law's curvature by a difference of its score), so 1e-5 of
     # each entry's scale sqrt(H_kk H_qq) holds with room and fails for a wrong term
-    if case == "sampled":
-        scene, model = _sampled()
-    elif case == "incident":
-        scene, model = _incident_photons()
-    else:
-        scene = load_scene(case)
-        model = Model.from_scene(scene)
+    scene, model = _case(case)
     counts, truth = simulate(scene, 12, seed=7)
     counts = model.check_counts(counts)
     p = truth[NAMES].to_numpy(float)
