@@ -90,13 +90,6 @@ def random_streams(seed: int):
     return {"start": start, "chain": rest, "draws": draws, "resample": resample, "laplace": laplace}
 
 
-def score(model, stack, draws: list[np.ndarray], kept: list | None = None) -> list[np.ndarray]:
-    """Log posterior of ``draws[i]`` (k_i, 6) given ROI ``stack[i]``, all ROIs' draws scored
-    together (``bayespsf.inference.fused.score``; ``kept``: the ROIs' interpolants from their
-    previous batch, updated)."""
-    return fused.score(model, stack, draws, kept)
-
-
 def cheap_posteriors(stack, model, fits, seeds, settings) -> list[dict]:
     """Posteriors of the ROIs of ``stack`` (n, roi, roi; validated counts) by
     ``settings.method`` (``laplace``, ``importance`` or ``auto``; module docstring).
@@ -193,7 +186,7 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.nd
         pilots_z.append(laplace[i][0] + u @ factors[i].T)
         log_g.append(-0.5 * np.sum(u * u, axis=1))
     kept = [None] * len(usable)  # the pilot's interpolants, for the runs that continue it
-    scored = score(model, stack[usable], pilots_z, kept) if usable else []
+    scored = fused.score(model, stack[usable], pilots_z, kept) if usable else []
     left = [i for i in todo if factors[i] is None]
     for i in left:
         out[i]["info"]["why"] = "chain: the Laplace covariance is not positive definite"
@@ -277,7 +270,7 @@ def _advance(stack, model, runs: dict, kept: dict) -> None:
     while active:
         batches = [runs[i].propose() for i in active]
         interpolants = [kept.get(i) for i in active]
-        scored = score(model, stack[active], batches, interpolants)
+        scored = fused.score(model, stack[active], batches, interpolants)
         kept.update(zip(active, interpolants, strict=True))
         _judge(runs, {i: runs[i].add(lp) for i, lp in zip(active, scored, strict=True)})
         active = [i for i in active if not runs[i].done]
@@ -320,5 +313,4 @@ __all__ = [
     "cheap_posteriors",
     "laplace_in_z",
     "random_streams",
-    "score",
 ]

@@ -45,7 +45,8 @@ from numpy.typing import ArrayLike
 from scipy import stats
 
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference.batched import MAX_DRAWS_PER_ESS, score
+from bayespsf.inference.batched import MAX_DRAWS_PER_ESS
+from bayespsf.inference.fused import score
 from bayespsf.inference.importance import KHAT_MAX, ImportanceRun, systematic_resample
 from bayespsf.inference.settings import Settings, check_settings
 from bayespsf.inference.solver import (
