@@ -266,15 +266,33 @@ class JaxModel:
             The spot plus the background, times ``photoelectrons_per_photon``, plus the
             clock-induced charge; rows are y, columns x.
         """
+        px, py, n, b = self.spot(p)
+        return n[..., None, None] * py[..., :, None] * px[..., None, :] + b[..., None, None]
+
+    def spot(self, p):
+        """The factors of ``expected``: ``expected = n py[i] px[j] + b``.
+
+        Parameters
+        ----------
+        p : array_like, shape (..., 6)
+            ``x0 y0 s_x s_y N b``; widths > 0.
+
+        Returns
+        -------
+        px, py : jax.Array, shape (..., roi)
+            Fraction of the spot's photons in each column (x) and row (y).
+        n, b : jax.Array, shape (...)
+            The spot's and the background's photoelectrons (times
+            ``photoelectrons_per_photon``; ``b`` plus the clock-induced charge).
+        """
         p = jnp.asarray(p, dtype=jnp.float64)
         px = self._axis(p[..., 0], p[..., 2])
         py = self._axis(p[..., 1], p[..., 3])
-        n = p[..., 4][..., None, None]
-        b = p[..., 5][..., None, None]
-        photons = n * py[..., :, None] * px[..., None, :] + b
+        n, b = p[..., 4], p[..., 5]
         if self.photoelectrons_per_photon != 1.0:
-            photons = photons * self.photoelectrons_per_photon
-        return photons + self.clock_induced_charge
+            n = n * self.photoelectrons_per_photon
+            b = b * self.photoelectrons_per_photon
+        return px, py, n, b + self.clock_induced_charge
 
     # ------------------------------------------------------------------ the camera
 
