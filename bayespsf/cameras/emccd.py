@@ -307,13 +307,14 @@ class EMCCD(Camera):
             )
 
     def _check_counts(self, counts):
-        t = np.abs(self.gain_units(counts))
-        if t.max(initial=0.0) > MAX_GAIN_UNITS:
+        c = np.asarray(counts, dtype=np.float64)  # t rises with the counts: its ends bound |t|
+        t = np.abs(self.gain_units([c.min(initial=self.offset), c.max(initial=self.offset)])).max()
+        if t > MAX_GAIN_UNITS:
             half_width = MAX_GAIN_UNITS * self.gain / self.e_per_adu
             raise BayespsfInputError(
                 f"counts must be within offset +/- {half_width:.3g} ADU for this camera "
                 f"(|counts - offset| e_per_adu / gain <= {MAX_GAIN_UNITS:g}); got "
-                f"{t.max() * self.gain / self.e_per_adu:.3g} ADU from the offset"
+                f"{t * self.gain / self.e_per_adu:.3g} ADU from the offset"
             )
 
     def _log_likelihood(self, counts, expected):

@@ -29,19 +29,21 @@ from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES, pixel_centres
 
 
-def start_values(photons: np.ndarray, model: Model) -> np.ndarray:
+def start_values(photons, model, xp=np):
     """Robust starting parameters of every ROI, from its moments.
 
     Parameters
     ----------
-    photons : ndarray, shape (n, roi, roi)
+    photons : array, shape (n, roi, roi)
         ROIs in N's unit (photons; ``Model.to_photons`` of the counts).
-    model : Model
-        Gives the ROI size and the pixel size ``a`` (nm).
+    model : Model or JaxModel
+        Gives the ROI size ``roi`` and the pixel size ``pixel_size`` ``a`` (nm).
+    xp : module
+        The array library of ``photons``: NumPy, or ``jax.numpy`` (also under ``jax.jit``).
 
     Returns
     -------
-    ndarray, shape (n, 6)
+    array, shape (n, 6)
         ``x0 y0 s_x s_y N b`` per ROI (nm, photons, photons per pixel).
 
     Notes
@@ -51,23 +53,22 @@ def start_values(photons: np.ndarray, model: Model) -> np.ndarray:
     kept within [a/2, ROI side / 2]. N: the background-subtracted total, at least 1.
     """
     a, roi = model.pixel_size, model.roi
-    c = pixel_centres(roi, a)
-    border = np.concatenate(
+    c = xp.asarray(pixel_centres(roi, a))
+    border = xp.concatenate(
         [photons[:, 0, :], photons[:, -1, :], photons[:, 1:-1, 0], photons[:, 1:-1, -1]], axis=1
     )
-    b = np.maximum(np.median(border, axis=1), 0.0)
-    signal = np.maximum(photons - b[:, None, None], 0.0)
+    b = xp.maximum(xp.median(border, axis=1), 0.0)
+    signal = xp.maximum(photons - b[:, None, None], 0.0)
     total = signal.sum(axis=(1, 2))
-    weight = np.where(total > 0, total, 1.0)
+    weight = xp.where(total > 0, total, 1.0)
     px, py = signal.sum(axis=1), signal.sum(axis=2)
-    x0 = np.where(total > 0, px @ c / weight, 0.0)
-    y0 = np.where(total > 0, py @ c / weight, 0.0)
-    sx = np.sqrt(np.maximum(px @ c**2 / weight - x0**2 - a * a / 12, 0.0))
-    sy = np.sqrt(np.maximum(py @ c**2 / weight - y0**2 - a * a / 12, 0.0))
+    x0 = xp.where(total > 0, px @ c / weight, 0.0)
+    y0 = xp.where(total > 0, py @ c / weight, 0.0)
+    sx = xp.sqrt(xp.maximum(px @ c**2 / weight - x0**2 - a * a / 12, 0.0))
+    sy = xp.sqrt(xp.maximum(py @ c**2 / weight - y0**2 - a * a / 12, 0.0))
     lo, hi = 0.5 * a, 0.5 * roi * a
-    return np.column_stack(
-        [x0, y0, np.clip(sx, lo, hi), np.clip(sy, lo, hi), np.maximum(total, 1.0), b]
-    )
+    columns = [x0, y0, xp.clip(sx, lo, hi), xp.clip(sy, lo, hi), xp.maximum(total, 1.0), b]
+    return xp.stack(columns, axis=1)
 
 
 CORRELATIONS = [
@@ -246,20 +247,20 @@ def fit_mle(
     if check_backend(backend) == "jax" and engine != "stack":
         raise BayespsfInputError("backend='jax' runs the stack engine; use engine='stack'")
     stack, problems = _stack(counts, model)
-    starts = (
-        start_values(model.to_photons(stack), model)
-        if start is None
-        else finite_array("start", start).reshape(-1, 6)
-    )
-    if len(starts) != len(stack):
-        raise BayespsfInputError(
-            f"start must have one row per ROI ({len(stack)}), got {len(starts)}"
-        )
+    if start is not None:
+        starts = finite_array("start", start).reshape(-1, 6)
+        if len(starts) != len(stack):
+            raise BayespsfInputError(
+                f"start must have one row per ROI ({len(stack)}), got {len(starts)}"
+            )
+    elif backend != "jax":  # the JAX backend computes them on its device
+        starts = start_values(model.to_photons(stack), model)
     fit = np.flatnonzero([problem is None for problem in problems])
     if backend == "jax":
         from bayespsf.inference import jax_mle
 
-        found = jax_mle.maximise(model, stack[fit], starts[fit], laplace, crlb)
+        given = None if start is None else starts[fit]
+        found = jax_mle.maximise(model, stack[fit], given, laplace, crlb)
         params, logl = found["params"], found["log_likelihood"]
         ok, message = found["converged"], found["message"]
     else:

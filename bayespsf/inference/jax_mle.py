@@ -25,6 +25,7 @@ import numpy as np
 
 from bayespsf.inference import solver
 from bayespsf.inference.backends import start_jax
+from bayespsf.inference.estimators import start_values
 from bayespsf.inference.jax_model import JaxModel
 
 _MESSAGES = (
@@ -69,6 +70,16 @@ def _jax():
     import jax.numpy as jnp
 
     return jax, jnp
+
+
+def to_internal(p, a):
+    """``x0 y0 s_x s_y N b`` (..., 6) to ``u`` (``solver.to_internal`` in JAX)."""
+    _, jnp = _jax()
+    return jnp.stack(
+        [p[..., 0] / a, p[..., 1] / a, jnp.log(p[..., 2] / a), jnp.log(p[..., 3] / a),
+         jnp.log(p[..., 4]), p[..., 5]],
+        axis=-1,
+    )  # fmt: skip
 
 
 def from_internal(u, a):
@@ -210,7 +221,11 @@ def _compiled(roi: int):
 
         return jnp.sqrt(jnp.diagonal(jnp.linalg.inv(jax.vmap(one)(p)), axis1=1, axis2=2))
 
-    return jax.jit(fit_chunk), jax.jit(laplace_chunk), jax.jit(crlb_chunk)
+    def start_chunk(jm, counts, per_adu, offset):
+        photons = (counts - offset) * per_adu
+        return to_internal(start_values(photons, jm, xp=jnp), jm.pixel_size)
+
+    return jax.jit(fit_chunk), jax.jit(laplace_chunk), jax.jit(crlb_chunk), jax.jit(start_chunk)
 
 
 def maximise(model, counts: np.ndarray, starts: np.ndarray, laplace: bool, crlb: bool):
@@ -223,8 +238,9 @@ def maximise(model, counts: np.ndarray, starts: np.ndarray, laplace: bool, crlb:
         The inference model (a camera law ``bayespsf.inference.jax_model`` supports).
     counts : ndarray, shape (n, roi, roi)
         Validated ROIs in ADU.
-    starts : ndarray, shape (n, 6)
-        Starting parameters.
+    starts : ndarray, shape (n, 6), or None
+        Starting parameters; None: ``estimators.start_values`` of the counts, computed on the
+        device.
     laplace, crlb : bool
         Also the Laplace covariances, and the Cramér-Rao bounds.
 
@@ -239,7 +255,7 @@ def maximise(model, counts: np.ndarray, starts: np.ndarray, laplace: bool, crlb:
     start_jax()
     jm = JaxModel.from_model(model)
     roi = model.roi
-    fit_chunk, laplace_chunk, crlb_chunk = _compiled(roi)
+    fit_chunk, laplace_chunk, crlb_chunk, start_chunk = _compiled(roi)
     n = len(counts)
     size = bucket(n, chunk_rois(roi, jax.devices()[0].platform))
     out = {
@@ -253,12 +269,21 @@ def maximise(model, counts: np.ndarray, starts: np.ndarray, laplace: bool, crlb:
         out["cov"], out["definite"] = np.empty((n, 6, 6)), np.zeros(n, bool)
     if crlb:
         out["crlb"] = np.empty((n, 6))
-    u0 = solver.to_internal(starts, model.pixel_size)
+    if starts is None:  # start_values on the device: the host's share of a fit is its I/O
+        per_adu, offset = model.camera.photons_per_adu()
+        per_adu = float(per_adu) / model.photoelectrons_per_photon
+    else:
+        u0 = solver.to_internal(starts, model.pixel_size)
     for first in range(0, n, size):
         part = slice(first, min(first + size, n))
-        c, u = _padded(counts[part], size), _padded(u0[part], size)
+        c = _padded(counts[part], size)
+        on_device = jnp.asarray(c)
         k = part.stop - part.start
-        p, logl, ok, code, u_end = fit_chunk(jm, jnp.asarray(c), jnp.asarray(u))
+        if starts is None:
+            u = start_chunk(jm, on_device, per_adu, float(offset))
+        else:
+            u = jnp.asarray(_padded(u0[part], size))
+        p, logl, ok, code, u_end = fit_chunk(jm, on_device, u)
         for key, value in zip(
             ("params", "log_likelihood", "converged", "code", "u"),
             (p, logl, ok, code, u_end),

@@ -62,6 +62,23 @@ def test_the_mle_is_the_numpy_engines_to_1e6(scene):
     np.testing.assert_allclose(b["log_likelihood"], a["log_likelihood"], rtol=1e-10)
 
 
+def test_start_values_on_the_device_are_the_hosts(rois):
+    # fit_mle(backend="jax") computes the starting values on the device from the same
+    # formulas (start_values with xp=jax.numpy): the same numbers to rounding (absolute
+    # 1e-9 nm for a centroid near 0, a difference of sums)
+    import jax.numpy as jnp
+
+    from bayespsf.inference import start_values
+    from bayespsf.inference.backends import start_jax
+
+    counts, _, model = rois
+    start_jax()  # float64
+    photons = model.to_photons(counts)
+    device = start_values(jnp.asarray(photons), model, xp=jnp)
+    want = start_values(photons, model)
+    np.testing.assert_allclose(np.asarray(device), want, rtol=1e-12, atol=1e-9)
+
+
 def test_posterior_summaries_agree_within_monte_carlo_error(both):
     # two independent runs at ESS 400 differ in a posterior mean by ~sqrt(2/400) = 0.071
     # posterior SDs; over 48 ROIs x 6 parameters the spread of that difference is known to
