@@ -62,6 +62,24 @@ def test_the_mle_is_the_numpy_engines_to_1e6(scene):
     np.testing.assert_allclose(b["log_likelihood"], a["log_likelihood"], rtol=1e-10)
 
 
+def test_a_fit_does_not_depend_on_the_lanes_gathered_into_smaller_chunks(monkeypatch):
+    # the fit moves its still-active ROIs into smaller chunks once 7/8 have finished; each
+    # ROI's arithmetic is the same in any chunk, so the fits are those of one chunk run to
+    # the end (COMPACT = 1: no lane is ever moved) bit for bit
+    from bayespsf.inference import jax_mle
+
+    counts, _, model = simulated("emccd-typical", 256)
+    moved = jax_mle.maximise(model, counts, None, False, False)
+    monkeypatch.setattr(jax_mle, "COMPACT", 1)
+    jax_mle._compiled.cache_clear()
+    try:
+        whole = jax_mle.maximise(model, counts, None, False, False)
+    finally:
+        jax_mle._compiled.cache_clear()
+    for key in ("params", "log_likelihood", "converged", "message", "u"):
+        np.testing.assert_array_equal(moved[key], whole[key])
+
+
 def test_start_values_on_the_device_are_the_hosts(rois):
     # fit_mle(backend="jax") computes the starting values on the device from the same
     # formulas (start_values with xp=jax.numpy): the same numbers to rounding (absolute
