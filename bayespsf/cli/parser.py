@@ -117,7 +117,8 @@ def _add_bench(commands) -> None:
         "low, medium and high N, every EMCCD likelihood tier at ESS targets 100-4000 and the "
         "MLE + CRLB and Laplace ends: time per molecule as a ratio to one MLE fit, error of "
         "the posterior SD of s_x against a long exact-law reference, and 68%/95% coverage. "
-        "--quick: two molecules, under two minutes.",
+        "Where JAX is installed, rows 'importance (JAX)' and 'auto (JAX)' run the same "
+        "molecules on the JAX backend. --quick: two molecules, under two minutes.",
     )
     bench.add_argument("--quick", action="store_true", help="a small run (< 2 minutes)")
     add_workers(bench)
