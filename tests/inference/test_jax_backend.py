@@ -113,6 +113,20 @@ def test_posterior_summaries_agree_within_monte_carlo_error(both):
     assert (b["draws"] >= 400).all() and b[[f"{p}_rank" for p in P]].notna().all().all()
 
 
+def test_the_unchecked_laplace_agrees_with_the_numpy_backends(rois):
+    # method="laplace": both backends draw from the same Laplace Gaussian, so their means
+    # differ by Monte Carlo error, ~sqrt(2 / 100) = 0.14 posterior SDs at ESS 100; over 24 ROIs
+    # x 6 parameters that spread is known to ~6%, so 0.2 fails only where the draws differ
+    counts, _, model = rois
+    run = {"seed": 5, "workers": 1, "method": "laplace", "ess": 100}
+    a = sample_many(counts[:24], model, **run)
+    b = sample_many(counts[:24], model, backend="jax", **run)
+    assert (a["method"] == "laplace").all() and (b["method"] == "laplace").all()
+    z = np.concatenate([(a[f"{p}_mean"] - b[f"{p}_mean"]) / a[f"{p}_sd"] for p in P])
+    assert abs(np.mean(z)) < 0.06 and np.std(z) < 0.2
+    assert (b["draws"] == a["draws"]).all()
+
+
 def test_coverage_through_the_jax_backend(both):
     # the calibration study's statistic: 90% intervals hold the truth in 90% of ROIs, within
     # 3 binomial SEs (48 ROIs: SE 0.043) per parameter
