@@ -26,8 +26,9 @@ N = 1000, b = 10), in one run:
     python benchmarks/gpu.py                  # the full run (minutes on one GPU)
     python benchmarks/gpu.py --quick          # a small run on any machine (the tests)
 
-A full run writes ``gpu.md`` and ``gpu.json`` to ``--out`` (default ``benchmarks/results``)
-and its section of benchmarks/README.md, with the machine and the command.
+A full run on a GPU writes ``gpu.md`` and ``gpu.json`` to ``--out`` (default
+``benchmarks/results``) and its section of benchmarks/README.md, with the machine and the
+command; where JAX computes on the CPU it prints only.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import argparse
 import json
 import os
 import resource
+import sys
 import time
 from pathlib import Path
 from unittest import mock
@@ -205,7 +207,8 @@ def main(argv=None) -> dict:
     rates |= device
     print(json.dumps({"rates": rates, "work per ROI": made}, default=str), flush=True)
     streamed = stream(counts[: options.rois], model, options.stream)
-    command = "python benchmarks/gpu.py" + (" --quick" if options.quick else "")
+    flags = sys.argv[1:] if argv is None else list(argv)
+    command = " ".join(["python benchmarks/gpu.py", *flags])
     result = {
         "command": command,
         "device": device_name(),
@@ -217,7 +220,13 @@ def main(argv=None) -> dict:
     }
     text = render(result)
     print(text)
-    if not options.quick:
+    import jax
+
+    on_gpu = jax.devices()[0].platform != "cpu"
+    if not on_gpu and not options.quick:
+        print("JAX computes on the CPU here: printed only (the results files and the README's")
+        print("section hold a GPU's run)")
+    if on_gpu and not options.quick:
         out = Path(options.out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "gpu.md").write_text(text, encoding="utf-8")
