@@ -253,7 +253,7 @@ def jax_rows(plan: Plan, tasks: list, rows: list[dict], progress=print) -> list[
     target, the level's molecules as one stack through ``sample_many(backend="jax")``, timed
     after a warm-up call on the same stack; scored against the references of ``rows`` (the
     NumPy rows of the same molecules, which also give each molecule's MLE time)."""
-    from bayespsf.inference.backends import device_name
+    from bayespsf.inference.backends import device_name, release_programs
     from bayespsf.parallel import sample_many
 
     known = {(r["N"], r["molecule"]): r for r in rows}
@@ -264,6 +264,8 @@ def jax_rows(plan: Plan, tasks: list, rows: list[dict], progress=print) -> list[
         seed = int(np.random.SeedSequence([plan.seed, n_photons, 2]).generate_state(1)[0])
         budgets = plan.jax_budgets or plan.budgets
         for tier, method, budget in itertools.product(plan.jax_tiers, JAX_METHODS, budgets):
+            if method == JAX_METHODS[0] and budget == budgets[0]:
+                release_programs()  # a tier's programs: the process's memory maps stay few
             model = Model.from_scene(scene, likelihood=tier)
             run = {"seed": seed, "workers": 1, "progress": False, "backend": "jax"}
             run |= {"method": method, "ess": budget}

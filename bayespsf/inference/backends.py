@@ -77,6 +77,36 @@ def start_jax() -> None:
         jax.config.update("jax_compilation_cache_dir", str(folder / "jax"))
 
 
+def release_programs() -> None:
+    """Release the JAX backend's compiled programs, and JAX's own caches of them.
+
+    Each compiled program holds memory and, on the CPU, hundreds of the process's memory
+    maps (about 1 500 per ESS target and method of the posteriors); a process that runs
+    many model configurations, each compiling its own programs, can reach the system's limit
+    of memory maps (``vm.max_map_count``, commonly 65 530), where compiling fails. Call this
+    between configurations; the next call of each program compiles it again (from JAX's
+    compilation cache on disk where it has one). Does nothing without JAX imported.
+
+    Returns
+    -------
+    None
+    """
+    import sys
+
+    if "jax" not in sys.modules:
+        return
+    import gc
+
+    import jax
+
+    from bayespsf.inference import jax_mle, jax_sampling
+
+    jax_sampling._program.cache_clear()
+    jax_mle._compiled.cache_clear()
+    jax.clear_caches()
+    gc.collect()
+
+
 def device_name() -> str:
     """The device JAX computes on (e.g. ``"NVIDIA H100 80GB HBM3"`` or ``"cpu"``).
 
@@ -90,4 +120,4 @@ def device_name() -> str:
     return str(jax.devices()[0].device_kind)
 
 
-__all__ = ["BACKENDS", "check_backend", "device_name", "start_jax"]
+__all__ = ["BACKENDS", "check_backend", "device_name", "release_programs", "start_jax"]

@@ -326,8 +326,8 @@ class _Run:
         w = np.exp(pilot_ratio - pilot_ratio.max(axis=1, keepdims=True))
         raw = np.sum(w, axis=1) ** 2 / np.sum(w * w, axis=1)
         needed = GAUSSIAN_MARGIN * (ess - raw) * PILOT / np.maximum(raw, 1.0)
-        sizes = np.array([round_size(min(max(k, MIN_BATCH // 2), limit - PILOT))
-                          for k in needed])  # fmt: skip
+        most = limit - PILOT  # the run's draws stay within MAX_DRAWS_PER_ESS * ess
+        sizes = np.array([min(round_size(max(k, MIN_BATCH // 2)), most) for k in needed])
         done = np.zeros(len(rows), bool)
         for size in np.unique(sizes):
             group = np.flatnonzero(sizes == size)

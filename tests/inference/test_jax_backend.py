@@ -80,6 +80,28 @@ def test_a_fit_does_not_depend_on_the_lanes_gathered_into_smaller_chunks(monkeyp
         np.testing.assert_array_equal(moved[key], whole[key])
 
 
+def test_released_programs_give_back_their_memory_maps(rois):
+    # each compiled program holds hundreds of the process's memory maps (Linux); a process
+    # that runs many configurations releases them between configurations (the frontier does),
+    # and the programs compile again on their next call
+    from bayespsf.inference.backends import release_programs
+
+    counts, _, model = rois
+
+    def maps() -> int:
+        with open("/proc/self/maps", encoding="utf-8") as lines:
+            return sum(1 for _ in lines)
+
+    settings = check_settings(method="auto", ess=100)
+    fits = fit_mle(counts[:4], model, backend="jax")
+    first = jax_sampling.posteriors(counts[:4], model, fits, range(4), settings)
+    before = maps()
+    release_programs()
+    assert maps() < before - 100
+    again = jax_sampling.posteriors(counts[:4], model, fits, range(4), settings)
+    np.testing.assert_array_equal(again["mean"], first["mean"])
+
+
 def test_start_values_on_the_device_are_the_hosts(rois):
     # fit_mle(backend="jax") computes the starting values on the device from the same
     # formulas (start_values with xp=jax.numpy): the same numbers to rounding (absolute
