@@ -5,7 +5,8 @@ Tolerance, as for the NumPy scorer (``tests/inference/test_fused.py``): each pix
 interpolant is checked against the law to ``fused.TOLERANCE`` (1e-6 in log p) at its check
 points, and between them a degree-8 Chebyshev interpolant of a smooth function errs by the same
 order, so a draw's sum over a 15 x 15 ROI is held to ``roi**2 * TOLERANCE`` (2.25e-4) and its
-median to 1e-6 (measured: ~2e-8).
+median to 1e-6. Measured on 100 emccd-typical ROIs x 500 draws: median 2e-8 (Laplace draws) and
+4e-8 (Student-t), largest 2.7e-7 and 1.6e-6; 100 and 98 of the ROIs pass the check.
 """
 
 from __future__ import annotations
