@@ -15,31 +15,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_fused import laplace_draws  # the NumPy scorer's test cases
 
 from bayespsf import load_scene, simulate
 from bayespsf.inference import fit_mle, fused, jax_fused, jax_sampling
-from bayespsf.inference.batched import laplace_in_z
-from bayespsf.inference.importance import MIN_BATCH, IndependenceMove
+from bayespsf.inference.importance import MIN_BATCH
 from bayespsf.inference.jax_model import JaxModel
 from bayespsf.inference.settings import check_settings
 from bayespsf.model import Model
 
 
 def draws(scene_name: str, n_rois: int, n_draws: int, student: bool):
-    scene = load_scene(scene_name)
-    model = Model.from_scene(scene)
-    counts, _ = simulate(scene, n_rois, seed=4)
-    centre, cov = laplace_in_z(fit_mle(counts, model), model)
-    random = np.random.RandomState(1)
-    z = []
-    for c, s in zip(centre, cov, strict=True):
-        if student:  # the wider proposal of method="importance"
-            z.append(IndependenceMove(c, s).draw(n_draws, random)[0])
-        else:
-            z.append(c + random.standard_normal((n_draws, 6)) @ np.linalg.cholesky(s).T)
-    p = model.from_unconstrained(np.concatenate(z)).reshape(n_rois, n_draws, 6)
+    """The NumPy scorer's test cases (Laplace or Student-t draws about each ROI's fit) as
+    parameters, a point inside the prior in place of draws outside it (as the programs do)."""
+    model, counts, z = laplace_draws(scene_name, n_rois, n_draws, student, seed=4)
+    p = model.from_unconstrained(np.stack(z))
     inside = np.isfinite(model.log_prior(p.reshape(-1, 6))).reshape(n_rois, n_draws)
-    p[~inside] = p[inside][0]  # the programs score a point inside the prior in their place
+    p[~inside] = p[inside][0]
     return model, counts, p
 
 
