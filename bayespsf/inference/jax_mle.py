@@ -222,8 +222,9 @@ def _compiled(roi: int):
     def gather(state, index):
         return {k: v if k == "it" else v[index] for k, v in state.items()}
 
-    def scatter(state, index, part):
-        return {k: part[k] if k == "it" else v.at[index].set(part[k]) for k, v in state.items()}
+    def scatter(state, index, part):  # ``part``'s first lanes to the rows ``index``
+        k = index.shape[0]
+        return {n: part[n] if n == "it" else v.at[index].set(part[n][:k]) for n, v in state.items()}
 
     def laplace_chunk(jm, counts, p):
         def one(c, q):
@@ -266,22 +267,19 @@ def _fit(fit: dict, jm, counts, u0, size: int):
     same in any chunk."""
     _, jnp = _jax()
     state = fit["advance"](jm, counts, fit["start"](u0), shrink=size > MIN_BUCKET)
-    lanes = np.arange(size)  # the chunk's rows that the current sub-chunk's lanes hold
     sub, sub_counts = state, counts
+    rows = np.arange(size)  # the chunk's row of each of ``sub``'s lanes (the rest: padding)
     while True:
-        still = np.flatnonzero(np.asarray(fit["active"](sub)))
+        still = np.flatnonzero(np.asarray(fit["active"](sub))[: len(rows)])
         if still.size == 0 or int(sub["it"]) >= solver.MAX_ITERATIONS:
             break
-        smaller = bucket(still.size, len(lanes))
-        shrink = smaller < len(lanes)
-        if shrink:  # the active lanes, padded with the first's copies, into a smaller chunk
+        smaller = bucket(still.size, len(sub_counts))
+        moved = smaller < len(sub_counts)
+        if moved:  # the active lanes, padded with the first's copies, into a smaller chunk
             pick = jnp.asarray(_padded(still, smaller))
-            sub, sub_counts = fit["gather"](sub, pick), sub_counts[pick]
-            lanes = _padded(lanes[still], smaller)
-        sub = fit["advance"](jm, sub_counts, sub, shrink=bool(shrink and smaller > MIN_BUCKET))
-        rows = jnp.asarray(lanes[: still.size] if shrink else lanes)
-        kept = fit["gather"](sub, jnp.arange(still.size) if shrink else jnp.arange(len(lanes)))
-        state = fit["scatter"](state, rows, kept)
+            sub, sub_counts, rows = fit["gather"](sub, pick), sub_counts[pick], rows[still]
+        sub = fit["advance"](jm, sub_counts, sub, shrink=bool(moved and smaller > MIN_BUCKET))
+        state = fit["scatter"](state, jnp.asarray(rows), sub) if len(rows) < size else sub
     return fit["finish"](jm, state)
 
 
