@@ -264,8 +264,8 @@ def jax_rows(plan: Plan, tasks: list, rows: list[dict], progress=print) -> list[
         seed = int(np.random.SeedSequence([plan.seed, n_photons, 2]).generate_state(1)[0])
         budgets = plan.jax_budgets or plan.budgets
         for tier, method, budget in itertools.product(plan.jax_tiers, JAX_METHODS, budgets):
-            if method == JAX_METHODS[0] and budget == budgets[0]:
-                release_programs()  # a tier's programs: the process's memory maps stay few
+            if (method, budget) == (JAX_METHODS[0], budgets[0]):  # a tier's first row
+                release_programs()  # the last tier's programs: few memory maps held at once
             model = Model.from_scene(scene, likelihood=tier)
             run = {"seed": seed, "workers": 1, "progress": False, "backend": "jax"}
             run |= {"method": method, "ess": budget}

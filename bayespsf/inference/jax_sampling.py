@@ -235,7 +235,7 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
     jax, jnp = _jax()
     start_jax()
     jm = JaxModel.from_model(model)
-    n, roi = len(stack), model.roi
+    n = len(stack)
     platform = jax.devices()[0].platform
     budget = DRAW_PIXELS["cpu" if platform == "cpu" else "gpu"]
     ok = fits["converged"].to_numpy(bool)
@@ -254,10 +254,10 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
     theta = fits[["x0", "y0", "s_x", "s_y", "N", "b"]].to_numpy(float)[todo]
     fallback = np.clip(theta, *model.prior_bounds())  # inside the prior: scored in its place
     truth = np.full((n, 6), np.nan) if truths is None else np.asarray(truths, float)
-    run = _Run(jm, out, todo, settings, budget, roi, keep_draws)
-    run.data = [jnp.asarray(stack[todo]), jnp.asarray(centre), jnp.asarray(chol),
-                keys(np.asarray(seeds)[todo]), jnp.asarray(fallback),
-                jnp.asarray(truth[todo])]  # fmt: skip
+    data = [jnp.asarray(stack[todo]), jnp.asarray(centre), jnp.asarray(chol),
+            keys(np.asarray(seeds)[todo]), jnp.asarray(fallback),
+            jnp.asarray(truth[todo])]  # fmt: skip
+    run = _Run(jm, out, todo, data, settings, budget, keep_draws)
     left = np.ones(len(todo), bool)
     if settings.method in ("auto", "laplace"):
         left = run.laplace()
@@ -270,14 +270,13 @@ class _Run:
     """The stages of ``posteriors`` over its ROIs ``todo`` (``data``: their counts, Laplace
     centres and Cholesky factors, keys, fallback points and truths), filling ``out``."""
 
-    def __init__(self, jm, out, todo, settings, budget, roi, keep):
-        self.jm, self.out, self.todo, self.settings = jm, out, todo, settings
-        self.budget, self.roi, self.keep = budget, roi, keep
+    def __init__(self, jm, out, todo, data, settings, budget, keep):
+        self.jm, self.out, self.todo, self.data = jm, out, todo, data
+        self.settings, self.budget, self.keep = settings, budget, keep
         self.scored = np.zeros(len(todo), int)
-        self.data = []
 
     def _chunk(self, draws: int) -> int:
-        return max(1, self.budget // (draws * self.roi**2))
+        return max(1, self.budget // (draws * self.jm.roi**2))
 
     def laplace(self) -> np.ndarray:
         """The pilot, the Laplace where it passes (every ROI for ``laplace``) and, for
@@ -343,8 +342,9 @@ class _Run:
 
     def _judged(self, pick, results, draws: int, source: str, last: bool = True) -> np.ndarray:
         """Record a round of the ROIs ``pick`` (positions in ``todo``) of ``draws`` draws
-        each: those whose k-hat and ESS pass are done (returned True); the others' reason is
-        the chain's where this was their ``last`` chance or k-hat failed."""
+        each: those whose k-hat and ESS pass are done; the others' reason is the chain's where
+        this was their ``last`` chance or k-hat failed. Returns which are settled: done, and
+        before the ``last`` round also those whose k-hat failed (no further round helps)."""
         out, ess_target = self.out, self.settings.ess
         khat, ess = results[-4], results[-3]
         rows = self.todo[pick]
