@@ -82,12 +82,21 @@ def laplace_in_z(fits, model) -> tuple[np.ndarray, np.ndarray]:
     return model.to_unconstrained(centre), cov
 
 
-def random_streams(seed: int):
-    """The seed sequences of a ROI's sampling, spawned as ``sample_posterior`` does: the
-    walkers' start, then (from the second) importance draws, resampling and the Laplace."""
-    start, rest = np.random.SeedSequence(int(seed)).spawn(2)
-    draws, resample, laplace = rest.spawn(3)
-    return {"start": start, "chain": rest, "draws": draws, "resample": resample, "laplace": laplace}
+STREAMS = {"start": (0,), "chain": (1,), "draws": (1, 0), "resample": (1, 1), "laplace": (1, 2)}
+
+
+def random_stream(seed: int, name: str) -> np.random.SeedSequence:
+    """One seed sequence of a ROI's sampling, as ``sample_posterior`` spawns them from its
+    seed: ``start`` (the walkers' start) and ``chain`` are the seed's two children, ``draws``
+    (importance draws), ``resample`` and ``laplace`` the chain's three (``STREAMS``: each
+    one's spawn key). Made directly from its key, the same sequence as by spawning, without
+    making the four a ROI does not use."""
+    return np.random.SeedSequence(int(seed), spawn_key=STREAMS[name])
+
+
+def random_streams(seed: int) -> dict:
+    """Every seed sequence of a ROI's sampling by name (``random_stream``)."""
+    return {name: random_stream(seed, name) for name in STREAMS}
 
 
 def cheap_posteriors(stack, model, fits, seeds, settings) -> list[dict]:
@@ -116,16 +125,15 @@ def cheap_posteriors(stack, model, fits, seeds, settings) -> list[dict]:
         }
         for i in range(n)
     ]
-    streams = [random_streams(s) for s in seeds]
     if ok.any():
-        centre, cov = laplace_in_z(fits[ok], model)
         todo = np.flatnonzero(ok)
-        laplace = {i: (centre[k], cov[k]) for k, i in enumerate(todo)}
+        laplace = np.full((n, 6), np.nan), np.full((n, 6, 6), np.nan)
+        laplace[0][todo], laplace[1][todo] = laplace_in_z(fits[ok], model)
         pilots = {}
         if settings.method in ("laplace", "auto"):
-            todo, pilots = _laplace(stack, model, todo, laplace, streams, settings, out)
+            todo, pilots = _laplace(stack, model, todo, laplace, seeds, settings, out)
         if settings.method in ("importance", "auto") and todo.size:
-            _importance(stack, model, todo, laplace, streams, settings, out, pilots)
+            _importance(stack, model, todo, laplace, seeds, settings, out, pilots)
     made = [i for i in range(n) if out[i]["draws"] is not None]  # all at a converged MLE
     if made:
         theta = fits[list(PARAMETER_NAMES)].to_numpy(float)[made]
@@ -164,36 +172,48 @@ def _info(settings, seed: int, mle_ok: bool, why: str, **facts) -> dict:
     }
 
 
-def _cholesky(cov):
+def _choleskys(cov: np.ndarray) -> np.ndarray:
+    """Cholesky factors of the covariances ``cov`` (m, 6, 6), NaN where one is not positive
+    definite (LAPACK runs matrix by matrix either way, so a factor does not depend on the
+    others)."""
     try:
         return np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
-        return None
+        out = np.full_like(cov, np.nan)
+        for k, one in enumerate(cov):
+            try:
+                out[k] = np.linalg.cholesky(one)
+            except np.linalg.LinAlgError:
+                pass
+        return out
 
 
-def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.ndarray, dict]:
-    """Laplace draws where accepted (``laplace``: ROI -> centre and covariance in z); returns
-    the ROIs still to do and, for those whose pilot weight SD is at most
+def _laplace(stack, model, todo, laplace, seeds, settings, out) -> tuple[np.ndarray, dict]:
+    """Laplace draws where accepted (``laplace``: centres and covariances in z, per ROI of
+    the stack); returns the ROIs still to do and, for those whose pilot weight SD is at most
     ``GAUSSIAN_WEIGHT_SD``, the pilot (draws, log proposal density, log posterior, the
     random stream it came from, its interpolants and the covariance's Cholesky factor) to go
     on with."""
-    factors = {i: _cholesky(laplace[i][1]) for i in todo}
-    usable = [i for i in todo if factors[i] is not None]
-    rngs = {i: np.random.default_rng(streams[i]["laplace"]) for i in usable}
-    pilots_z, log_g = [], []
-    for i in usable:
-        u = rngs[i].standard_normal((PILOT, 6))
-        pilots_z.append(laplace[i][0] + u @ factors[i].T)
-        log_g.append(-0.5 * np.sum(u * u, axis=1))
-    kept = [None] * len(usable)  # the pilot's interpolants, for the runs that continue it
-    scored = fused.score(model, stack[usable], pilots_z, kept) if usable else []
-    left = [i for i in todo if factors[i] is None]
+    centres, covariances = laplace
+    factors = _choleskys(covariances[todo])
+    positive = ~np.isnan(factors).any(axis=(1, 2))
+    usable, factors = todo[positive], factors[positive]
+    left = [int(i) for i in todo[~positive]]
     for i in left:
         out[i]["info"]["why"] = "chain: the Laplace covariance is not positive definite"
+    if not usable.size:
+        return np.array(left, dtype=int), {}
+    rngs = [np.random.default_rng(random_stream(seeds[i], "laplace")) for i in usable]
+    u = np.stack([rng.standard_normal((PILOT, 6)) for rng in rngs])
+    pilots_z = centres[usable, None, :] + u @ np.swapaxes(factors, 1, 2)
+    log_g = -0.5 * np.einsum("mkj,mkj->mk", u, u)
+    kept = [None] * len(usable)  # the pilot's interpolants, for the runs that continue it
+    scored = np.stack(fused.score(model, stack[usable], list(pilots_z), kept))
+    weight_sds = _weight_sds(scored - log_g)
     wanted = CHAINS * int(np.ceil(settings.ess / CHAINS))
     pilots = {}
-    for i, z, lp, lg, interpolants in zip(usable, pilots_z, scored, log_g, kept, strict=True):
-        weight_sd = _weight_sd(lp - lg)
+    for k, i in enumerate(usable.tolist()):
+        weight_sd = float(weight_sds[k])
         passed = weight_sd <= LAPLACE_WEIGHT_SD
         if settings.method == "auto" and not passed:
             out[i]["info"]["weight_sd"] = weight_sd
@@ -202,10 +222,9 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.nd
             )
             left.append(i)
             if weight_sd <= GAUSSIAN_WEIGHT_SD:
-                pilots[i] = (z, lg, lp, rngs[i], interpolants, factors[i])
+                pilots[i] = (pilots_z[k], log_g[k], scored[k], rngs[k], kept[k], factors[k])
             continue
-        u = rngs[i].standard_normal((2 * wanted, 6))
-        z = laplace[i][0] + u @ factors[i].T
+        z = centres[i] + rngs[k].standard_normal((2 * wanted, 6)) @ factors[k].T
         params = model.from_unconstrained(z)
         params = params[np.isfinite(model.log_prior(params))][:wanted]  # within the prior
         params = params[: CHAINS * (len(params) // CHAINS)]
@@ -222,44 +241,42 @@ def _laplace(stack, model, todo, laplace, streams, settings, out) -> tuple[np.nd
     return np.array(sorted(left), dtype=int), pilots
 
 
-def _weight_sd(log_ratio: np.ndarray) -> float:
-    """Standard deviation of importance weights normalised to mean 1 (inf if any is 0 or
-    undefined: a draw outside the posterior's support)."""
-    if not np.all(np.isfinite(log_ratio)):
-        return float("inf")
-    w = np.exp(log_ratio - log_ratio.max())
-    return float(np.std(w / w.mean(), ddof=1))
+def _weight_sds(log_ratio: np.ndarray) -> np.ndarray:
+    """Per row of ``log_ratio`` (m, k), the standard deviation of its importance weights
+    normalised to mean 1 (inf if any is 0 or undefined: a draw outside the posterior's
+    support)."""
+    finite = np.isfinite(log_ratio).all(axis=1)
+    safe = np.where(finite[:, None], log_ratio, 0.0)
+    w = np.exp(safe - safe.max(axis=1, keepdims=True))
+    return np.where(finite, np.std(w / w.mean(axis=1, keepdims=True), axis=1, ddof=1), np.inf)
 
 
-def _importance(stack, model, todo, laplace, streams, settings, out, pilots) -> None:
+def _importance(stack, model, todo, laplace, seeds, settings, out, pilots) -> None:
     """Importance sampling of the ROIs ``todo``: those with a pilot (``auto``) first from the
     Laplace Gaussian, continuing its pilot; then the rest, and those whose Gaussian run
     failed, from the Laplace Student-t."""
     max_draws = int(MAX_DRAWS_PER_ESS * settings.ess)
+    centres, covariances = laplace
     runs, kept = {}, {}
     for i, (z, log_g, lp, rng, interpolants, cholesky) in pilots.items():
-        proposal = GaussianProposal(*laplace[i], cholesky=cholesky)
+        proposal = GaussianProposal(centres[i], covariances[i], cholesky=cholesky)
         runs[i] = ImportanceRun(
             proposal, settings.ess, max_draws, rng, first=(z, log_g, lp), margin=GAUSSIAN_MARGIN
         )
         kept[i] = interpolants
     _advance(stack, model, runs, kept)
-    failed = []
-    for i, run in runs.items():
-        if not _accept(i, run, "the Laplace Gaussian", model, streams, settings, out):
-            failed.append(i)
+    failed = _accepted(runs, "the Laplace Gaussian", model, seeds, settings, out)
     runs = {}
-    for i in sorted(set(todo) - set(pilots) | set(failed)):
-        random = np.random.RandomState(np.random.MT19937(streams[i]["draws"]))
+    for i in sorted(set(todo.tolist()) - set(pilots) | set(failed)):
+        random = np.random.RandomState(np.random.MT19937(random_stream(seeds[i], "draws")))
         try:
-            proposal = IndependenceMove(*laplace[i])
+            proposal = IndependenceMove(centres[i], covariances[i])
         except np.linalg.LinAlgError:
             out[i]["info"]["why"] = "chain: the Laplace covariance is not positive definite"
             continue
         runs[i] = ImportanceRun(proposal, settings.ess, max_draws, random)
     _advance(stack, model, runs, {})
-    for i, run in runs.items():
-        _accept(i, run, "the Laplace Student-t", model, streams, settings, out)
+    _accepted(runs, "the Laplace Student-t", model, seeds, settings, out)
 
 
 def _advance(stack, model, runs: dict, kept: dict) -> None:
@@ -286,25 +303,42 @@ def _judge(runs: dict, ratios: dict) -> None:
             runs[i].judge(w, float(k))
 
 
-def _accept(i, run, source: str, model, streams, settings, out) -> bool:
-    """Record run ``i``'s outcome in ``out[i]``: its resampled draws where k-hat and the ESS
-    pass (True), or why not."""
+def _accepted(runs: dict, source: str, model, seeds, settings, out) -> list[int]:
+    """Record each run's outcome in ``out`` (``_accept``), the resampled draws of all that
+    pass converted to parameters together; returns the ROIs whose run failed."""
+    made, failed = {}, []
+    for i, run in runs.items():
+        z = _accept(i, run, source, seeds, settings, out)
+        if z is None:
+            failed.append(i)
+        else:
+            made[i] = z
+    if made:
+        params = model.from_unconstrained(np.concatenate(list(made.values())))
+        ends = np.cumsum([len(z) for z in made.values()])[:-1]
+        for i, draws in zip(made, np.split(params, ends), strict=True):
+            out[i]["draws"] = draws
+    return failed
+
+
+def _accept(i, run, source: str, seeds, settings, out) -> np.ndarray | None:
+    """Record run ``i``'s outcome in ``out[i]["info"]``; its resampled draws (sampling
+    coordinates) where k-hat and the ESS pass, else None (and why)."""
     info = out[i]["info"]
     before = info["why"] + "; " if "weight_sd" in info else ""  # what auto tried before
     facts = f"k-hat {run.khat:.2f}, ESS {run.achieved:.0f} of {len(run.weights)} draws"
     info.update(khat=run.khat, draws_scored=info.get("draws_scored", 0) + len(run.weights))
     if run.khat > KHAT_MAX or run.achieved < settings.ess:
         info["why"] = f"{before}chain: importance sampling from {source} failed ({facts})"
-        return False
+        return None
     n = CHAINS * int(run.achieved // CHAINS)
-    index = systematic_resample(run.weights, n, np.random.default_rng(streams[i]["resample"]))
-    out[i]["draws"] = model.from_unconstrained(run.draws[index])
+    rng = np.random.default_rng(random_stream(seeds[i], "resample"))
     info.update(
         method="importance",
         ess=float(run.achieved),
         why=f"{before}importance sampling from {source} ({facts})",
     )
-    return True
+    return run.draws[systematic_resample(run.weights, n, rng)]
 
 
 __all__ = [
@@ -312,5 +346,6 @@ __all__ = [
     "PILOT",
     "cheap_posteriors",
     "laplace_in_z",
+    "random_stream",
     "random_streams",
 ]

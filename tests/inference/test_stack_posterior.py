@@ -8,7 +8,7 @@ import pytest
 
 from bayespsf import load_scene, simulate
 from bayespsf.inference import sample_posterior
-from bayespsf.inference.batched import LAPLACE_WEIGHT_SD, _weight_sd
+from bayespsf.inference.batched import LAPLACE_WEIGHT_SD, _weight_sds, random_stream
 from bayespsf.inference.summary import coverage, molecule_row
 from bayespsf.model import Model
 from bayespsf.parallel import molecule_seed, sample_many
@@ -84,15 +84,31 @@ def test_results_do_not_depend_on_the_number_of_workers(dim, dim_auto):
     pd.testing.assert_frame_equal(two[cols], dim_auto[cols])
 
 
+def test_random_stream_is_the_sequence_sample_posterior_spawns():
+    # made from its spawn key, each stream is the one spawning the tree gives, so a ROI's
+    # draws are those of sample_posterior
+    for seed in (0, 7, 2**40):
+        start, chain = np.random.SeedSequence(seed).spawn(2)
+        spawned = dict(zip(("draws", "resample", "laplace"), chain.spawn(3), strict=True))
+        for name, sequence in {"start": start, "chain": chain, **spawned}.items():
+            np.testing.assert_array_equal(
+                random_stream(seed, name).generate_state(8), sequence.generate_state(8)
+            )
+
+
 def test_weight_sd_of_lognormal_weights():
     # log w ~ N(0, s^2): the weights normalised to mean 1 have sd sqrt(exp(s^2) - 1) exactly;
-    # from 10^6 draws the estimate is within 1% (its relative SE here is ~1e-3)
+    # from 10^6 draws per row the estimate is within 1% (its relative SE here is ~1e-3)
     rng = np.random.default_rng(0)
-    for s in (0.01, 0.05, 0.2):
-        assert _weight_sd(s * rng.standard_normal(1_000_000)) == pytest.approx(
-            np.sqrt(np.expm1(s * s)), rel=0.01
-        )
-    assert _weight_sd(np.array([0.0, -np.inf, 0.0])) == np.inf
+    s = np.array([0.01, 0.05, 0.2])
+    sds = _weight_sds(s[:, None] * rng.standard_normal((3, 1_000_000)))
+    np.testing.assert_allclose(sds, np.sqrt(np.expm1(s * s)), rtol=0.01)
+    # a row with a draw outside the support is inf, and does not touch its neighbours
+    rows = np.array([[0.0, -np.inf, 0.0], [0.0, 0.1, -0.1], [0.0, np.nan, 0.0]])
+    sds = _weight_sds(rows)
+    assert sds[0] == np.inf and sds[2] == np.inf
+    w = np.exp(rows[1] - 0.1)
+    assert sds[1] == pytest.approx(np.std(w / w.mean(), ddof=1), rel=1e-12)
 
 
 @pytest.fixture(scope="module")
