@@ -304,20 +304,15 @@ def _judge(runs: dict, ratios: dict) -> None:
 
 
 def _accepted(runs: dict, source: str, model, seeds, settings, out) -> list[int]:
-    """Record each run's outcome in ``out`` (``_accept``), the resampled draws of all that
-    pass converted to parameters together; returns the ROIs whose run failed."""
-    made, failed = {}, []
+    """Record each run's outcome in ``out`` (``_accept``); returns the ROIs whose run
+    failed."""
+    failed = []
     for i, run in runs.items():
         z = _accept(i, run, source, seeds, settings, out)
         if z is None:
             failed.append(i)
-        else:
-            made[i] = z
-    if made:
-        params = model.from_unconstrained(np.concatenate(list(made.values())))
-        ends = np.cumsum([len(z) for z in made.values()])[:-1]
-        for i, draws in zip(made, np.split(params, ends), strict=True):
-            out[i]["draws"] = draws
+        else:  # one ROI's draws at a time: the chunk's together fall out of the cache
+            out[i]["draws"] = model.from_unconstrained(z)
     return failed
 
 

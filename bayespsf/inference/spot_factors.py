@@ -77,7 +77,7 @@ def factors(centre, width, roi: int, a: float, starts, sampled: bool) -> np.ndar
     usable &= np.all(np.abs(error) <= TOLERANCE, axis=(1, 2))
     log_tail = np.zeros((roi + 1, len(centre)))  # 0 where not interpolated: read nowhere
     _log_tails(centre, scale, roi, a, starts, usable, mid, 1.0 / half, coef, log_tail)
-    tail = np.exp(log_tail)  # NumPy's exp is vectorised; the compiled C library's is not
+    tail = np.exp(log_tail, out=log_tail)  # NumPy's exp is vectorised; the C library's is not
     _masses(centre, scale, roi, a, starts, usable, upper, tail, out)
     for r in np.flatnonzero(~usable):
         part = slice(starts[r], starts[r + 1])
@@ -150,20 +150,24 @@ def _log_tails(centre, scale, roi, a, starts, usable, mid, inv_half, coef, out):
 @numba.njit(cache=True, nogil=True)
 def _masses(centre, scale, roi, a, starts, usable, upper, tail, out):
     """Each usable ROI's pixel masses from its edges' tails: ``tail`` is ``Q`` of the side an
-    edge's interpolant took (``upper``: the right), ``1 - tail`` the other side's."""
+    edge's interpolant took (``upper``: the right), ``1 - tail`` the other side's; it is
+    turned into ``Q(|z|)`` in place, then each pixel's mass is read from its two edges. Both
+    passes run over draws innermost, where the compiler vectorises them."""
     for r in range(starts.size - 1):
         if not usable[r]:
             continue
-        for d in range(starts[r], starts[r + 1]):
-            c, v = centre[d], scale[d]
-            near = ((0.0 - 0.5 * roi) * a - c) * v
-            near_tail = tail[0, d] if (near >= 0.0) == upper[r, 0] else 1.0 - tail[0, d]
-            for j in range(roi):
-                far = ((j + 1.0 - 0.5 * roi) * a - c) * v
-                t = tail[j + 1, d]
-                far_tail = t if (far >= 0.0) == upper[r, j + 1] else 1.0 - t
-                out[j, d] = _mass(near, far, near_tail, far_tail)
-                near, near_tail = far, far_tail
+        first, last = starts[r], starts[r + 1]
+        c, v = centre[first:last], scale[first:last]
+        for k in range(roi + 1):
+            edge, up, row = (k - 0.5 * roi) * a, upper[r, k], tail[k, first:last]
+            for d in range(last - first):
+                row[d] = row[d] if ((edge - c[d]) * v[d] >= 0.0) == up else 1.0 - row[d]
+        for j in range(roi):
+            near_edge, far_edge = (j - 0.5 * roi) * a, (j + 1.0 - 0.5 * roi) * a
+            near_tail, far_tail, mass = tail[j, first:last], tail[j + 1, first:last], out[j]
+            for d in range(last - first):
+                near, far = (near_edge - c[d]) * v[d], (far_edge - c[d]) * v[d]
+                mass[first + d] = _mass(near, far, near_tail[d], far_tail[d])
 
 
 __all__ = ["NEAR", "TOLERANCE", "factors"]
