@@ -40,13 +40,45 @@ def _timed(function):
     return out, time.perf_counter() - started
 
 
+def _warm(counts, model) -> int:
+    """A Dask worker's imports, compiled kernels and EMCCD tables, made before the timing."""
+    sample_many(counts, model, workers=1, progress=False)
+    return os.getpid()
+
+
+def _on_dask(counts, model, workers: int, trim: bool):
+    """``sample_many`` on a ``LocalCluster`` of ``workers`` one-thread workers, each warmed
+    first, and its seconds. ``trim``: Dask's default worker environment, whose
+    ``MALLOC_TRIM_THRESHOLD_=65536`` makes glibc hand every freed working array back to the
+    system; else that variable unset (``docs/scale.md``)."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    key = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+    config = {} if trim else {key: None}
+    saved = os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)  # a nanny leaves it set here
+    try:
+        with (
+            dask.config.set(config),
+            LocalCluster(
+                n_workers=workers, threads_per_worker=1, dashboard_address=None, processes=True
+            ) as cluster,
+            Client(cluster) as client,
+        ):
+            client.run(_warm, counts[:4], model)  # every worker, not only the first task's
+            return _timed(lambda: sample_many(counts, model, executor=client))
+    finally:
+        os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
+        if saved is not None:
+            os.environ["MALLOC_TRIM_THRESHOLD_"] = saved
+
+
 def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.DataFrame:
     """``sample_many(method="auto")`` on ``n`` emccd-typical ROIs (N = 1000) in this process,
     then for each number ``w`` > 1 of ``workers`` on ``w`` local worker processes and on a Dask
     ``LocalCluster`` of ``w`` one-thread workers; then a ``dataset`` of ROIs (0: none) on the
-    most local workers."""
-    from distributed import Client, LocalCluster
-
+    most local workers. Each Dask cluster runs twice: with Dask's default worker environment
+    and with its malloc trim threshold unset (``_on_dask``)."""
     scene = load_scene("emccd-typical")
     model = Model.from_scene(scene)
     counts, _ = simulate(scene, max(n, dataset), seed=3)
@@ -80,15 +112,10 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
         row("local worker processes", w, local, seconds, one)
         if not dask:
             continue
-        with (
-            LocalCluster(
-                n_workers=w, threads_per_worker=1, dashboard_address=None, processes=True
-            ) as cluster,
-            Client(cluster) as client,
-        ):
-            sample_many(counts[: 2 * w], model, executor=client)  # the workers' imports, tables
-            result, seconds = _timed(lambda c=client: sample_many(counts[:n], model, executor=c))
-        row("Dask LocalCluster, 1 thread per worker", w, result, seconds, one)
+        for trim in (True, False):
+            result, seconds = _on_dask(counts[:n], model, w, trim)
+            how = "Dask LocalCluster, 1 thread per worker" + ("" if trim else ", malloc trim unset")
+            row(how, w, result, seconds, one)
     if dataset:
         most = max(workers)
         data, seconds = _timed(lambda: sample_many(counts[:dataset], model, workers=most))
