@@ -176,7 +176,8 @@ class Camera(ABC):
     def _step_information(self, expected: np.ndarray) -> np.ndarray:
         """Per-pixel information that steers an optimiser's steps (the stack MLE's metric),
         where only its scale and shape matter, not its last digits: the Fisher information
-        unless a camera has a much cheaper close bound."""
+        unless a camera has a much cheaper close bound, or the tier scored is not the camera's
+        law (the EMCCD's ``poisson`` tier: its own)."""
         return self._fisher_information(expected)
 
     def variance(self, expected: ArrayLike) -> np.ndarray:

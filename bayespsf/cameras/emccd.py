@@ -442,15 +442,14 @@ class EMCCD(Camera):
     def _fisher_information(self, expected):
         return _emccd_fisher.fisher_information(expected, self.readout_in_gain_units)
 
+    def _step_information(self, expected):
+        # the poisson tier's own: steered by the camera's, half of it, steps overshoot twofold
+        poisson = self.likelihood == "poisson"
+        return 1.0 / expected if poisson else self._fisher_information(expected)
+
     def to_dict(self):
-        return {
-            "kind": "emccd",
-            "gain": self.gain,
-            "readout_sd": self.readout_sd,
-            "offset": self.offset,
-            "e_per_adu": self.e_per_adu,
-            "likelihood": self.likelihood,
-        }
+        names = ("gain", "readout_sd", "offset", "e_per_adu", "likelihood")
+        return {"kind": "emccd", **{name: getattr(self, name) for name in names}}
 
     def __repr__(self):
         return (

@@ -119,7 +119,7 @@ def _evaluate(jm: JaxModel, counts, u):
     f = -jnp.sum(log_p, axis=(1, 2))
     j = jac.reshape(n, -1, 6)
     grad = -jnp.einsum("np,npk->nk", score.reshape(n, -1), j)
-    fisher = jm.fisher(jnp.maximum(lam, solver.METRIC_FLOOR)).reshape(n, -1)
+    fisher = jm.step_information(jnp.maximum(lam, solver.METRIC_FLOOR)).reshape(n, -1)
     metric = jnp.einsum("npk,np,npl->nkl", j, fisher, j)
     finite = jnp.isfinite(f)
     return (

@@ -368,6 +368,25 @@ class JaxModel:
         lo, hi = self.fisher_range
         return laws.fisher_spline(lam, self.r, self.fisher_knots, self.fisher_coefficients, lo, hi)
 
+    def step_information(self, lam):
+        """Per-pixel information that steers the fit's steps (``camera._step_information``):
+        ``fisher``, but for the EMCCD's ``poisson`` tier, which scores the counts as Poisson
+        photons, that law's own ``1 / lam`` (the camera's is half of it).
+
+        Parameters
+        ----------
+        lam : array_like
+            Expected photoelectrons per pixel, as for ``fisher``.
+
+        Returns
+        -------
+        jax.Array
+            Information per photoelectron^2, the shape of ``lam``.
+        """
+        if self.law == "poisson":
+            return 1.0 / jnp.asarray(lam, dtype=jnp.float64)
+        return self.fisher(lam)
+
     # ------------------------------------------------------------------ the prior
 
     def log_prior(self, p):
