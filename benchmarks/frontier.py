@@ -7,9 +7,8 @@ without JAX those rows are skipped and the output says so. Writes
 benchmarks/results/frontier.{md,csv,png} and frontier-summary.csv, and its section of
 benchmarks/README.md.
 
-    python benchmarks/frontier.py [--workers K]   # full run (~8 minutes on 2 cores; the JAX
-                                                  # rows on the CPU add ~40 s per tier,
-                                                  # method and ESS target: about an hour)
+    python benchmarks/frontier.py [--workers K]   # full run: ~27 minutes on 2 cores, of
+                                                  # which the JAX rows on the CPU ~19
     python benchmarks/frontier.py --quick         # = bayespsf bench --quick, to a temp folder
     python benchmarks/frontier.py --from-csv      # tables and figure again from frontier.csv
 """
