@@ -153,6 +153,10 @@ def main(argv=None):
     workers = sorted({int(w) for w in args.workers.split(",")})
     if workers[0] < 1:
         parser.error(f"--workers: whole numbers >= 1, got {args.workers}")
+    if args.rois is not None and args.rois < 1:
+        parser.error(f"--rois: a whole number >= 1, got {args.rois}")
+    if args.dataset < 0:
+        parser.error(f"--dataset: a whole number >= 0 (0: no dataset run), got {args.dataset}")
     # enough ROIs that starting the workers counts little and every worker gets many chunks
     rois = 2000 * workers[-1] if args.rois is None else args.rois
     n, dataset = (16, min(32, args.dataset)) if args.quick else (rois, args.dataset)

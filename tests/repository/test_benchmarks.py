@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
@@ -162,6 +163,10 @@ def test_parallel_benchmark_quick():
     table = parallel.main(["--quick", "--workers", "3,1", "--no-dask", "--dataset", "0"])
     assert table["workers"].tolist() == [1, 3]
     assert table["same posteriors as one process"].iloc[1:].tolist() == [True]
+    # no ROIs, or a negative dataset, is refused by name before any run
+    for flags in (["--rois", "0"], ["--dataset", "-5"]):
+        with pytest.raises(SystemExit):
+            parallel.main(flags)
 
 
 def test_first_use_benchmark_quick():
