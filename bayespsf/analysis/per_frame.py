@@ -36,7 +36,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf.analysis.localizations import PLACE_COLUMNS, localizations, locs_info
-from bayespsf.analysis.pipeline import _estimates
+from bayespsf.analysis.pipeline import _check_sampler, _estimates
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.gof import check_discrepancy
 from bayespsf.io import write_locs
@@ -154,6 +154,7 @@ def localize_frames(
     method: str = "auto",
     backend: str = "numpy",
     ess: float | None = None,
+    max_seconds: float | None = None,
     seed: int = 0,
     workers: int | None = None,
     executor: Executor | Client | str | None = None,
@@ -186,7 +187,7 @@ def localize_frames(
     posterior : bool, default True
         Also sample each window's posterior (``bayespsf analyze --per-frame``); False: the MLE
         and its Cramér-Rao bound only (``bayespsf detect --per-frame``).
-    method, backend, ess, seed, workers, executor, progress, gof_discrepancy
+    method, backend, ess, max_seconds, seed, workers, executor, progress, gof_discrepancy
         As ``analyze`` (the posterior's sampler and where it runs; seeds as the module
         docstring says).
     provenance : dict, optional
@@ -243,7 +244,9 @@ def localize_frames(
     run = {k: v for k, v in run.items() if k not in ("roi", "geometry", "projection", "rules")}
     run.update(command="analyze" if posterior else "detect", **{"per frame": True})
     if posterior:
+        _check_sampler(method, ess, seed, max_seconds)
         run.update(method=method, ess=ess, seed=seed, **{"model check": gof_discrepancy})
+        run.update({} if max_seconds is None else {"max seconds": max_seconds})
     files = PER_FRAME_FILES if posterior else PER_FRAME_FILES[:-1]
     check_folder(out, run, files, force=force, copies=copied)  # before the work
     width = resolve_psf_sd(movie, model, s0, fit=fit or 15, false_positives=false_positives)
@@ -265,6 +268,7 @@ def localize_frames(
     fitting = model.for_roi(fit)
     sampler = dict(method=method, backend=backend, check=gof_discrepancy, progress=progress)
     sampler.update(workers=workers, executor=executor, **({} if ess is None else {"ess": ess}))
+    sampler.update({} if max_seconds is None else {"max_seconds": max_seconds})
     candidates, rows = [], []
     pending: list[tuple[pd.DataFrame, np.ndarray]] = []
     spots = frame_spots(movie, fitting, psf_sd=width.sd, fit=fit, false_positives=false_positives)

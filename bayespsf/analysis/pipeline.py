@@ -40,6 +40,7 @@ from bayespsf.axial import check_calibration
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import fit_lsq, fit_mle
 from bayespsf.inference.gof import check_discrepancy
+from bayespsf.inference.settings import check_settings
 from bayespsf.io import write_locs
 from bayespsf.io.run_record import check_folder, claim_folder, read_copies
 from bayespsf.model import Model
@@ -140,6 +141,13 @@ def valid_rois(
     return np.concatenate(counts).astype(np.float64), table
 
 
+def _check_sampler(method: str, ess, seed: int, max_seconds) -> None:
+    """The posterior's settings (``check_settings``), each named before the detection."""
+    check_settings(
+        method=method, seed=seed, max_seconds=max_seconds, **({} if ess is None else {"ess": ess})
+    )
+
+
 def _estimates(counts, model: Model, lsq: bool = True) -> pd.DataFrame:
     """The MLE (``<p>_mle``, ``crlb_<p>``) and, with ``lsq``, the paper's least squares
     (``<p>_lsq``)."""
@@ -177,6 +185,7 @@ def analyze(
     method: str = "auto",
     backend: str = "numpy",
     ess: float | None = None,
+    max_seconds: float | None = None,
     seed: int = 0,
     workers: int | None = None,
     executor: Executor | Client | str | None = None,
@@ -224,6 +233,10 @@ def analyze(
     ess : float, optional
         Effective sample size of every posterior (per ROI, per molecule's joint posterior
         and, with ``z_calibration``, of z); default each sampler's own.
+    max_seconds : float, optional
+        Wall-clock budget of each ROI's chain, for the ROIs the batched engine leaves to it
+        (``sample_many``); one that exhausts it is reported ``not converged``. Default: none.
+        The joint posteriors and those of z are not budgeted.
     seed : int, default 0
         ROI ``i`` is sampled with ``molecule_seed(seed, i)`` (ROIs in the order of
         ``frames``), molecule ``m``'s joint posterior with ``molecule_seed(seed, m)``: the
@@ -360,6 +373,7 @@ def analyze(
     True
     """
     check_discrepancy("gof_discrepancy", gof_discrepancy)
+    _check_sampler(method, ess, seed, max_seconds)
     if gof_discrepancy != "likelihood":
         provenance = {**(provenance or {}), "goodness-of-fit discrepancy": gof_discrepancy}
     movie, out, copied = open_movie(movie), Path(out), read_copies(copies)
@@ -368,6 +382,8 @@ def analyze(
         "command": "analyze",
     }
     run.update(method=method, ess=ess, seed=seed, **{"model check": gof_discrepancy})
+    budget = {} if max_seconds is None else {"max_seconds": max_seconds}
+    run.update({"max seconds": max_seconds} if budget else {})  # a run without one is as before
     if z_calibration is not None:  # its terms, not the file it came from
         check_calibration(z_calibration, model)  # before any work: its pixels are the model's
         terms = {k: v for k, v in z_calibration.record().items() if k != "source"}
@@ -402,6 +418,7 @@ def analyze(
         method=method,
         backend=backend,
         **effective,
+        **budget,
     )
     frames = pd.concat(
         [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1

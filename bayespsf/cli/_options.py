@@ -203,6 +203,23 @@ def add_method(parser: argparse.ArgumentParser, help: str) -> None:
     )
 
 
+def add_max_seconds(parser: argparse.ArgumentParser) -> None:
+    """Add ``--max-seconds``, the wall-clock budget of each ROI's chain (default none).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    """
+    parser.add_argument(
+        "--max-seconds",
+        type=float,
+        default=None,
+        help="wall-clock budget of each ROI's chain (default: none); a ROI that exhausts it "
+        "is reported not converged",
+    )
+
+
 def add_seed(parser: argparse.ArgumentParser, help: str = SEED_HELP) -> None:
     """Add ``--seed``, the random seed (an int, default 0).
 

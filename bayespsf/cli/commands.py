@@ -273,6 +273,7 @@ def _analyze(args) -> int:
             method=args.method,
             backend=args.backend,
             ess=args.ess,
+            max_seconds=args.max_seconds,
             seed=args.seed,
             workers=None if args.scheduler else args.workers,
             executor=args.scheduler,

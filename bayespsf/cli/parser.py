@@ -18,6 +18,7 @@ from bayespsf.cli._options import (
     add_camera,
     add_force,
     add_geometry,
+    add_max_seconds,
     add_method,
     add_movie,
     add_out,
@@ -148,13 +149,7 @@ def _add_fit(commands) -> None:
     )
     fit.add_argument("--likelihood", default=None, help="likelihood tier (default: the scene's)")
     fit.add_argument("--ess", type=float, default=400.0, help="ESS per parameter (default 400)")
-    fit.add_argument(
-        "--max-seconds",
-        type=float,
-        default=None,
-        help="wall-clock budget of each ROI's chain (default: none); a ROI that exhausts it "
-        "is reported not converged",
-    )
+    add_max_seconds(fit)
     add_method(fit, METHOD_PER_ROI_HELP)
     add_seed(fit, "run seed (ROI k uses molecule_seed(seed, k))")
     fit.add_argument(
@@ -219,6 +214,7 @@ def _add_analyze(commands) -> None:
     add_selection(analyze)
     add_method(analyze, METHOD_BATCHED_HELP)
     analyze.add_argument("--ess", type=float, default=None, help="effective draws per ROI")
+    add_max_seconds(analyze)
     add_seed(analyze)
     add_workers(analyze, scheduler=True, terse=True)
     analyze.add_argument(

@@ -375,6 +375,26 @@ def test_pixel_size_flag_stands_in_for_metadata_and_disagreeing_values_are_refus
         cli.main([*base, "--pixel-size", "100", "--out", str(tmp_path / "c")])
 
 
+def test_analyze_names_a_bad_sampler_setting_before_any_work(tmp_path):
+    """A sampler setting that would never end or never start a run (``--max-seconds 0``,
+    ``--ess nan``) is refused by name before the detection, with and without
+    ``--per-frame``; the output folder is not made."""
+    scene = load_scene("paper-movie").replace(
+        movie={"frames": 1, "height": 32, "width": 32, "molecules": 1, "dark_frames": 0}
+    )
+    made = simulate_movie(scene, seed=5, out=tmp_path / "m")
+    camera = {k: v for k, v in scene.to_dict()["camera"].items() if k in CAMERA_KEYS["emccd"]}
+    lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
+    (tmp_path / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
+    base = ["analyze", str(made.files["movie"]), "--camera", str(tmp_path / "camera.toml")]
+    base += ["--psf-sd", "120", "--fit", "9", "--out", str(tmp_path / "a")]
+    for option, value, named in (("--max-seconds", "0", "max_seconds"), ("--ess", "nan", "ess")):
+        for extra in (["--rules", "none"], ["--per-frame"]):
+            with pytest.raises(SystemExit, match=rf"{named} must be a number in"):
+                cli.main([*base, *extra, option, value])
+            assert not (tmp_path / "a").exists()
+
+
 def test_selection_options_run_a_short_movie_from_the_command_line(tmp_path, capsys):
     """A 12-frame movie: refused by the paper's 75-frame rule with the flags that fix it named;
     ``--min-valid-frames`` or ``--rules none`` run it; ``--rules none`` keeps every accepted

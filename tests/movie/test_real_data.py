@@ -5,6 +5,7 @@ camera file to start from, and compared with the peers' own results on the same 
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import tomllib
@@ -295,11 +296,16 @@ def test_analyze_per_frame_finds_rapidstorms_localisations(dstorm_camera, tmp_pa
     0.15 px (20 nm), is a few times the posterior SDs of these 1 000-5 000-photon spots."""
     out = tmp_path / "per-frame"
     args = ["--camera", str(dstorm_camera), "--psf-sd", str(DSTORM_PSF_SD_NM), "--per-frame"]
-    # importance sampling alone: the default's emcee fallback, which two dim, blurred spots
-    # that rapidSTORM does not report take (15-25 s each), would only slow the test
-    args += ["--method", "importance", "--workers", "1"]
+    # importance sampling where its k-hat passes; three dim, blurred spots that rapidSTORM
+    # does not report fail it and take the chain (2 600-4 500 steps, ~12 s each on 2 cores):
+    # a budget of one second per chain reports them not converged and keeps the test short
+    args += ["--method", "importance", "--max-seconds", "1", "--workers", "1"]
     assert cli.main(["analyze", str(DSTORM), *args, "--out", str(out)]) == 0
+    assert json.loads((out / "run.json").read_text())["run"]["max seconds"] == 1.0
     locs = pd.read_parquet(out / "locs.parquet")
+    chains = locs[locs["method"] == "mcmc"]
+    budget = chains["message"].str.contains("the 1 s budget ran out", regex=False)
+    assert (budget | (chains["status"] == "converged")).all(), chains[["status", "message"]]
     reference = rapidstorm_reference()
     inside = reference[reference["frame"] < len(tifffile.imread(DSTORM))]
     assert len(inside) == 4
