@@ -7,7 +7,8 @@ ROIs on the most workers (targets: two workers >= 1.8x one; on 16 cores, 16 loca
 Every timing runs on the same ROIs, 2 000 per worker of the largest count (4 000 for 1 and 2
 workers, 32 000 up to 16), so that starting a pool counts little and each worker gets many
 chunks, as in a dataset. Run it on an otherwise idle machine: a speed-up means nothing when
-other jobs share the cores. The table names the machine and the command.
+other jobs share the cores. The table names the machine and the command, and the CPU time
+that the calling process spends per ROI while workers run (its own share of the cores).
 
     python benchmarks/parallel.py                        # 1 and 2 workers; rewrites its section
                                                          # of README.md
@@ -24,6 +25,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import resource  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 
@@ -36,10 +38,18 @@ from bayespsf.model import Model  # noqa: E402
 from bayespsf.parallel import sample_many  # noqa: E402
 
 
+def _cpu() -> float:
+    """CPU seconds of this process so far, all its threads (user and system)."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 def _timed(function):
-    started = time.perf_counter()
+    """``function()``, its seconds, and the CPU seconds this process spent meanwhile (with
+    workers elsewhere: the calling process's own work, and a LocalCluster's scheduler)."""
+    started, cpu = time.perf_counter(), _cpu()
     out = function()
-    return out, time.perf_counter() - started
+    return out, time.perf_counter() - started, _cpu() - cpu
 
 
 def _warm(counts, model) -> int:
@@ -50,9 +60,9 @@ def _warm(counts, model) -> int:
 
 def _on_dask(counts, model, workers: int, trim: bool):
     """``sample_many`` on a ``LocalCluster`` of ``workers`` one-thread workers, each warmed
-    first, and its seconds. ``trim``: Dask's default worker environment, whose
-    ``MALLOC_TRIM_THRESHOLD_=65536`` makes glibc hand every freed working array back to the
-    system; else that variable unset (``docs/scale.md``)."""
+    first, with its seconds and this process's CPU seconds (``_timed``). ``trim``: Dask's
+    default worker environment, whose ``MALLOC_TRIM_THRESHOLD_=65536`` makes glibc hand every
+    freed working array back to the system; else that variable unset (``docs/scale.md``)."""
     import dask
     from distributed import Client, LocalCluster
 
@@ -87,7 +97,7 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
     sample_many(counts[:4], model, workers=1)  # warm-up
     rows = []
 
-    def row(how, w, result, seconds, reference=None):
+    def row(how, w, result, seconds, cpu, reference=None):
         count = len(result)
         same = (
             np.nan
@@ -104,24 +114,25 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
                 "seconds": seconds,
                 "ROIs/s": count / seconds,
                 "same posteriors as one process": same,
+                "calling process CPU per ROI (µs)": 1e6 * cpu / count,
             }
         )
 
-    one, seconds = _timed(lambda: sample_many(counts[:n], model, workers=1))
-    row("one process", 1, one, seconds)
+    one, *times = _timed(lambda: sample_many(counts[:n], model, workers=1))
+    row("one process", 1, one, *times)
     for w in (w for w in workers if w > 1):
-        local, seconds = _timed(lambda w=w: sample_many(counts[:n], model, workers=w))
-        row("local worker processes", w, local, seconds, one)
+        local, *times = _timed(lambda w=w: sample_many(counts[:n], model, workers=w))
+        row("local worker processes", w, local, *times, one)
         if not dask:
             continue
         for trim in (True, False):
-            result, seconds = _on_dask(counts[:n], model, w, trim)
+            result, *times = _on_dask(counts[:n], model, w, trim)
             how = "Dask LocalCluster, 1 thread per worker" + ("" if trim else ", malloc trim unset")
-            row(how, w, result, seconds, one)
+            row(how, w, result, *times, one)
     if dataset:
         most = max(workers)
-        data, seconds = _timed(lambda: sample_many(counts[:dataset], model, workers=most))
-        row("local worker processes (dataset)", most, data, seconds)
+        data, *times = _timed(lambda: sample_many(counts[:dataset], model, workers=most))
+        row("local worker processes (dataset)", most, data, *times)
     table = pd.DataFrame(rows)
     table["speed-up vs one process"] = table["ROIs/s"] / table["ROIs/s"].iloc[0]
     table["per worker"] = table["speed-up vs one process"] / table["workers"]

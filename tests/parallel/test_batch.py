@@ -281,3 +281,51 @@ def test_chunks_keep_every_worker_busy_and_memory_bounded():
     assert chunk_count(10 * CHUNK, 2, 400.0) == 10  # large stacks: chunks of CHUNK
     assert chunk_count(1000, 1, 20_000.0) == 200  # ESS 20 000: 5 ROIs per chunk
     assert chunk_count(1000, 1, 1e7) == 500  # never fewer than 2 ROIs per chunk
+
+
+def test_the_table_of_chunks_and_single_rows_is_that_of_every_row_in_order():
+    """The summary table is assembled from the chunks' tables (the batched methods) and single
+    rows (refused, resumed or chained ROIs, with other keys): it must equal
+    ``pd.DataFrame`` of all the rows in molecule order, columns, their order, dtypes and
+    values, wherever each kind of row comes first."""
+    from bayespsf.parallel.batch import _table
+
+    rng = np.random.default_rng(5)
+
+    def made(i):  # a batched posterior's row
+        return {
+            "molecule": i,
+            "seed": 7 * i,
+            "converged": True,
+            "method": "importance",
+            "x0_mean": rng.normal(),
+            "chi2": rng.random(),
+        }
+
+    def refused(i):
+        return {
+            "molecule": i,
+            "seed": 7 * i,
+            "converged": False,
+            "status": "refused",
+            "message": "saturated",
+        }
+
+    def chained(i):  # the chain's row: other keys, in another order, and an int column
+        return {
+            "molecule": i,
+            "seed": 7 * i,
+            "converged": False,
+            "steps": 60,
+            "method": "mcmc",
+            "x0_mean": rng.normal(),
+            "acceptance": 0.3,
+        }
+
+    for kinds in ("mmrmcmm", "rmmcmr", "cmmmmr", "mmmm", "rcr"):
+        rows = [{"m": made, "r": refused, "c": chained}[k](i) for i, k in enumerate(kinds)]
+        chunked = [i for i, k in enumerate(kinds) if k == "m"]
+        pieces = [pd.DataFrame([rows[i] for i in part]) for part in (chunked[:2], chunked[2:])]
+        single = {i: rows[i] for i, k in enumerate(kinds) if k != "m"}
+        table = _table([p for p in pieces if len(p)], single)
+        pd.testing.assert_frame_equal(table, pd.DataFrame(rows), check_exact=True)

@@ -159,6 +159,9 @@ def test_parallel_benchmark_quick():
     assert len(table) == 5 and np.all(table["ROIs/s"] > 0)
     assert table["how"].str.contains("malloc trim unset").sum() == 1
     assert table["same posteriors as one process"].iloc[1:4].tolist() == [True, True, True]
+    # the calling process works less per ROI when workers do the sampling than alone
+    cpu = table["calling process CPU per ROI (µs)"]
+    assert np.all(cpu > 0) and cpu.iloc[1] < cpu.iloc[0], cpu
     # a list of workers: one row per local run and per Dask run, the dataset on the most
     table = parallel.main(["--quick", "--workers", "3,1", "--no-dask", "--dataset", "0"])
     assert table["workers"].tolist() == [1, 3]
