@@ -17,7 +17,10 @@ import):
 
 Each method is compiled / warmed up on a few ROIs first (not timed). Reported: ROIs per second,
 the ratio to picasso ``gaussmle`` on the same ROIs, and the mean of s_x minus the truth with its
-standard error (nm) over the timed ROIs. Then, for the stack engine: time per ROI against ROI
+standard error (nm) over the timed ROIs. The targets' two ratios (``fit_mle`` and ``auto`` to
+``gaussmle``) are then measured again in rounds, each method in turn with ``gaussmle`` (five
+rounds; ``alternated``): a shared machine's slow spells move one timing of the first table, and
+fall on both sides of a round's ratio. Then, for the stack engine: time per ROI against ROI
 size, photon count and stack size, with the peak memory (tracemalloc) of the call. Workers and
 Dask: ``benchmarks/parallel.py``.
 
@@ -153,6 +156,48 @@ def peers(scene_name: str, n: int, posteriors: int, chains: int) -> pd.DataFrame
     return table
 
 
+def alternated(scene_name: str, n: int, rounds: int) -> pd.DataFrame:
+    """picasso ``gaussmle``, ``fit_mle`` (with the Laplace) and ``sample_many`` (``auto``, ESS
+    400) on the same ``n`` ROIs in turn, ``rounds`` times: each round's ratios to that round's
+    ``gaussmle`` (CPU seconds of this process, one thread), so that a slow spell of a shared
+    machine falls on a ratio's both sides. One row per method: the median ratio, its range
+    and each round's."""
+    scene = load_scene(scene_name)
+    model = Model.from_scene(scene)
+    counts, _ = simulate(scene, n, seed=2)
+    spots = model.to_photons(counts).astype(np.float32)
+    newton = picasso_fitters()["picasso gaussmle (sigmaxy)"]
+    ours = {
+        "bayespsf fit_mle (stack, with Laplace)": lambda: fit_mle(counts, model),
+        "bayespsf sample_many auto, ESS 400": lambda: sample_many(counts, model, workers=1),
+    }
+    newton(spots[:4]), fit_mle(counts[:4], model), sample_many(counts[:4], model, workers=1)
+    ratios = {name: [] for name in ours}
+    for _ in range(rounds):
+        started = time.process_time()
+        newton(spots)
+        reference = time.process_time() - started
+        for name, run in ours.items():
+            started = time.process_time()
+            run()
+            ratios[name].append(reference / (time.process_time() - started))
+    return pd.DataFrame(
+        [
+            {
+                "scene": scene_name,
+                "method": name,
+                "ROIs": n,
+                "rounds": rounds,
+                "median ROIs/s / gaussmle": np.median(values),
+                "lowest": min(values),
+                "highest": max(values),
+                "each round": " ".join(f"{v:.3f}" for v in values),
+            }
+            for name, values in ratios.items()
+        ]
+    )
+
+
 def scaling(quick: bool) -> pd.DataFrame:
     """The stack engine's time per ROI and peak memory against ROI size, N and stack size."""
     base = load_scene("emccd-typical")
@@ -231,13 +276,21 @@ def markdown(
     scale_table: pd.DataFrame,
     command: str,
     cold: pd.DataFrame | None = None,
+    turns: pd.DataFrame | None = None,
 ) -> str:
     fmt = {"floatfmt": ".3g", "index": False}
     return (
         "Same ROIs, one thread each; `ROIs/s / gaussmle` is the ratio to picasso's `gaussmle` in "
         "the same run.\n\n"
         f"{peer_table.to_markdown(**fmt)}\n\n"
-        "The stack engine (`fit_mle`, Laplace included) against ROI size, photon count and stack "
+        + (
+            ""
+            if turns is None
+            else "The same ratios with `gaussmle` and each method run in turn, round after "
+            "round on other ROIs of the same scene (CPU seconds; each round's ratio to its own "
+            f"`gaussmle`):\n\n{turns.to_markdown(**fmt)}\n\n"
+        )
+        + "The stack engine (`fit_mle`, Laplace included) against ROI size, photon count and stack "
         "size (emccd-typical otherwise), with the call's peak memory:\n\n"
         f"{scale_table.to_markdown(**fmt)}\n\n"
         + (
@@ -259,11 +312,15 @@ def main(argv=None):
     peer_table = pd.concat(
         [peers(name, n, posteriors, chains) for name in names], ignore_index=True
     )
+    turns = pd.concat(
+        [alternated(name, n, 2 if args.quick else 5) for name in names], ignore_index=True
+    )
     scale_table = scaling(args.quick)
     cold = cold_start(args.quick)
     command = "python benchmarks/throughput.py" + (" --quick" if args.quick else "")
-    publish("throughput", markdown(peer_table, scale_table, command, cold), args.quick)
-    return peer_table, scale_table, cold
+    text = markdown(peer_table, scale_table, command, cold, turns)
+    publish("throughput", text, args.quick)
+    return peer_table, scale_table, cold, turns
 
 
 if __name__ == "__main__":

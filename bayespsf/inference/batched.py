@@ -111,11 +111,12 @@ def cheap_posteriors(stack, model, fits, seeds, settings) -> list[dict]:
     """
     n = len(stack)
     ok = fits["converged"].to_numpy(bool)
+    given = asdict(settings)  # once: asdict copies field by field
     out = [
         {
             "draws": None,
             "info": _info(
-                settings,
+                given,
                 int(seeds[i]),
                 bool(ok[i]),
                 "chain: the "
@@ -158,12 +159,13 @@ def as_posterior(outcome: dict, counts, model, truth=None, scene=None):
     )
 
 
-def _info(settings, seed: int, mle_ok: bool, why: str, **facts) -> dict:
+def _info(given: dict, seed: int, mle_ok: bool, why: str, **facts) -> dict:
+    """A ROI's first outcome: the chain, for ``why``; ``given``: the settings as a dict."""
     return {
-        **asdict(settings),
+        **given,
         "seed": seed,
         "method": "mcmc",
-        "requested": settings.method,
+        "requested": given["method"],
         "why": why,
         "converged": mle_ok,
         "mle_converged": mle_ok,

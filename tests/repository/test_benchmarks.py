@@ -84,7 +84,7 @@ def test_throughput_benchmark_quick():
     # MLE is not asserted: its bias is what the benchmark reports)
     import throughput
 
-    peers, scaling, cold = throughput.main(["--quick"])
+    peers, scaling, cold, turns = throughput.main(["--quick"])
     assert len(peers) == 13 and np.all(peers["ROIs/s"] > 0)
     ours = peers[peers["method"] == "bayespsf fit_mle (stack, with Laplace)"]
     assert np.all(np.abs(ours["s_x - truth (nm)"]) < 4 * ours["SE (nm)"])
@@ -94,6 +94,10 @@ def test_throughput_benchmark_quick():
     assert set(scaling["varied"]) == {"roi", "N", "stack"} and np.all(scaling["peak MB"] > 0)
     assert scaling["converged"].min() > 0.9
     assert len(cold) == 1 and np.all(cold["first fit (s)"] > 0)
+    # the ratios in rounds: two per method, each a positive ratio, the median between them
+    assert len(turns) == 2 and np.all(turns["rounds"] == 2) and np.all(turns["lowest"] > 0)
+    assert np.all(turns["lowest"] <= turns["median ROIs/s / gaussmle"])
+    assert np.all(turns["median ROIs/s / gaussmle"] <= turns["highest"])
 
 
 def test_gpu_benchmark_quick():
