@@ -48,19 +48,22 @@ def study(doc: str, argv, name: str, posteriors: bool = True, arguments=None):
     if arguments is not None:
         arguments(p)
     args = (add_run_arguments(p) if posteriors else p).parse_args(argv)
+    if getattr(args, "backend", "numpy") == "jax" and args.method == "mcmc":
+        p.error("--backend jax runs the batched methods: give --method auto, importance or laplace")
     args.out.mkdir(parents=True, exist_ok=True)
     return args, time.perf_counter(), _stem(args, name)
 
 
 def _stem(args, name: str) -> str:
     """Output stem: ``name``, ``_<method>`` for posteriors not made by the chain alone
-    (``_auto``, ``_importance``, ``_laplace``), ``_quick``."""
+    (``_auto``, ``_importance``, ``_laplace``), ``_jax`` for the JAX backend, ``_quick``."""
     return name + _method_suffix(args) + ("_quick" if args.quick else "")
 
 
 def _method_suffix(args) -> str:
     method = getattr(args, "method", "mcmc")
-    return "" if method == "mcmc" else f"_{method}"
+    jax = "_jax" if getattr(args, "backend", "numpy") == "jax" else ""
+    return ("" if method == "mcmc" else f"_{method}") + jax
 
 
 def finish(args, name: str, table, text: str, started: float, summary: str | None = None):
@@ -68,6 +71,8 @@ def finish(args, name: str, table, text: str, started: float, summary: str | Non
     command = f"python validation/{name}.py" + (" --quick" if args.quick else "")
     if getattr(args, "method", "mcmc") != "mcmc":
         command += f" --method {args.method}"
+    if getattr(args, "backend", "numpy") != "numpy":
+        command += f" --backend {args.backend}"
     for option in ("molecules", "configurations"):  # a study's own options, when given
         if getattr(args, option, None) is not None:
             command += f" --{option} {getattr(args, option)}"
@@ -130,6 +135,13 @@ def add_run_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
         help="posterior by emcee (default); auto: the batched engine (Laplace where its pilot "
         "passes, else importance sampling, else emcee); importance; laplace",
     )
+    p.add_argument(
+        "--backend",
+        choices=("numpy", "jax"),
+        default="numpy",
+        help="where the batched methods run (default numpy; jax: JAX's device, a GPU where "
+        "JAX finds one; needs --method auto, importance or laplace)",
+    )
     return p
 
 
@@ -140,6 +152,8 @@ class Runner:
         from bayespsf.parallel.executors import local_executor
 
         self.args, self.study = args, study
+        if getattr(args, "backend", "numpy") == "jax":  # before the pool, which then starts
+            import jax  # noqa: F401  # its workers from a forkserver: JAX runs threads
         if args.scheduler is not None:
             self.executor = args.scheduler
             self.pool = None
@@ -171,6 +185,7 @@ class Runner:
             store=store,
             truths=truths,
             scene=scene,
+            backend=getattr(self.args, "backend", "numpy"),
             **({"method": method} | options),
         )
 

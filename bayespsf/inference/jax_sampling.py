@@ -20,11 +20,12 @@ runs on one device:
   scaled by the Laplace covariance). The first round has ``first_batch(ess)`` draws; a ROI whose
   smoothed weights reach the ESS target is done. A ROI short of it gets a fresh round of twice
   the draws (fixed sizes, so that the programs a dataset needs compile once), up to
-  ``MAX_ROUNDS`` rounds and ``50 ess`` draws; the weights of a round are those of its own draws
-  (a round is independent of the decision to run it, so each round's estimate is valid on its
-  own). This replaces the NumPy engine's growing batches, which a fixed-shape program cannot
-  hold; the diagnostics and thresholds are the same. PSIS is ``bayespsf.inference.psis``
-  (``arviz_stats``' algorithm, array-generic), tested against ``arviz_stats``.
+  ``MAX_ROUNDS`` rounds (520 to 8 320 draws at ESS 400) and ``50 ess`` draws; the weights of a
+  round are those of its own draws (a round is independent of the decision to run it, so each
+  round's estimate is valid on its own). This replaces the NumPy engine's growing batches,
+  which a fixed-shape program cannot hold; the diagnostics and thresholds are the same. PSIS
+  is ``bayespsf.inference.psis`` (``arviz_stats``' algorithm, array-generic), tested against
+  ``arviz_stats``.
 * Draws are scored with the camera law interpolated per pixel (``jax_fused``, within 1e-6 in
   log p per pixel); the ROIs whose interpolants miss their check run the same program again
   with the law itself (the same draws: they come from the ROI's key).
@@ -57,7 +58,7 @@ from bayespsf.inference.jax_mle import bucket
 from bayespsf.inference.jax_model import JaxModel
 from bayespsf.inference.summary import QUANTILES
 
-MAX_ROUNDS = 3  # importance rounds per ROI before it goes to the chain
+MAX_ROUNDS = 5  # importance rounds per ROI before the chain: the last 16x the first
 DRAW_PIXELS = {"cpu": 2**23, "gpu": 2**26}  # draws x pixels per device call
 ROUND_STEP = 2 ** (1 / 8)  # the Gaussian round's sizes: MIN_BATCH / 2 times its powers
 

@@ -136,9 +136,9 @@ def _table(molecules, seeds, out, rows, seconds, truths) -> pd.DataFrame:
         if truths is not None:
             rank = out["rank"][rows, k]
             columns[f"{name}_truth"] = np.asarray(truths, float)[rows, k]
-            columns[f"{name}_rank"] = np.where(
-                (rank >= 0) & (out["draws"][rows] >= RANK_DRAWS), rank, np.nan
-            )
+            ranked = np.where((rank >= 0) & (out["draws"][rows] >= RANK_DRAWS), rank, np.nan)
+            # whole numbers where every ROI is ranked, as the NumPy backend's rows give them
+            columns[f"{name}_rank"] = ranked if np.isnan(ranked).any() else ranked.astype(int)
     return pd.DataFrame(columns)
 
 

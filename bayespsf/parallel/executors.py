@@ -101,7 +101,8 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     Workers are forked, the fastest start, while this process runs one thread; once threads
     run (a Dask client, a progress monitor, or JAX, whose runtime threads Python does not
     count), where a fork is unsafe, they start from a forkserver, which re-imports the main
-    module.
+    module. The choice is made here, when the pool is made: for ``sample_many(...,
+    backend="jax")`` make the pool after importing JAX.
     """
     workers = os.cpu_count() if workers is None else int(workers)
     if workers < 1:

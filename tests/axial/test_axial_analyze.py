@@ -84,6 +84,8 @@ def run(tmp_path_factory):
             "equal_widths",
             "--skip-rule",
             "width_range",
+            "--workers",
+            "1",
             "--out",
             str(out),
         ]

@@ -31,3 +31,33 @@ def test_quick_run_as_documented(script):
     assert len(table) > 0 and not table.isna().all().any()
     md = next(p for p in written if p.suffix == ".md").read_text()
     assert f"Command: `{command}`" in md
+
+
+def test_the_calibration_study_runs_through_the_jax_backend(tmp_path):
+    """``--backend jax`` as a user types it, quick and on one configuration (the JAX programs
+    of each likelihood tier compile anew): the same study through the JAX backend, written
+    under its own stem with its command; without a batched method it is refused."""
+    python = str(Path(sys.executable))
+    command = (
+        "python validation/posterior_coverage.py --quick --method auto --backend jax "
+        "--configurations 0"
+    )
+    result = subprocess.run(
+        [python, *command.split()[1:], "--out", str(tmp_path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    md = (tmp_path / "posterior_coverage_auto_jax_quick.md").read_text()
+    assert f"Command: `{command}`" in md
+    table = pd.read_csv(tmp_path / "posterior_coverage_auto_jax_quick.csv")
+    assert len(table) == 6 and table["molecules"].gt(0).all()
+    refused = subprocess.run(
+        [python, "validation/posterior_coverage.py", "--quick", "--backend", "jax"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    assert refused.returncode == 2 and "--method auto, importance or laplace" in refused.stderr
