@@ -39,6 +39,7 @@ from bayespsf.analysis.localizations import PLACE_COLUMNS, localizations, locs_i
 from bayespsf.analysis.pipeline import _check_sampler, _estimates
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.gof import check_discrepancy
+from bayespsf.inference.summary import concat_tables
 from bayespsf.io import write_locs
 from bayespsf.io.run_record import check_folder, claim_folder, read_copies
 from bayespsf.model import Model
@@ -243,10 +244,11 @@ def localize_frames(
     run = selection_run(movie, model, s0=s0, roi=fit, fit=fit, false_positives=false_positives)
     run = {k: v for k, v in run.items() if k not in ("roi", "geometry", "projection", "rules")}
     run.update(command="analyze" if posterior else "detect", **{"per frame": True})
+    budget = {}  # the chain's budget (sample_many's max_seconds), where given
     if posterior:
-        _check_sampler(method, ess, seed, max_seconds)
+        budget = _check_sampler(method, ess, seed, max_seconds)
         run.update(method=method, ess=ess, seed=seed, **{"model check": gof_discrepancy})
-        run.update({} if max_seconds is None else {"max seconds": max_seconds})
+        run.update({"max seconds": budget["max_seconds"]} if budget else {})
     files = PER_FRAME_FILES if posterior else PER_FRAME_FILES[:-1]
     check_folder(out, run, files, force=force, copies=copied)  # before the work
     width = resolve_psf_sd(movie, model, s0, fit=fit or 15, false_positives=false_positives)
@@ -268,7 +270,7 @@ def localize_frames(
     fitting = model.for_roi(fit)
     sampler = dict(method=method, backend=backend, check=gof_discrepancy, progress=progress)
     sampler.update(workers=workers, executor=executor, **({} if ess is None else {"ess": ess}))
-    sampler.update({} if max_seconds is None else {"max_seconds": max_seconds})
+    sampler.update(budget)
     candidates, rows = [], []
     pending: list[tuple[pd.DataFrame, np.ndarray]] = []
     spots = frame_spots(movie, fitting, psf_sd=width.sd, fit=fit, false_positives=false_positives)
@@ -295,7 +297,7 @@ def localize_frames(
             f"{paths['candidates.csv']}; --false-positives raises the detector's rate, --fit "
             "changes its window)"
         )
-    table = pd.concat(rows, ignore_index=True)
+    table = concat_tables(rows)  # seeds kept whole
     locs = localizations(table, fitting.pixel_size, estimate="posterior" if posterior else "mle")
     estimate = f"posterior ({method})" if posterior else "MLE, Cramér-Rao bound"
     settings = {"estimate": estimate, "fit": fit, **provenance}

@@ -141,11 +141,12 @@ def valid_rois(
     return np.concatenate(counts).astype(np.float64), table
 
 
-def _check_sampler(method: str, ess, seed: int, max_seconds) -> None:
-    """The posterior's settings (``check_settings``), each named before the detection."""
-    check_settings(
-        method=method, seed=seed, max_seconds=max_seconds, **({} if ess is None else {"ess": ess})
-    )
+def _check_sampler(method: str, ess, seed: int, max_seconds) -> dict:
+    """The posterior's settings (``check_settings``), each named before the detection; the
+    budget as ``sample_many`` takes it (none where not given), as a plain float."""
+    given = {} if ess is None else {"ess": ess}
+    checked = check_settings(method=method, seed=seed, max_seconds=max_seconds, **given)
+    return {} if max_seconds is None else {"max_seconds": checked.max_seconds}
 
 
 def _estimates(counts, model: Model, lsq: bool = True) -> pd.DataFrame:
@@ -373,7 +374,7 @@ def analyze(
     True
     """
     check_discrepancy("gof_discrepancy", gof_discrepancy)
-    _check_sampler(method, ess, seed, max_seconds)
+    budget = _check_sampler(method, ess, seed, max_seconds)
     if gof_discrepancy != "likelihood":
         provenance = {**(provenance or {}), "goodness-of-fit discrepancy": gof_discrepancy}
     movie, out, copied = open_movie(movie), Path(out), read_copies(copies)
@@ -382,8 +383,7 @@ def analyze(
         "command": "analyze",
     }
     run.update(method=method, ess=ess, seed=seed, **{"model check": gof_discrepancy})
-    budget = {} if max_seconds is None else {"max_seconds": max_seconds}
-    run.update({"max seconds": max_seconds} if budget else {})  # a run without one is as before
+    run.update({"max seconds": budget["max_seconds"]} if budget else {})  # only where given
     if z_calibration is not None:  # its terms, not the file it came from
         check_calibration(z_calibration, model)  # before any work: its pixels are the model's
         terms = {k: v for k, v in z_calibration.record().items() if k != "source"}

@@ -285,10 +285,36 @@ def coverage(table: pd.DataFrame, prob: float) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def concat_tables(tables) -> pd.DataFrame:
+    """Summary tables one after another (``pd.concat``, index renumbered), seeds kept whole.
+
+    A table's ``seed`` column is uint64 where a seed is at or above 2**63 (half of
+    ``molecule_seed``'s) and int64 where none is; ``pd.concat`` of the two gives float64, which
+    rounds the seeds. Where the tables' seed columns differ, all become uint64, as the rows
+    of all the tables in one ``pd.DataFrame`` give them.
+
+    Parameters
+    ----------
+    tables : sequence of pandas.DataFrame
+        Summary tables (at least one); those with a ``seed`` column have their seeds kept.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The rows of every table in order; the columns in the order of their first
+        appearance.
+    """
+    tables = list(tables)
+    if len({table["seed"].dtype for table in tables if "seed" in table}) > 1:
+        tables = [t.astype({"seed": np.uint64}) if "seed" in t else t for t in tables]
+    return pd.concat(tables, ignore_index=True, sort=False)
+
+
 __all__ = [
     "QUANTILES",
     "RANK_DRAWS",
     "central_interval",
+    "concat_tables",
     "coverage",
     "draws_row",
     "draws_rows",

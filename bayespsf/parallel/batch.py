@@ -38,7 +38,7 @@ from bayespsf._runtime import one_blas_thread, progress_bar
 from bayespsf._validate import real_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.backends import check_backend
-from bayespsf.inference.summary import draws_rows, molecule_row
+from bayespsf.inference.summary import concat_tables, draws_rows, molecule_row
 from bayespsf.model import Model
 from bayespsf.parallel.device import device_posteriors
 from bayespsf.parallel.executors import _parallelism, molecule_seed, run_tasks, task_runner
@@ -399,10 +399,10 @@ def _run_chunks(chunks, runner, pieces: list, bar) -> dict[int, dict]:
 
 def _table(pieces: list[pd.DataFrame], rows: dict[int, dict]) -> pd.DataFrame:
     """The summary table, one row per molecule in molecule order: the chunks' tables
-    (``pieces``, each in molecule order) and the single ``rows`` by molecule. Its columns are
-    in the order in which ``pd.DataFrame`` of every row in molecule order names them: the
-    single rows go into tables of rows with the same keys, and as every table's rows share
-    their keys, a table's new columns come where its first molecule does."""
+    (``pieces``, each in molecule order) and the single ``rows`` by molecule: the table that
+    ``pd.DataFrame`` of every row in molecule order gives. The single rows go into tables of
+    rows with the same keys; as every table's rows share their keys, a table's new columns
+    come where its first molecule does, in the order ``pd.DataFrame`` names them."""
     alike: dict[tuple, list[dict]] = {}
     for i in sorted(rows):
         alike.setdefault(tuple(rows[i]), []).append(rows[i])
@@ -410,7 +410,7 @@ def _table(pieces: list[pd.DataFrame], rows: dict[int, dict]) -> pd.DataFrame:
         [*pieces, *(pd.DataFrame(group) for group in alike.values())],
         key=lambda piece: piece["molecule"].iloc[0],
     )
-    table = pd.concat(pieces, ignore_index=True, sort=False)
+    table = concat_tables(pieces)  # seeds kept whole where some tables' are uint64
     return table.sort_values("molecule", kind="stable", ignore_index=True)
 
 

@@ -17,7 +17,7 @@ from dataclasses import asdict
 import numpy as np
 import pandas as pd
 
-from bayespsf.inference.summary import QUANTILES, RANK_DRAWS, quantile_column
+from bayespsf.inference.summary import QUANTILES, RANK_DRAWS, concat_tables, quantile_column
 from bayespsf.parallel.store import Store
 from bayespsf.psf import PARAMETER_NAMES
 
@@ -71,7 +71,7 @@ def device_posteriors(indices, stack, model, seeds, truths, settings, scene, sto
         )
         tables.append(table)
         verdicts |= chain
-    return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(), verdicts
+    return concat_tables(tables) if tables else pd.DataFrame(), verdicts
 
 
 def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):

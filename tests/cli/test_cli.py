@@ -375,19 +375,27 @@ def test_pixel_size_flag_stands_in_for_metadata_and_disagreeing_values_are_refus
         cli.main([*base, "--pixel-size", "100", "--out", str(tmp_path / "c")])
 
 
-def test_analyze_names_a_bad_sampler_setting_before_any_work(tmp_path):
-    """A sampler setting that would never end or never start a run (``--max-seconds 0``,
-    ``--ess nan``) is refused by name before the detection, with and without
-    ``--per-frame``; the output folder is not made."""
+def _one_frame_movie(tmp_path, side: int, molecules: int) -> tuple[str, str]:
+    """A one-frame paper-movie of ``side`` x ``side`` pixels (seed 5) and its EMCCD camera
+    file: their paths."""
     scene = load_scene("paper-movie").replace(
-        movie={"frames": 1, "height": 32, "width": 32, "molecules": 1, "dark_frames": 0}
-    )
+        movie={"frames": 1, "height": side, "width": side, "molecules": molecules,
+               "dark_frames": 0}
+    )  # fmt: skip
     made = simulate_movie(scene, seed=5, out=tmp_path / "m")
     camera = {k: v for k, v in scene.to_dict()["camera"].items() if k in CAMERA_KEYS["emccd"]}
     lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
     (tmp_path / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
-    base = ["analyze", str(made.files["movie"]), "--camera", str(tmp_path / "camera.toml")]
-    base += ["--psf-sd", "120", "--fit", "9", "--out", str(tmp_path / "a")]
+    return str(made.files["movie"]), str(tmp_path / "camera.toml")
+
+
+def test_analyze_names_a_bad_sampler_setting_before_any_work(tmp_path):
+    """A sampler setting that would never end or never start a run (``--max-seconds 0``,
+    ``--ess nan``) is refused by name before the detection, with and without
+    ``--per-frame``; the output folder is not made."""
+    movie, camera = _one_frame_movie(tmp_path, side=32, molecules=1)
+    base = ["analyze", movie, "--camera", camera, "--psf-sd", "120", "--fit", "9"]
+    base += ["--out", str(tmp_path / "a")]
     for option, value, named in (("--max-seconds", "0", "max_seconds"), ("--ess", "nan", "ess")):
         for extra in (["--rules", "none"], ["--per-frame"]):
             with pytest.raises(SystemExit, match=rf"{named} must be a number in"):
@@ -434,15 +442,8 @@ def test_a_one_frame_movie_runs_without_runtime_warnings(tmp_path):
     RuntimeWarning (the child processes see every warning: ``PYTHONWARNINGS``)."""
     import os
 
-    scene = load_scene("paper-movie").replace(
-        movie={"frames": 1, "height": 96, "width": 96, "molecules": 8, "dark_frames": 0}
-    )
-    made = simulate_movie(scene, seed=5, out=tmp_path / "m")
-    camera = {k: v for k, v in scene.to_dict()["camera"].items() if k in CAMERA_KEYS["emccd"]}
-    lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
-    (tmp_path / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
-    base = [str(made.files["movie"]), "--camera", str(tmp_path / "camera.toml")]
-    base += ["--psf-sd", "120", "--rules", "none"]
+    movie, camera = _one_frame_movie(tmp_path, side=96, molecules=8)
+    base = [movie, "--camera", camera, "--psf-sd", "120", "--rules", "none"]
     env = {**os.environ, "PYTHONWARNINGS": "always::RuntimeWarning"}
     for command in (
         ["detect", *base, "--out", str(tmp_path / "d")],

@@ -187,3 +187,22 @@ def test_no_posteriors_and_mismatched_lengths():
         draws_rows(draws, [0], seeds, infos)
     with pytest.raises(BayespsfInputError, match="truths must hold 2 rows"):
         draws_rows(draws, [0, 1], seeds, infos, truths[:1])
+
+
+def test_tables_concatenated_keep_their_seeds_whole():
+    """A table's seeds are uint64 where one is at or above 2**63, else int64; ``pd.concat`` of
+    the two rounds them to float64. ``concat_tables`` keeps them whole, as one
+    ``pd.DataFrame`` of all the rows does, and leaves a table without seeds as it is."""
+    import pandas as pd
+
+    from bayespsf.inference.summary import concat_tables
+
+    big, small = 2**64 - 5, 7
+    rows = [{"molecule": 0, "seed": big}, {"molecule": 1, "seed": small}]
+    tables = [pd.DataFrame(rows[:1]), pd.DataFrame(rows[1:])]
+    assert {t["seed"].dtype.name for t in tables} == {"uint64", "int64"}
+    joined = concat_tables(tables)
+    pd.testing.assert_frame_equal(joined, pd.DataFrame(rows))
+    assert joined["seed"].tolist() == [big, small]
+    plain = concat_tables([pd.DataFrame({"molecule": [0]}), pd.DataFrame({"molecule": [1]})])
+    assert plain["molecule"].tolist() == [0, 1]

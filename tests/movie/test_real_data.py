@@ -305,7 +305,7 @@ def test_analyze_per_frame_finds_rapidstorms_localisations(dstorm_camera, tmp_pa
     locs = pd.read_parquet(out / "locs.parquet")
     chains = locs[locs["method"] == "mcmc"]
     budget = chains["message"].str.contains("the 1 s budget ran out", regex=False)
-    assert (budget | (chains["status"] == "converged")).all(), chains[["status", "message"]]
+    assert budget.any() and (budget | (chains["status"] == "converged")).all(), chains
     reference = rapidstorm_reference()
     inside = reference[reference["frame"] < len(tifffile.imread(DSTORM))]
     assert len(inside) == 4

@@ -295,7 +295,7 @@ def test_the_table_of_chunks_and_single_rows_is_that_of_every_row_in_order():
     def made(i):  # a batched posterior's row
         return {
             "molecule": i,
-            "seed": 7 * i,
+            "seed": molecule_seed(3, i),
             "converged": True,
             "method": "importance",
             "x0_mean": rng.normal(),
@@ -305,7 +305,7 @@ def test_the_table_of_chunks_and_single_rows_is_that_of_every_row_in_order():
     def refused(i):
         return {
             "molecule": i,
-            "seed": 7 * i,
+            "seed": molecule_seed(3, i),
             "converged": False,
             "status": "refused",
             "message": "saturated",
@@ -314,7 +314,7 @@ def test_the_table_of_chunks_and_single_rows_is_that_of_every_row_in_order():
     def chained(i):  # the chain's row: other keys, in another order, and an int column
         return {
             "molecule": i,
-            "seed": 7 * i,
+            "seed": molecule_seed(3, i),
             "converged": False,
             "steps": 60,
             "method": "mcmc",
@@ -322,7 +322,10 @@ def test_the_table_of_chunks_and_single_rows_is_that_of_every_row_in_order():
             "acceptance": 0.3,
         }
 
-    for kinds in ("mmrmcmm", "rmmcmr", "cmmmmr", "mmmm", "rcr"):
+    # seeds above 2**63 are uint64 in a table, smaller ones int64: these kinds mix both
+    # (molecule_seed(3, i) is at or above 2**63 for i = 3, 4, 5)
+    assert {molecule_seed(3, i) >= 2**63 for i in range(7)} == {True, False}
+    for kinds in ("mmrmcmm", "rmmcmr", "cmmmmr", "mmmm", "rcr", "mmc"):
         rows = [{"m": made, "r": refused, "c": chained}[k](i) for i, k in enumerate(kinds)]
         chunked = [i for i, k in enumerate(kinds) if k == "m"]
         pieces = [pd.DataFrame([rows[i] for i in part]) for part in (chunked[:2], chunked[2:])]
