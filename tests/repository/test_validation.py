@@ -34,12 +34,13 @@ def test_quick_run_as_documented(script):
 
 
 def test_the_calibration_study_runs_through_the_jax_backend(tmp_path):
-    """``--backend jax`` as a user types it, quick and on one configuration (the JAX programs
-    of each likelihood tier compile anew): the same study through the JAX backend, written
-    under its own stem with its command; without a batched method it is refused."""
+    """``--backend jax`` as a user types it, quick, on one configuration and with the Laplace
+    (the JAX programs of each likelihood tier and method compile anew; the backend's methods
+    are tested in tests/inference/test_jax_backend.py): the study through the JAX backend,
+    written under its own stem with its command; without a batched method it is refused."""
     python = str(Path(sys.executable))
     command = (
-        "python validation/posterior_coverage.py --quick --method auto --backend jax "
+        "python validation/posterior_coverage.py --quick --method laplace --backend jax "
         "--configurations 0"
     )
     result = subprocess.run(
@@ -50,9 +51,9 @@ def test_the_calibration_study_runs_through_the_jax_backend(tmp_path):
         timeout=900,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    md = (tmp_path / "posterior_coverage_auto_jax_quick.md").read_text()
+    md = (tmp_path / "posterior_coverage_laplace_jax_quick.md").read_text()
     assert f"Command: `{command}`" in md
-    table = pd.read_csv(tmp_path / "posterior_coverage_auto_jax_quick.csv")
+    table = pd.read_csv(tmp_path / "posterior_coverage_laplace_jax_quick.csv")
     assert len(table) == 6 and table["molecules"].gt(0).all()
     refused = subprocess.run(
         [python, "validation/posterior_coverage.py", "--quick", "--backend", "jax"],
