@@ -48,8 +48,15 @@ def study(doc: str, argv, name: str, posteriors: bool = True, arguments=None):
     if arguments is not None:
         arguments(p)
     args = (add_run_arguments(p) if posteriors else p).parse_args(argv)
-    if getattr(args, "backend", "numpy") == "jax" and args.method == "mcmc":
-        p.error("--backend jax runs the batched methods: give --method auto, importance or laplace")
+    if getattr(args, "backend", "numpy") == "jax":
+        if args.method == "mcmc":
+            p.error(
+                "--backend jax runs the batched methods: give --method auto, importance or laplace"
+            )
+        try:
+            import jax  # noqa: F401
+        except ImportError:
+            p.error("--backend jax needs JAX: pip install 'bayespsf[jax]' (or '[gpu]' on a GPU)")
     args.out.mkdir(parents=True, exist_ok=True)
     return args, time.perf_counter(), _stem(args, name)
 
