@@ -304,8 +304,10 @@ def test_analyze_per_frame_finds_rapidstorms_localisations(dstorm_camera, tmp_pa
     assert json.loads((out / "run.json").read_text())["run"]["max seconds"] == 1.0
     locs = pd.read_parquet(out / "locs.parquet")
     chains = locs[locs["method"] == "mcmc"]
+    # which ROIs fail importance sampling is set by their seeds; how long a chain runs is the
+    # machine's, so each chain converged or stopped on the budget (no timing is asserted)
     budget = chains["message"].str.contains("the 1 s budget ran out", regex=False)
-    assert budget.any() and (budget | (chains["status"] == "converged")).all(), chains
+    assert len(chains) and (budget | (chains["status"] == "converged")).all(), chains
     reference = rapidstorm_reference()
     inside = reference[reference["frame"] < len(tifffile.imread(DSTORM))]
     assert len(inside) == 4
