@@ -58,6 +58,22 @@ def check_backend(backend: str, model=None) -> str:
     return backend
 
 
+def jax_imported() -> bool:
+    """Whether JAX itself has been imported in this process.
+
+    A lazily registered ``jax`` entry in ``sys.modules`` does not count: arviz-base registers
+    one through ``lazy_loader`` whenever it is imported, without loading JAX. JAX's import
+    always loads ``jaxlib``, which the lazy entry does not.
+
+    Returns
+    -------
+    bool
+    """
+    import sys
+
+    return "jaxlib" in sys.modules
+
+
 def start_jax() -> None:
     """Set JAX up for the backend (idempotent): float64, and compiled programs kept on disk
     in the machine's cache folder (``bayespsf._runtime.cache_folder``, its ``jax`` folder)
@@ -91,9 +107,7 @@ def release_programs() -> None:
     -------
     None
     """
-    import sys
-
-    if "jax" not in sys.modules:
+    if not jax_imported():
         return
     import gc
 
@@ -120,4 +134,11 @@ def device_name() -> str:
     return str(jax.devices()[0].device_kind)
 
 
-__all__ = ["BACKENDS", "check_backend", "device_name", "release_programs", "start_jax"]
+__all__ = [
+    "BACKENDS",
+    "check_backend",
+    "device_name",
+    "jax_imported",
+    "release_programs",
+    "start_jax",
+]

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bayespsf.errors import BayespsfInputError
+from bayespsf.inference.backends import jax_imported
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -110,7 +111,7 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
     # client, a progress monitor, JAX's runtime): then forkserver, which re-imports the main
     # module
-    alone = threading.active_count() == 1 and "jax" not in sys.modules
+    alone = threading.active_count() == 1 and not jax_imported()
     method = "fork" if alone else "forkserver"
     context = multiprocessing.get_context(method)
     # a forkserver's workers are its children: they die with it, and it ends with this process
