@@ -258,14 +258,16 @@ def jax_rows(plan: Plan, tasks: list, rows: list[dict], progress=print) -> list[
 
     known = {(r["N"], r["molecule"]): r for r in rows}
     out = []
-    for level, n_photons in plan.photons.items():
+    budgets = plan.jax_budgets or plan.budgets
+    # a tier's programs serve every level (same stack shape): compiled once per tier, then
+    # released, so that few memory maps are held at once
+    for tier, (level, n_photons) in itertools.product(plan.jax_tiers, plan.photons.items()):
+        if level == next(iter(plan.photons)):
+            release_programs()
         part = [task for task in tasks if task[0] == level]
         stack, scene = np.stack([task[3] for task in part]), part[0][5]
         seed = int(np.random.SeedSequence([plan.seed, n_photons, 2]).generate_state(1)[0])
-        budgets = plan.jax_budgets or plan.budgets
-        for tier, method, budget in itertools.product(plan.jax_tiers, JAX_METHODS, budgets):
-            if (method, budget) == (JAX_METHODS[0], budgets[0]):  # a tier's first row
-                release_programs()  # the last tier's programs: few memory maps held at once
+        for method, budget in itertools.product(JAX_METHODS, budgets):
             model = Model.from_scene(scene, likelihood=tier)
             run = {"seed": seed, "workers": 1, "progress": False, "backend": "jax"}
             run |= {"method": method, "ess": budget}
