@@ -100,10 +100,11 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     Notes
     -----
     Workers are forked, the fastest start, while this process runs one thread; once threads
-    run (a Dask client, a progress monitor, or JAX, whose runtime threads Python does not
-    count), where a fork is unsafe, they start from a forkserver, which re-imports the main
-    module. The choice is made here, when the pool is made: for ``sample_many(...,
-    backend="jax")`` make the pool after importing JAX.
+    run (a Dask client, a progress monitor, a Jupyter kernel, or JAX, whose runtime threads
+    Python does not count), where a fork is unsafe, they start from a forkserver, which
+    imports the main module and ``bayespsf.parallel`` once, then forks the workers. The
+    choice is made here, when the pool is made: for ``sample_many(..., backend="jax")`` make
+    the pool after importing JAX.
     """
     workers = os.cpu_count() if workers is None else int(workers)
     if workers < 1:
@@ -114,6 +115,8 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     alone = threading.active_count() == 1 and not jax_imported()
     method = "fork" if alone else "forkserver"
     context = multiprocessing.get_context(method)
+    if method == "forkserver":  # the server imports what the workers run once, before it
+        context.set_forkserver_preload(["__main__", "bayespsf.parallel"])  # forks them
     # a forkserver's workers are its children: they die with it, and it ends with this process
     parent = os.getpid() if method == "fork" else None
     return cf.ProcessPoolExecutor(
