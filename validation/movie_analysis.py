@@ -32,7 +32,7 @@ same Poisson background), each molecule at one fixed position in all its frames:
 A right model gives z-score SDs of 1 within their SE and a flag rate of 0.1 within its binomial
 SE; the check should fail clearly for the other three.
 
-    python validation/movie_analysis.py            # 30 movies and 4 x 1 200 ROIs (about 21 minutes)
+    python validation/movie_analysis.py            # 30 movies, 4 x 1 200 ROIs (~15 min on 2 cores)
     python validation/movie_analysis.py --quick    # 1 small movie and 4 x 30 ROIs
 """
 
