@@ -1,5 +1,5 @@
 """`bayespsf bench --quick`: the accuracy-time frontier runs end to end and measures what the
-physics says it must (the run takes ~30 s on two cores, ~1 minute where JAX's compiled programs
+physics says it must (the run takes ~15 s on two cores, ~30 s where JAX's compiled programs
 are not cached yet; no timing is asserted). It runs docs/cli.md's command exactly as written
 (``DOCUMENTED``), in an empty folder with its default output folder, so the guide's own test
 does not run it a second time. Without JAX the frontier skips its JAX rows and says so."""
