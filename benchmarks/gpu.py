@@ -206,7 +206,7 @@ def main(argv=None) -> dict:
     device, made = device_rates(counts[: options.rois], model)
     rates |= device
     print(json.dumps({"rates": rates, "work per ROI": made}, default=str), flush=True)
-    streamed = stream(counts[: options.rois], model, options.stream)
+    streamed = stream(counts[: options.rois], model, options.stream) if options.stream else {}
     flags = sys.argv[1:] if argv is None else list(argv)
     command = " ".join(["python benchmarks/gpu.py", *flags])
     result = {
@@ -253,6 +253,8 @@ def render(result: dict) -> str:
         ("Posterior agreement", result["agreement"]["posterior"]),
         ("Streaming", result["stream"]),
     ):
+        if not table:  # --compare 0 or --stream 0
+            continue
         frame = pd.DataFrame({"": list(table), title: [_cell(v) for v in table.values()]})
         lines += [frame.to_markdown(index=False), ""]
     return "\n".join(lines)
