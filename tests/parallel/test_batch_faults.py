@@ -146,11 +146,13 @@ def test_an_unreachable_scheduler_is_named_after_a_short_wait(stack, monkeypatch
 FORKED = """
 import os, sys
 import arviz_base  # registers a lazy ``jax`` module (lazy_loader) without importing JAX
-from bayespsf.inference.backends import jax_imported
+from bayespsf.inference.backends import jax_imported, release_programs
 from bayespsf.parallel import local_executor
 assert "jax" in sys.modules and not jax_imported()
 with local_executor(2) as pool:
     print(pool.submit(os.getppid).result() == os.getpid())
+release_programs()  # nothing to release: it must not import JAX to find that out
+assert not jax_imported()
 """
 
 
