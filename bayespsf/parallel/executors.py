@@ -110,13 +110,12 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     if workers < 1:
         raise BayespsfInputError(f"workers must be >= 1, got {workers!r}")
     # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
-    # client, a progress monitor, JAX's runtime): then forkserver, which re-imports the main
-    # module
+    # client, a progress monitor, JAX's runtime): then forkserver (Notes)
     alone = threading.active_count() == 1 and not jax_imported()
     method = "fork" if alone else "forkserver"
     context = multiprocessing.get_context(method)
-    if method == "forkserver":  # the server imports what the workers run once, before it
-        context.set_forkserver_preload(["__main__", "bayespsf.parallel"])  # forks them
+    if method == "forkserver":  # the server imports what the workers run, once
+        context.set_forkserver_preload(["__main__", "bayespsf.parallel"])
     # a forkserver's workers are its children: they die with it, and it ends with this process
     parent = os.getpid() if method == "fork" else None
     return cf.ProcessPoolExecutor(

@@ -157,10 +157,10 @@ assert not jax_imported()
 
 
 def test_local_workers_are_forked_after_arviz_is_imported():
-    # arviz-base's lazy ``jax`` entry once counted as JAX running: every pool made after
-    # arviz was imported started from a forkserver, each worker importing bayespsf again
-    # (a quick validation study: 22 s against 9 s). A forked worker's parent is this process;
-    # a forkserver's is the server.
+    # arviz-base registers a lazy ``jax`` entry without importing JAX; counted as JAX
+    # running, it would send every pool made after arviz to a forkserver, whose workers
+    # import bayespsf again. A forked worker's parent is this process; a forkserver's is the
+    # server.
     result = subprocess.run(
         [sys.executable, "-c", FORKED], capture_output=True, text=True, timeout=120
     )
