@@ -222,9 +222,12 @@ def _compiled(roi: int):
     def gather(state, index):
         return {k: v if k == "it" else v[index] for k, v in state.items()}
 
-    def scatter(state, index, part):  # ``part``'s first lanes to the rows ``index``
-        k = index.shape[0]
-        return {n: part[n] if n == "it" else v.at[index].set(part[n][:k]) for n, v in state.items()}
+    def scatter(state, index, part):  # ``part``'s lanes to the rows ``index`` (past the
+        # end for padding lanes, whose updates are dropped): one shape per chunk size
+        return {
+            n: part[n] if n == "it" else v.at[index].set(part[n], mode="drop")
+            for n, v in state.items()
+        }
 
     def laplace_chunk(jm, counts, p):
         def one(c, q):
@@ -279,7 +282,12 @@ def _fit(fit: dict, jm, counts, u0, size: int):
             pick = jnp.asarray(_padded(still, smaller))
             sub, sub_counts, rows = fit["gather"](sub, pick), sub_counts[pick], rows[still]
         sub = fit["advance"](jm, sub_counts, sub, shrink=bool(moved and smaller > MIN_BUCKET))
-        state = fit["scatter"](state, jnp.asarray(rows), sub) if len(rows) < size else sub
+        if len(rows) < size:
+            index = np.full(len(sub_counts), size)  # padding lanes: past the end, dropped
+            index[: len(rows)] = rows
+            state = fit["scatter"](state, jnp.asarray(index), sub)
+        else:
+            state = sub
     return fit["finish"](jm, state)
 
 

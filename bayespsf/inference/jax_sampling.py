@@ -61,6 +61,7 @@ from bayespsf.inference.summary import QUANTILES
 MAX_ROUNDS = 5  # importance rounds per ROI before the chain: the last 16x the first
 DRAW_PIXELS = {"cpu": 2**23, "gpu": 2**26}  # draws x pixels per device call
 ROUND_STEP = 2 ** (1 / 8)  # the Gaussian round's sizes: MIN_BATCH / 2 times its powers
+KEY_ARGUMENT = {"pilot": 4, "laplace": 3, "gaussian": 4, "importance": 4}  # programs' keys
 
 
 def _jax():
@@ -70,8 +71,9 @@ def _jax():
     return jax, jnp
 
 
-def keys(seeds) -> object:
-    """One JAX PRNG key per ROI from its 64-bit seed (both halves folded in).
+def seed_words(seeds) -> np.ndarray:
+    """Each ROI's 64-bit seed as its two 32-bit halves, on the host: what the device programs
+    make each ROI's key from (``keys``).
 
     Parameters
     ----------
@@ -80,18 +82,35 @@ def keys(seeds) -> object:
 
     Returns
     -------
+    ndarray, shape (n, 2), uint32
+        The low and high halves.
+    """
+    seeds = np.asarray([int(s) for s in seeds], dtype=np.uint64).reshape(-1)
+    low = (seeds & np.uint64(0xFFFFFFFF)).astype(np.uint32)
+    return np.stack([low, (seeds >> np.uint64(32)).astype(np.uint32)], axis=1)
+
+
+def keys(words) -> object:
+    """One JAX PRNG key per ROI from its seed's halves (``seed_words``; both folded in).
+    Traceable: the programs make their chunk's keys inside themselves.
+
+    Parameters
+    ----------
+    words : array_like, shape (n, 2), uint32
+        ``seed_words`` of the seeds.
+
+    Returns
+    -------
     jax.Array
         Keys, shape (n,).
     """
     jax, jnp = _jax()
-    seeds = np.asarray([int(s) for s in seeds], dtype=np.uint64)
-    low = jnp.asarray((seeds & np.uint64(0xFFFFFFFF)).astype(np.uint32))
-    high = jnp.asarray((seeds >> np.uint64(32)).astype(np.uint32))
+    words = jnp.asarray(words)
 
     def one(lo, hi):
         return jax.random.fold_in(jax.random.fold_in(jax.random.key(0), lo), hi)
 
-    return jax.vmap(one)(low, high)
+    return jax.vmap(one)(words[:, 0], words[:, 1])
 
 
 def pearson(model, counts: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -126,7 +145,7 @@ def pearson(model, counts: np.ndarray, theta: np.ndarray) -> np.ndarray:
     (out,) = _chunked(
         _program("pearson"),
         JaxModel.from_model(model),
-        [jnp.asarray(counts), jnp.asarray(theta)],
+        [np.asarray(counts), np.asarray(theta)],
         max(1, 2**22 // model.roi**2),
         law,
     )
@@ -143,9 +162,24 @@ def _program(kind: str, keep: bool = True, **static):
     axes = {"laplace": (None, 0, 0, 0, 0), "pearson": (None, 0, 0, None)}.get(kind)
     if axes is not None:  # one ROI's program: mapped over the chunk
         function = jax.vmap(function, in_axes=axes)
+    position = KEY_ARGUMENT.get(kind)
+    if position is not None:  # the chunk's keys from its seed words (``keys``)
+        function = _keyed(function, position)
     if keep:
         return jax.jit(function)
     return jax.jit(lambda *args: (*function(*args)[:-1], None))
+
+
+def _keyed(function, position: int):
+    """``function`` taking seed words (``seed_words``) where it takes keys (argument
+    ``position``)."""
+
+    def keyed(*args):
+        args = list(args)
+        args[position] = keys(args[position])
+        return function(*args)
+
+    return keyed
 
 
 def _scored(kind: str, keep: bool, jm, arrays: list, chunk: int, *shared, **static) -> list:
@@ -185,17 +219,18 @@ def round_size(needed: float) -> int:
 
 
 def _chunked(program, jm, arrays: list, size: int, *shared) -> list[np.ndarray]:
-    """``program(jm, *arrays)`` over the ROIs (the arrays' first axis) in chunks of ``size``
-    (the last padded with its first ROI), outputs gathered on the host."""
-    _, jnp = _jax()
+    """``program(jm, *arrays)`` over the ROIs (the host arrays' first axis) in chunks of
+    ``size`` (the last padded with its first ROI), outputs gathered on the host. Chunks are cut
+    on the host: the device sees only the programs' own fixed shapes, never an operation whose
+    shape depends on how many ROIs a stage holds, which would compile anew for each count."""
     n = len(arrays[0])
     size = bucket(n, size)
     parts = []
     for first in range(0, n, size):
         k = min(size, n - first)
-        chunk = [a[first : first + k] for a in arrays]
-        if k < size:
-            chunk = [jnp.concatenate([a, jnp.repeat(a[:1], size - k, axis=0)]) for a in chunk]
+        rows = np.full(size, first)
+        rows[:k] += np.arange(k)
+        chunk = [a[rows] for a in arrays]
         out = program(jm, *chunk, *shared)
         out = out if isinstance(out, tuple) else (out,)
         parts.append([None if o is None else np.asarray(o)[:k] for o in out])
@@ -233,7 +268,7 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
         (n, 6; -1 where none), and with ``keep_draws`` ``samples``: a list of (k, 6) arrays
         (None where none was made).
     """
-    jax, jnp = _jax()
+    jax, _ = _jax()
     start_jax()
     jm = JaxModel.from_model(model)
     n = len(stack)
@@ -248,16 +283,15 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
     if todo.size == 0:
         return out
     centre, cov = laplace_in_z(fits.iloc[todo], model)
-    chol = np.asarray(jnp.linalg.cholesky(jnp.asarray(cov)))
+    chol = _cholesky(cov)
     usable = np.all(np.isfinite(chol), axis=(1, 2))
     out["why"][todo[~usable]] = "chain: the Laplace covariance is not positive definite"
     todo, centre, chol = todo[usable], centre[usable], chol[usable]
     theta = fits[["x0", "y0", "s_x", "s_y", "N", "b"]].to_numpy(float)[todo]
     fallback = np.clip(theta, *model.prior_bounds())  # inside the prior: scored in its place
     truth = np.full((n, 6), np.nan) if truths is None else np.asarray(truths, float)
-    data = [jnp.asarray(stack[todo]), jnp.asarray(centre), jnp.asarray(chol),
-            keys(np.asarray(seeds)[todo]), jnp.asarray(fallback),
-            jnp.asarray(truth[todo])]  # fmt: skip
+    data = [np.asarray(stack[todo], float), centre, chol, seed_words(seeds)[todo],
+            fallback, truth[todo]]  # fmt: skip  # on the host: ``_chunked``
     run = _Run(jm, out, todo, data, settings, budget, keep_draws)
     left = np.ones(len(todo), bool)
     if settings.method in ("auto", "laplace"):
@@ -265,6 +299,20 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
     if settings.method in ("auto", "importance"):
         run.student_t(left)
     return out
+
+
+def _cholesky(cov: np.ndarray) -> np.ndarray:
+    """Each covariance's Cholesky factor; NaN where one is not positive definite."""
+    try:
+        return np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        out = np.full_like(cov, np.nan)
+        for i, c in enumerate(cov):
+            try:
+                out[i] = np.linalg.cholesky(c)
+            except np.linalg.LinAlgError:
+                pass
+        return out
 
 
 class _Run:
@@ -334,7 +382,7 @@ class _Run:
             pick = rows[group]
             results = _scored(
                 "gaussian", self.keep, self.jm,
-                [*(a[pick] for a in self.data), _jax()[1].asarray(pilot_ratio[group])],
+                [*(a[pick] for a in self.data), pilot_ratio[group]],
                 self._chunk(PILOT + int(size)), size=int(size),
             )  # fmt: skip
             self.scored[pick] += size
@@ -431,4 +479,13 @@ def _empty(n: int, keep_draws: bool) -> dict:
     return out
 
 
-__all__ = ["MAX_ROUNDS", "ROUND_STEP", "keys", "pearson", "posteriors", "round_size"]
+__all__ = [
+    "KEY_ARGUMENT",
+    "MAX_ROUNDS",
+    "ROUND_STEP",
+    "keys",
+    "pearson",
+    "posteriors",
+    "round_size",
+    "seed_words",
+]

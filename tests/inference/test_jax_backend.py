@@ -79,14 +79,37 @@ def test_the_poisson_tier_converges_as_on_the_numpy_engine():
     np.testing.assert_allclose(b.loc[scored, crlb], a.loc[scored, crlb], rtol=1e-8)
 
 
+def compiled(function) -> tuple:
+    """``function()``, and how many programs JAX compiled while it ran (``jax.monitoring``)."""
+    import jax
+
+    events = []
+
+    def listen(name, seconds, **_):
+        if name.endswith("backend_compile_duration"):
+            events.append(name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        value = function()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return value, len(events)
+
+
 def test_a_fit_does_not_depend_on_the_lanes_gathered_into_smaller_chunks(monkeypatch):
     # the fit moves its still-active ROIs into smaller chunks once 7/8 have finished; each
     # ROI's arithmetic is the same in any chunk, so the fits are those of one chunk run to
-    # the end (COMPACT = 1: no lane is ever moved) bit for bit
+    # the end (COMPACT = 1: no lane is ever moved) bit for bit. How many lanes are moved
+    # depends on the ROIs, the chunks they move to do not: other ROIs compile nothing new
+    # (a dataset streamed block by block compiles its programs once, not in every block)
     from bayespsf.inference import jax_mle
 
     counts, _, model = simulated("emccd-typical", 256)
     moved = jax_mle.maximise(model, counts, None, False, False)
+    others, _ = simulate(load_scene("emccd-typical"), 256, seed=22)
+    _, count = compiled(lambda: jax_mle.maximise(model, others, None, False, False))
+    assert count == 0
     monkeypatch.setattr(jax_mle, "COMPACT", 1)
     jax_mle._compiled.cache_clear()
     try:
@@ -179,16 +202,20 @@ def test_coverage_through_the_jax_backend(both):
 def test_a_rois_posterior_does_not_depend_on_the_other_rois(rois):
     # each ROI is one lane of a vmapped program with its own key: the same numbers whatever
     # shares its chunk (the chunk's size is a batch dimension, which changes no lane's
-    # arithmetic)
+    # arithmetic). The device sees only the programs' fixed shapes, never one set by how many
+    # ROIs a stage holds: a part of the stack compiles nothing new
     counts, truths, model = rois
     settings = check_settings(method="auto")
     fits = fit_mle(counts, model, backend="jax")
     seeds = list(range(100, 100 + len(counts)))
     whole = jax_sampling.posteriors(counts, model, fits, seeds, settings, truths)
     part = slice(10, 22)
-    alone = jax_sampling.posteriors(
-        counts[part], model, fits.iloc[part], seeds[part], settings, truths[part]
+    alone, count = compiled(
+        lambda: jax_sampling.posteriors(
+            counts[part], model, fits.iloc[part], seeds[part], settings, truths[part]
+        )
     )
+    assert count == 0
     for key in ("mean", "sd", "quantiles", "ess", "weight_sd", "rank"):
         np.testing.assert_allclose(alone[key], whole[key][part], rtol=1e-12, atol=1e-12)
     assert (alone["method"] == whole["method"][part]).all()
