@@ -97,7 +97,8 @@ def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
     }
     rows = np.flatnonzero(made)
     theta = fits[list(PARAMETER_NAMES)].to_numpy(float)[rows]
-    table = _table(indices[rows], np.asarray(seeds)[rows], out, rows, seconds, truths)
+    # each seed as the int it is: an array of seeds above and below 2**63 is float64
+    table = _table(indices[rows], [seeds[i] for i in rows], out, rows, seconds, truths)
     chi2 = pearson(model, stack[rows], theta)
     dof = model.roi * model.roi - 6
     table["chi2"], table["chi2_dof"] = chi2, dof

@@ -16,6 +16,7 @@ from bayespsf.inference.settings import check_settings
 from bayespsf.inference.summary import coverage
 from bayespsf.model import Model
 from bayespsf.parallel import sample_many
+from bayespsf.parallel.executors import molecule_seed
 from bayespsf.psf import PARAMETER_NAMES
 
 P = list(PARAMETER_NAMES)
@@ -167,7 +168,9 @@ def test_posterior_summaries_agree_within_monte_carlo_error(both):
     assert list(a.columns) == list(b.columns)
     # the same dtypes too: the SBC ranks are whole numbers on both
     assert (a.dtypes == b.dtypes).all(), a.dtypes[a.dtypes != b.dtypes]
-    assert (a["status"] == b["status"]).all()
+    # and each ROI's own seed, whole (64-bit seeds, some above 2**63, some below)
+    assert [int(s) for s in b["seed"]] == [molecule_seed(5, i) for i in range(len(b))]
+    assert (a["seed"] == b["seed"]).all() and (a["status"] == b["status"]).all()
     z = np.concatenate([(a[f"{p}_mean"] - b[f"{p}_mean"]) / a[f"{p}_sd"] for p in P])
     assert abs(np.mean(z)) < 0.03 and np.std(z) < 0.1
     ratio = np.concatenate([b[f"{p}_sd"] / a[f"{p}_sd"] for p in P])
@@ -204,15 +207,18 @@ def test_a_rois_posterior_does_not_depend_on_the_other_rois(rois):
     # shares its chunk (the chunk's size is a batch dimension, which changes no lane's
     # arithmetic). The device sees only the programs' fixed shapes, never one set by how many
     # ROIs a stage holds: a part of the stack compiles nothing new
+    # Nor on the others' seeds: the part's seeds are all below 2**63, the whole stack's not
     counts, truths, model = rois
     settings = check_settings(method="auto")
     fits = fit_mle(counts, model, backend="jax")
-    seeds = list(range(100, 100 + len(counts)))
+    seeds = [molecule_seed(5, i) for i in range(len(counts))]
     whole = jax_sampling.posteriors(counts, model, fits, seeds, settings, truths)
-    part = slice(10, 22)
+    part = [i for i, seed in enumerate(seeds) if seed < 2**63][:12]
+    assert len(part) == 12 and max(seeds) >= 2**63
+    chosen = [seeds[i] for i in part]
     alone, count = compiled(
         lambda: jax_sampling.posteriors(
-            counts[part], model, fits.iloc[part], seeds[part], settings, truths[part]
+            counts[part], model, fits.iloc[part], chosen, settings, truths[part]
         )
     )
     assert count == 0
