@@ -51,6 +51,7 @@ from bayespsf.inference.batched import (
     LAPLACE_WEIGHT_SD,
     MAX_DRAWS_PER_ESS,
     PILOT,
+    _choleskys,
     laplace_in_z,
 )
 from bayespsf.inference.importance import CHAINS, KHAT_MAX, MIN_BATCH, first_batch
@@ -283,7 +284,7 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
     if todo.size == 0:
         return out
     centre, cov = laplace_in_z(fits.iloc[todo], model)
-    chol = _cholesky(cov)
+    chol = _choleskys(cov)
     usable = np.all(np.isfinite(chol), axis=(1, 2))
     out["why"][todo[~usable]] = "chain: the Laplace covariance is not positive definite"
     todo, centre, chol = todo[usable], centre[usable], chol[usable]
@@ -299,20 +300,6 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
     if settings.method in ("auto", "importance"):
         run.student_t(left)
     return out
-
-
-def _cholesky(cov: np.ndarray) -> np.ndarray:
-    """Each covariance's Cholesky factor; NaN where one is not positive definite."""
-    try:
-        return np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        out = np.full_like(cov, np.nan)
-        for i, c in enumerate(cov):
-            try:
-                out[i] = np.linalg.cholesky(c)
-            except np.linalg.LinAlgError:
-                pass
-        return out
 
 
 class _Run:
