@@ -467,7 +467,6 @@ def _empty(n: int, keep_draws: bool) -> dict:
 
 
 __all__ = [
-    "KEY_ARGUMENT",
     "MAX_ROUNDS",
     "ROUND_STEP",
     "keys",
