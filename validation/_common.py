@@ -53,10 +53,13 @@ def study(doc: str, argv, name: str, posteriors: bool = True, arguments=None):
             p.error(
                 "--backend jax runs the batched methods: give --method auto, importance or laplace"
             )
+        from bayespsf.errors import BayespsfInputError
+        from bayespsf.inference.backends import check_backend
+
         try:
-            import jax  # noqa: F401
-        except ImportError:
-            p.error("--backend jax needs JAX: pip install 'bayespsf[jax]' (or '[gpu]' on a GPU)")
+            check_backend("jax")  # JAX importable, else the extras that install it, named
+        except BayespsfInputError as error:
+            p.error(f"--backend jax: {error}")
     args.out.mkdir(parents=True, exist_ok=True)
     return args, time.perf_counter(), _stem(args, name)
 

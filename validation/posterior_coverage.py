@@ -226,6 +226,7 @@ def main(argv=None):
     if args.configurations is not None:
         configurations = tuple(CONFIGURATIONS[int(k)] for k in args.configurations.split(","))
     table, ranks, left = run(args, configurations, molecules, options)
+    left_out = f"Left out (the JAX backend does not run their camera): {', '.join(left)}."
     rank_figure(ranks, args.out / f"{stem}_ranks.png")
     interval_figure(table, args.out / f"{stem}_intervals.png")
     # z-scores against each level's binomial SE under calibration, sqrt(p (1 - p) / n)
@@ -255,11 +256,7 @@ def main(argv=None):
         f"# Calibration per camera and likelihood tier ({molecules} molecules each)\n\n"
         "## Summary\n\n"
         + verdict.reset_index().to_markdown(index=False, floatfmt=".3g")
-        + (
-            f"\n\nLeft out (the JAX backend does not run their camera): {', '.join(left)}."
-            if left
-            else ""
-        )
+        + (f"\n\n{left_out}" if left else "")
         + f"\n\nWith {len(PARAMETER_NAMES)} parameters, 4 levels and "
         f"{len(ranks)} configurations, a calibrated posterior still shows some "
         "|coverage - nominal| / SE0 near 3 (SE0: the binomial SE at the nominal level) and "
@@ -282,11 +279,7 @@ def main(argv=None):
         + f"\n\n![rank histograms](results/{stem}_ranks.png)\n"
         f"![coverage](results/{stem}_intervals.png)\n\nPosterior CPU time: {cpu:.2f} "
         f"core-hours for {sum(len(t) for t in ranks.values())} posteriors."
-        + (
-            f" Left out (the JAX backend does not run their camera): {', '.join(left)}."
-            if left
-            else ""
-        )
+        + (f" {left_out}" if left else "")
     )
     return finish(args, "posterior_coverage", table, text, started, summary)
 
