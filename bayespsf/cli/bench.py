@@ -267,8 +267,8 @@ def jax_rows(plan: Plan, tasks: list, rows: list[dict], progress=print) -> list[
         part = [task for task in tasks if task[0] == level]
         stack, scene = np.stack([task[3] for task in part]), part[0][5]
         seed = int(np.random.SeedSequence([plan.seed, n_photons, 2]).generate_state(1)[0])
+        model = Model.from_scene(scene, likelihood=tier)
         for method, budget in itertools.product(JAX_METHODS, budgets):
-            model = Model.from_scene(scene, likelihood=tier)
             run = {"seed": seed, "workers": 1, "progress": False, "backend": "jax"}
             run |= {"method": method, "ess": budget}
             sample_many(stack, model, **run)  # compiles the stack's programs: not timed
