@@ -17,7 +17,8 @@ N = 1000, b = 10), in one run:
    ``sample_many(backend="jax", method="auto")`` (the fits, the posteriors, the summary table;
    the ROIs whose diagnostics need a chain run it on the CPU, counted in the table). The
    host's own work in ``fit_mle`` (the ROI checks and the table) is timed with the engine's
-   results replayed: it bounds the whole call's rate on any device.
+   results replayed, and in ``sample_many`` with every device program's outputs replayed
+   (``host_seconds``): it bounds the whole call's rate on any device.
 3. **Streaming**: ``--stream`` ROIs through the fit and the posteriors in blocks of ``--rois``
    (the simulated block reused with each ROI's own seed, as a dataset's ROIs would be read
    block by block), with the peak resident memory of the process.
@@ -149,6 +150,9 @@ def device_rates(counts, model) -> tuple[dict, dict]:
         _, t_host = _timed(lambda: fit_mle(counts, model, backend="jax"))
     out, t_device = _timed(lambda: posteriors(counts, model, fits, seeds, settings))
     table, t_post = _timed(lambda: sample_many(counts, model, seed=2, workers=1, backend="jax"))
+    t_post_host = host_seconds(
+        lambda: sample_many(counts, model, seed=2, workers=1, backend="jax"), table
+    )
     sources = pd.Series(out["why"]).str.extract(r"sampling from the Laplace (\w+)")[0]
     rates = {
         f"fit_mle jax engine ({n} ROIs: fit, Laplace, CRLB)": n / t_engine,
@@ -160,11 +164,49 @@ def device_rates(counts, model) -> tuple[dict, dict]:
     made = {
         "ROIs": n,
         "fit_mle jax: the host's work per ROI (µs; ROI checks, table)": 1e6 * t_host / n,
+        "sample_many auto jax: the host's work per ROI (µs)": 1e6 * t_post_host / n,
         "from the Laplace Gaussian": int((sources == "Gaussian").sum()),
         "from the Laplace Student-t": int((sources == "Student").sum()),
         "draws scored per ROI (mean)": float(np.mean(out["draws_scored"])),
     }
     return rates, made
+
+
+def host_seconds(call, expected: pd.DataFrame) -> float:
+    """The seconds ``call`` (a ``backend="jax"`` call) spends on the host: it runs once with
+    each device program's outputs recorded (taken to the host), then again with them replayed
+    in the same order, so that the second run does everything but the device's work and the
+    transfers (ROI checks, stages cut and gathered, seeds, reasons, tables). The replayed
+    result must equal ``expected`` (``seconds`` aside): the replay is the same run."""
+    from bayespsf.inference import jax_mle, jax_sampling
+
+    outputs, fits = [], []
+    program, maximise = jax_sampling._program, jax_mle.maximise
+
+    def recorded(*args, **static):
+        run = program(*args, **static)
+
+        def record(*inputs):
+            out = run(*inputs)
+            out = out if isinstance(out, tuple) else (out,)
+            outputs.append(tuple(None if o is None else np.asarray(o) for o in out))
+            return outputs[-1]
+
+        return record
+
+    def fit(*args):
+        fits.append(maximise(*args))
+        return fits[-1]
+
+    with mock.patch.object(jax_sampling, "_program", recorded):
+        with mock.patch.object(jax_mle, "maximise", fit):
+            call()
+    outputs_, fits_ = iter(outputs), iter(fits)
+    with mock.patch.object(jax_sampling, "_program", lambda *a, **k: lambda *i: next(outputs_)):
+        with mock.patch.object(jax_mle, "maximise", lambda *args: next(fits_)):
+            replayed, seconds = _timed(call)
+    pd.testing.assert_frame_equal(replayed.drop(columns="seconds"), expected.drop(columns="seconds"))
+    return seconds
 
 
 def stream(counts, model, total: int) -> dict:
