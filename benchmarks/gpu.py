@@ -205,7 +205,9 @@ def host_seconds(call, expected: pd.DataFrame) -> float:
     with mock.patch.object(jax_sampling, "_program", lambda *a, **k: lambda *i: next(outputs_)):
         with mock.patch.object(jax_mle, "maximise", lambda *args: next(fits_)):
             replayed, seconds = _timed(call)
-    pd.testing.assert_frame_equal(replayed.drop(columns="seconds"), expected.drop(columns="seconds"))
+    pd.testing.assert_frame_equal(
+        replayed.drop(columns="seconds"), expected.drop(columns="seconds")
+    )
     return seconds
 
 
