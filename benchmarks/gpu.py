@@ -54,7 +54,7 @@ from bayespsf.inference.settings import check_settings
 from bayespsf.inference.summary import coverage
 from bayespsf.model import Model
 from bayespsf.parallel import sample_many
-from bayespsf.parallel.executors import molecule_seed
+from bayespsf.parallel.seeds import molecule_seeds
 from bayespsf.psf import PARAMETER_NAMES
 
 
@@ -142,7 +142,7 @@ def device_rates(counts, model) -> tuple[dict, dict]:
     fits = fit_mle(counts, model, backend="jax")
     sample_many(counts, model, seed=2, workers=1, backend="jax")
     settings = check_settings(method="auto")
-    seeds = [molecule_seed(2, i) for i in range(n)]
+    seeds = molecule_seeds(2, np.arange(n))
     posteriors(counts, model, fits, seeds, settings)
     found, t_engine = _timed(lambda: jax_mle.maximise(model, counts, None, True, True))
     _, t_fit = _timed(lambda: fit_mle(counts, model, backend="jax"))
@@ -219,7 +219,7 @@ def stream(counts, model, total: int) -> dict:
     done, made, started = 0, 0, time.perf_counter()
     while done < total:
         k = min(block, total - done)
-        seeds = [molecule_seed(3, done + i) for i in range(k)]
+        seeds = molecule_seeds(3, done + np.arange(k))
         fits = fit_mle(counts[:k], model, backend="jax")
         out = posteriors(counts[:k], model, fits, seeds, settings)
         made += int(out["made"].sum())

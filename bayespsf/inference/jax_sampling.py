@@ -86,7 +86,7 @@ def seed_words(seeds) -> np.ndarray:
     ndarray, shape (n, 2), uint32
         The low and high halves.
     """
-    seeds = np.asarray([int(s) for s in seeds], dtype=np.uint64).reshape(-1)
+    seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)  # exact: never through float
     low = (seeds & np.uint64(0xFFFFFFFF)).astype(np.uint32)
     return np.stack([low, (seeds >> np.uint64(32)).astype(np.uint32)], axis=1)
 

@@ -2,8 +2,9 @@
 ``Store`` written molecule by molecule), on local processes or a Dask cluster."""
 
 from bayespsf.parallel.batch import sample_many
-from bayespsf.parallel.executors import local_executor, molecule_seed, run_tasks, task_runner
+from bayespsf.parallel.executors import local_executor, run_tasks, task_runner
 from bayespsf.parallel.joint import joint_posteriors
+from bayespsf.parallel.seeds import molecule_seed, molecule_seeds
 from bayespsf.parallel.store import Store
 
 __all__ = [
@@ -11,6 +12,7 @@ __all__ = [
     "joint_posteriors",
     "local_executor",
     "molecule_seed",
+    "molecule_seeds",
     "run_tasks",
     "sample_many",
     "task_runner",

@@ -41,7 +41,8 @@ from bayespsf.inference.backends import check_backend
 from bayespsf.inference.summary import concat_tables, draws_rows, molecule_row
 from bayespsf.model import Model
 from bayespsf.parallel.device import device_posteriors
-from bayespsf.parallel.executors import _parallelism, molecule_seed, run_tasks, task_runner
+from bayespsf.parallel.executors import _parallelism, run_tasks, task_runner
+from bayespsf.parallel.seeds import molecule_seed, molecule_seeds
 from bayespsf.parallel.store import Store
 from bayespsf.scene import Scene
 
@@ -318,7 +319,7 @@ def sample_many(
                     np.asarray(todo),
                     stack[todo],
                     model,
-                    [molecule_seed(seed, i) for i in todo],
+                    molecule_seeds(seed, todo),
                     None if truths is None else truths[todo],
                     settings,
                     scene,
@@ -426,7 +427,7 @@ def _posteriors_of_chunk(task):
     from bayespsf.inference.batched import as_posterior, cheap_posteriors
 
     indices, stack, model, truths, settings, scene, store, check = task
-    seeds = [molecule_seed(settings.seed, int(i)) for i in indices]
+    seeds = molecule_seeds(settings.seed, indices).tolist()
     started = time.perf_counter()
     fits = fit_mle(stack, model, crlb=bool(check))  # the bound only for the model checks
     outcomes = cheap_posteriors(stack, model, fits, seeds, settings)

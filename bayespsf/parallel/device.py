@@ -36,7 +36,7 @@ def device_posteriors(indices, stack, model, seeds, truths, settings, scene, sto
     model : Model
         The inference model.
     seeds : sequence of int
-        Each ROI's seed (``molecule_seed``).
+        Each ROI's seed (``molecule_seeds``).
     truths : ndarray, shape (n, 6), optional
         True parameters (SBC ranks).
     settings : Settings
@@ -56,13 +56,14 @@ def device_posteriors(indices, stack, model, seeds, truths, settings, scene, sto
         For each ROI that needs the chain, its molecule index -> the method asked for and why.
     """
     tables, verdicts = [], {}
+    seeds = np.asarray(seeds, dtype=np.uint64)  # whole: seeds span [0, 2**64)
     for first in range(0, len(indices), CHUNK):
         part = slice(first, first + CHUNK)
         table, chain = _chunk(
             np.asarray(indices)[part],
             stack[part],
             model,
-            list(seeds)[part],
+            seeds[part],
             None if truths is None else truths[part],
             settings,
             scene,
@@ -97,8 +98,7 @@ def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
     }
     rows = np.flatnonzero(made)
     theta = fits[list(PARAMETER_NAMES)].to_numpy(float)[rows]
-    # each seed as the int it is: an array of seeds above and below 2**63 is float64
-    table = _table(indices[rows], [seeds[i] for i in rows], out, rows, seconds, truths)
+    table = _table(indices[rows], seeds[rows], out, rows, seconds, truths)
     chi2 = pearson(model, stack[rows], theta)
     dof = model.roi * model.roi - 6
     table["chi2"], table["chi2_dof"] = chi2, dof

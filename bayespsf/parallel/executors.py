@@ -1,7 +1,6 @@
 """What runs many tasks: this process, a pool of local worker processes that die with their
 parent, or a Dask ``distributed`` cluster (a ``Client``, its executor, or a scheduler address),
-and the seed of each molecule, which depends on the run's seed and the molecule's index only,
-never on the number of workers or the order in which they finish."""
+and how many tasks each runs at once."""
 
 from __future__ import annotations
 
@@ -13,8 +12,6 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
-
-import numpy as np
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.backends import jax_imported
@@ -33,31 +30,6 @@ def _parallelism(runner) -> int:
     if client is not None and hasattr(client, "scheduler_info"):
         return max(1, len(client.scheduler_info().get("workers", {})))
     return int(getattr(runner, "_max_workers", None) or os.cpu_count() or 1)
-
-
-def molecule_seed(seed: int, index: int) -> int:
-    """The seed of molecule ``index`` in a run seeded with ``seed``.
-
-    Parameters
-    ----------
-    seed : int
-        The run's seed (>= 0).
-    index : int
-        The molecule's index in the stack (>= 0).
-
-    Returns
-    -------
-    int
-        A 64-bit seed, from NumPy's ``SeedSequence`` of the pair, so nearby seeds and indices
-        give unrelated streams; it depends on ``seed`` and ``index`` only, never on the
-        number of workers or the order in which they finish.
-
-    See Also
-    --------
-    sample_many : seeds molecule ``i`` with ``molecule_seed(seed, i)``.
-    """
-    state = np.random.SeedSequence([int(seed), int(index)]).generate_state(2, np.uint32)
-    return int(state[0]) << 32 | int(state[1])
 
 
 def _die_with_parent(parent: int) -> None:
@@ -243,7 +215,6 @@ def run_tasks[T, R](
 __all__ = [
     "SCHEDULER_TIMEOUT",
     "local_executor",
-    "molecule_seed",
     "run_tasks",
     "task_runner",
 ]

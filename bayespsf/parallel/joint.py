@@ -16,7 +16,8 @@ from bayespsf.inference import Settings, joint_posterior
 from bayespsf.inference.joint import SHARED
 from bayespsf.inference.settings import check_settings
 from bayespsf.model import Model
-from bayespsf.parallel.executors import molecule_seed, run_tasks, task_runner
+from bayespsf.parallel.executors import run_tasks, task_runner
+from bayespsf.parallel.seeds import molecule_seed
 from bayespsf.psf import PARAMETER_NAMES
 
 if TYPE_CHECKING:

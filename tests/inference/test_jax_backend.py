@@ -16,7 +16,7 @@ from bayespsf.inference.settings import check_settings
 from bayespsf.inference.summary import coverage
 from bayespsf.model import Model
 from bayespsf.parallel import sample_many
-from bayespsf.parallel.executors import molecule_seed
+from bayespsf.parallel.seeds import molecule_seed
 from bayespsf.psf import PARAMETER_NAMES
 
 P = list(PARAMETER_NAMES)
