@@ -94,7 +94,8 @@ def start_jax() -> None:
 
 
 def release_programs() -> None:
-    """Release the JAX backend's compiled programs, and JAX's own caches of them.
+    """Release the JAX backend's compiled programs, JAX's own caches of them, and the camera
+    tables it keeps on the device.
 
     Each compiled program holds memory and, on the CPU, hundreds of the process's memory
     maps (about 1 500 per ESS target and method of the posteriors); a process that runs
@@ -113,8 +114,9 @@ def release_programs() -> None:
 
     import jax
 
-    from bayespsf.inference import jax_mle, jax_sampling
+    from bayespsf.inference import jax_mle, jax_model, jax_sampling
 
+    jax_model.release_tables()
     jax_sampling._program.cache_clear()
     jax_mle._compiled.cache_clear()
     jax.clear_caches()

@@ -66,6 +66,8 @@ SUPPORTED = {
     "poisson": "EMCCD, likelihood='poisson'",
 }
 _SQRT2 = np.sqrt(2.0)
+TABLES_KEPT = 4  # cameras' tables kept on the device (``on_device``)
+_ON_DEVICE: dict[int, tuple[np.ndarray, jax.Array]] = {}
 
 
 def enable_x64() -> None:
@@ -77,6 +79,40 @@ def enable_x64() -> None:
     """
     if not jax.config.jax_enable_x64:
         jax.config.update("jax_enable_x64", True)
+
+
+def on_device(host: np.ndarray) -> jax.Array:
+    """A camera's table (a NumPy array the camera keeps for the process, the same object at
+    every call) on JAX's device, copied there once: the EMCCD table is 37 MiB, which each
+    ``from_model`` copied again (21 ms on a 2-core CPU, three times per ``sample_many``).
+    The last ``TABLES_KEPT`` tables stay; ``backends.release_programs`` lets them go.
+
+    Parameters
+    ----------
+    host : ndarray
+        The table, as the camera's ``law_arrays`` gives it.
+
+    Returns
+    -------
+    jax.Array
+        Its float64 copy on the device.
+    """
+    kept = _ON_DEVICE.get(id(host))
+    if kept is None or kept[0] is not host:  # the entry holds ``host``: its id is not reused
+        while len(_ON_DEVICE) >= TABLES_KEPT:
+            _ON_DEVICE.pop(next(iter(_ON_DEVICE)))
+        kept = _ON_DEVICE[id(host)] = (host, jnp.asarray(host, dtype=jnp.float64))
+    return kept[1]
+
+
+def release_tables() -> None:
+    """Let go of the tables ``on_device`` keeps.
+
+    Returns
+    -------
+    None
+    """
+    _ON_DEVICE.clear()
 
 
 def _refusal(what: str, fix: str) -> BayespsfInputError:
@@ -197,11 +233,11 @@ class JaxModel:
             )
             if law == "table":
                 grid = laws.TableGrid.from_arrays(arrays["table"])
-                table = jnp.asarray(arrays["table"]["coefficients"], dtype=jnp.float64)
+                table = on_device(arrays["table"]["coefficients"])
             knots_np = np.asarray(arrays["fisher"]["knots"], dtype=np.float64)
             fisher_range = (float(knots_np[0]), float(knots_np[-1]))
-            knots = jnp.asarray(knots_np)
-            coefficients = jnp.asarray(arrays["fisher"]["coefficients"], dtype=jnp.float64)
+            knots = on_device(arrays["fisher"]["knots"])
+            coefficients = on_device(arrays["fisher"]["coefficients"])
         elif isinstance(camera, SCMOS):
             raise _refusal("the sCMOS camera law yet", "use backend='numpy' (the default)")
         else:
@@ -446,4 +482,4 @@ jax.tree_util.register_dataclass(
 )
 
 
-__all__ = ["SUPPORTED", "JaxModel", "enable_x64"]
+__all__ = ["SUPPORTED", "TABLES_KEPT", "JaxModel", "enable_x64", "on_device", "release_tables"]

@@ -11,6 +11,7 @@ from arviz_stats.base.array import array_stats
 from bayespsf import load_scene, simulate
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import Posterior, fit_mle, jax_sampling
+from bayespsf.inference.jax_model import JaxModel
 from bayespsf.inference.psis import psis as array_psis
 from bayespsf.inference.settings import check_settings
 from bayespsf.inference.summary import coverage
@@ -136,9 +137,10 @@ def test_released_programs_give_back_their_memory_maps(rois):
     settings = check_settings(method="auto", ess=100)
     fits = fit_mle(counts[:4], model, backend="jax")
     first = jax_sampling.posteriors(counts[:4], model, fits, range(4), settings)
-    before = maps()
+    before, table = maps(), JaxModel.from_model(model).table
     release_programs()
     assert maps() < before - 100
+    assert JaxModel.from_model(model).table is not table  # the camera's table let go too
     again = jax_sampling.posteriors(counts[:4], model, fits, range(4), settings)
     np.testing.assert_array_equal(again["mean"], first["mean"])
 

@@ -14,8 +14,11 @@ from bayespsf.cameras import _emccd_table as table
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.jax_model import (
     SUPPORTED,
+    TABLES_KEPT,
     JaxModel,
     enable_x64,
+    on_device,
+    release_tables,
 )
 
 SCENES = ["ideal", "emccd-typical", "paper-fig3"]  # Photon, EMCCD table (r = 0.25), no readout
@@ -387,3 +390,18 @@ def test_unsupported_laws_are_refused_by_name():
     model.pixel_model = "airy"
     with pytest.raises(BayespsfInputError, match="pixel_model='airy'"):
         JaxModel.from_model(model)
+
+
+def test_the_table_goes_to_the_device_once_per_camera_table():
+    # two models of one camera share the camera's table: one device copy, equal to it; the
+    # last TABLES_KEPT tables are kept; release_tables lets them go
+    scene = load_scene("emccd-typical")
+    first, second = (JaxModel.from_model(Model.from_scene(scene)) for _ in range(2))
+    host = Model.from_scene(scene).camera.law_arrays()["table"]["coefficients"]
+    assert first.table is second.table
+    np.testing.assert_array_equal(np.asarray(first.table), host)
+    kept = [np.arange(3.0) + k for k in range(TABLES_KEPT + 1)]
+    copies = [on_device(a) for a in kept]
+    assert on_device(kept[-1]) is copies[-1] and on_device(kept[0]) is not copies[0]
+    release_tables()
+    assert JaxModel.from_model(Model.from_scene(scene)).table is not first.table
