@@ -202,21 +202,24 @@ def _scored(kind: str, keep: bool, jm, arrays: list, chunk: int, *shared, **stat
     return results
 
 
-def round_size(needed: float) -> int:
+def round_size(needed):
     """The Gaussian round's draws for ``needed`` draws: the smallest of ``MIN_BATCH / 2``
     times a power of ``ROUND_STEP`` (9% apart) that holds them.
 
     Parameters
     ----------
-    needed : float
-        Draws needed.
+    needed : float or array_like
+        Draws needed (per ROI).
 
     Returns
     -------
-    int
+    int or ndarray of int
+        The draws, an int for a number and an array for an array.
     """
-    steps = np.ceil(np.log(max(needed, 1.0) / (MIN_BATCH // 2)) / np.log(ROUND_STEP) - 1e-9)
-    return int(np.ceil((MIN_BATCH // 2) * ROUND_STEP ** max(0.0, steps)))
+    needed = np.maximum(np.asarray(needed, dtype=float), 1.0)
+    steps = np.ceil(np.log(needed / (MIN_BATCH // 2)) / np.log(ROUND_STEP) - 1e-9)
+    sizes = np.ceil((MIN_BATCH // 2) * ROUND_STEP ** np.maximum(0.0, steps)).astype(int)
+    return int(sizes) if sizes.ndim == 0 else sizes
 
 
 def _chunked(program, jm, arrays: list, size: int, *shared) -> list[np.ndarray]:
@@ -325,7 +328,7 @@ class _Run:
         take = passed if settings.method == "auto" else np.ones(len(todo), bool)
         out["why"][todo[~take]] = [
             f"Laplace rejected (pilot weight SD {v:.3g} > {LAPLACE_WEIGHT_SD})"
-            for v in weight_sd[~take]
+            for v in weight_sd[~take].tolist()
         ]
         wanted = CHAINS * int(np.ceil(settings.ess / CHAINS))
         if take.any():
@@ -344,7 +347,7 @@ class _Run:
             out["converged"][rows] = passed[pick]
             out["why"][rows] = [
                 f"Laplace (pilot weight SD {v:.3g} {'<=' if p else '>'} {LAPLACE_WEIGHT_SD})"
-                for v, p in zip(weight_sd[pick], passed[pick], strict=True)
+                for v, p in zip(weight_sd[pick].tolist(), passed[pick].tolist(), strict=True)
             ]
         left = ~take
         if settings.method == "auto":
@@ -362,7 +365,7 @@ class _Run:
         raw = np.sum(w, axis=1) ** 2 / np.sum(w * w, axis=1)
         needed = GAUSSIAN_MARGIN * (ess - raw) * PILOT / np.maximum(raw, 1.0)
         most = limit - PILOT  # the run's draws stay within MAX_DRAWS_PER_ESS * ess
-        sizes = np.array([min(round_size(max(k, MIN_BATCH // 2)), most) for k in needed])
+        sizes = np.minimum(round_size(np.maximum(needed, MIN_BATCH // 2)), most)
         done = np.zeros(len(rows), bool)
         for size in np.unique(sizes):
             group = np.flatnonzero(sizes == size)
@@ -385,10 +388,17 @@ class _Run:
         khat, ess = results[-4], results[-3]
         rows = self.todo[pick]
         done = (ess >= ess_target) & (khat <= KHAT_MAX)
-        before = [w + "; " if np.isfinite(s) else "" for w, s in
-                  zip(out["why"][rows], out["weight_sd"][rows], strict=True)]  # fmt: skip
-        facts = [f"k-hat {k:.2f}, ESS {e:.0f} of {draws} draws" for k, e in
-                 zip(khat, ess, strict=True)]  # fmt: skip
+        failed = ~done & ((khat > KHAT_MAX) | ~np.isfinite(khat) | last)
+        told = np.flatnonzero(done | failed)  # each ROI's reason, in one string
+        after = np.isfinite(out["weight_sd"][rows[told]])  # the pilot's verdict comes first
+        out["why"][rows[told]] = [
+            f"{w + '; ' if prefix else ''}{'' if ok else 'chain: '}importance sampling from "
+            f"{source}{'' if ok else ' failed'} (k-hat {k:.2f}, ESS {e:.0f} of {draws} draws)"
+            for w, prefix, ok, k, e in zip(
+                out["why"][rows[told]], after.tolist(), done[told].tolist(),
+                khat[told].tolist(), ess[told].tolist(), strict=True,
+            )
+        ]  # fmt: skip
         out["khat"][rows], out["draws_scored"][rows] = khat, self.scored[pick]
         good = np.flatnonzero(done)
         _store(
@@ -401,14 +411,6 @@ class _Run:
         out["method"][rows[good]] = "importance"
         out["ess"][rows[good]] = ess[good]
         out["converged"][rows[good]] = True
-        out["why"][rows[good]] = [
-            f"{before[i]}importance sampling from {source} ({facts[i]})" for i in good
-        ]
-        failed = ~done & ((khat > KHAT_MAX) | ~np.isfinite(khat) | last)
-        out["why"][rows[failed]] = [
-            f"{before[i]}chain: importance sampling from {source} failed ({facts[i]})"
-            for i in np.flatnonzero(failed)
-        ]
         return done if last else done | failed
 
     def student_t(self, left: np.ndarray) -> None:
