@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numbers
 
+import numba
 import numpy as np
 
 from bayespsf.errors import BayespsfInputError
@@ -94,6 +95,53 @@ def as_generator(rng) -> np.random.Generator:
 
 
 PLATEAU_SPREAD = 1000  # a plateau counts where the ROI spans this many count quanta
+
+
+@numba.njit(cache=True, nogil=True)
+def suspect_rois(flat, low, floor, fraction, saturation):
+    """Which ROIs may have a problem, in one pass over each ROI's pixels (a screen: the
+    ROIs it flags are judged one by one; ``Model.roi_problems``).
+
+    Parameters
+    ----------
+    flat : ndarray, shape (n, m)
+        The ROIs' counts, one ROI per row.
+    low : ndarray, shape (m,)
+        A count below ``low[j]`` in pixel ``j`` is implausible for the camera.
+    floor : float
+        Any count below it flags the ROI (``-inf``: none).
+    fraction : float
+        More than this fraction of a ROI's pixels below ``low`` flags it.
+    saturation : float
+        A count at or above it flags the ROI; where it is 0 (none declared), two or more
+        pixels at the ROI's maximum do.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+        True for a ROI with a NaN or infinite pixel, every pixel equal, or any of the above.
+    """
+    n, m = flat.shape
+    out = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        first, top = flat[i, 0], -np.inf
+        finite, equal, under, below = True, True, False, 0
+        for j in range(m):
+            v = flat[i, j]
+            finite &= np.isfinite(v)
+            equal &= v == first
+            under |= v < floor
+            below += v < low[j]
+            top = max(top, v)
+        if saturation > 0:
+            capped = top >= saturation
+        else:
+            ties = 0
+            for j in range(m):
+                ties += flat[i, j] == top
+            capped = ties >= 2
+        out[i] = (not finite) or equal or under or below / m > fraction or capped
+    return out
 
 
 def saturation_plateau(roi: np.ndarray) -> int:

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from bayespsf import psf
-from bayespsf._validate import finite_array, real_array, saturation_plateau
+from bayespsf._validate import finite_array, real_array, saturation_plateau, suspect_rois
 from bayespsf.cameras import EMCCD, SCMOS, Camera, Photon
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
@@ -320,15 +320,15 @@ class Model:
             self.camera._check_counts(flat.reshape(-1, self.roi, self.roi))
         except BayespsfInputError:
             return np.ones(len(flat), dtype=bool)
-        top = flat.max(axis=1, initial=-np.inf)
-        cam, suspect = self.camera, ~np.all(np.isfinite(flat), axis=1)
-        suspect |= np.all(flat == flat[:, :1], axis=1)
-        if isinstance(cam, EMCCD) and cam.readout_sd == 0:
-            suspect |= np.any(flat < cam.offset, axis=1)
-        suspect |= np.mean(flat < offset - OFFSET_SDS * readout, axis=1) > OFFSET_FRACTION
-        if self.saturation > 0:
-            return suspect | (top >= self.saturation)
-        return suspect | (np.count_nonzero(flat == top[:, None], axis=1) >= 2)
+        cam = self.camera
+        floor = cam.offset if isinstance(cam, EMCCD) and cam.readout_sd == 0 else -np.inf
+        return suspect_rois(
+            np.ascontiguousarray(flat, dtype=np.float64),
+            np.ascontiguousarray(offset - OFFSET_SDS * readout, dtype=np.float64),
+            float(floor),
+            OFFSET_FRACTION,
+            float(self.saturation),
+        )
 
     def _roi_problem(self, roi, offset, readout) -> str | None:
         bad = np.count_nonzero(~np.isfinite(roi))

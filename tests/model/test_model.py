@@ -151,3 +151,40 @@ def test_an_emccd_built_by_hand_gets_the_inference_default_tier():
     assert chosen.tier_chosen and Model(15, 100.0, chosen).camera.likelihood == "exact"
     scene_model = Model.from_scene(load_scene("emccd-typical"))
     assert repr(Model(15, 100.0, camera).camera) == repr(scene_model.camera)
+
+
+def _suspects_by_arrays(flat, low, floor, fraction, saturation):
+    # the screen written as whole-array NumPy passes: what the one-pass kernel must equal
+    top = flat.max(axis=1, initial=-np.inf)
+    suspect = ~np.all(np.isfinite(flat), axis=1) | np.all(flat == flat[:, :1], axis=1)
+    suspect |= np.any(flat < floor, axis=1) | (np.mean(flat < low, axis=1) > fraction)
+    if saturation > 0:
+        return suspect | (top >= saturation)
+    return suspect | (np.count_nonzero(flat == top[:, None], axis=1) >= 2)
+
+
+@pytest.mark.parametrize("saturation", [0.0, 3000.0])
+@pytest.mark.parametrize("floor", [-np.inf, 30.0])
+def test_the_one_pass_screen_flags_what_the_array_passes_flag(floor, saturation):
+    # every kind of defect, alone and together, in ROIs of integer-valued counts (ties happen)
+    from bayespsf._validate import suspect_rois
+
+    rng = np.random.default_rng(3)
+    flat = np.round(rng.normal(140.0, 30.0, (4000, 49)))
+    low = np.full(49, 80.0) + rng.normal(0, 5, 49)
+    kind = rng.integers(0, 8, len(flat))
+    pixel = rng.integers(0, 49, len(flat))
+    rows = np.arange(len(flat))
+    flat[kind == 1, pixel[kind == 1]] = np.nan
+    flat[kind == 2, pixel[kind == 2]] = rng.choice([np.inf, -np.inf], (kind == 2).sum())
+    flat[kind == 3] = 7.0  # every pixel equal
+    flat[kind == 4, :6] -= 90.0  # some pixels far below the camera's floor
+    flat[kind == 5, pixel[kind == 5]] = 3000.0  # at the saturation
+    top = flat[kind == 6].max(axis=1)
+    flat[kind == 6, :3] = top[:, None] + 500.0  # a plateau of three at the maximum
+    flat[rows[kind == 7], pixel[kind == 7]] = np.nan  # NaN and ...
+    flat[rows[kind == 7], (pixel[kind == 7] + 1) % 49] = 3000.0  # ... saturation together
+    got = suspect_rois(flat, low, floor, 0.1, saturation)
+    want = _suspects_by_arrays(flat, low, floor, 0.1, saturation)
+    np.testing.assert_array_equal(got, want)
+    assert 0.2 < got.mean() < 1.0  # both verdicts occur
