@@ -255,17 +255,18 @@ def fit_mle(
             )
     elif backend != "jax":  # the JAX backend computes them on its device
         starts = start_values(model.to_photons(stack), model)
-    fit = np.flatnonzero([problem is None for problem in problems])
+    fit = np.flatnonzero(np.equal(np.array(problems, dtype=object), None))
+    fitted = stack if len(fit) == len(stack) else stack[fit]  # no copy where every ROI fits
     if backend == "jax":
         from bayespsf.inference import jax_mle
 
         given = None if start is None else starts[fit]
-        found = jax_mle.maximise(model, stack[fit], given, laplace, crlb)
+        found = jax_mle.maximise(model, fitted, given, laplace, crlb)
         params, logl = found["params"], found["log_likelihood"]
         ok, message = found["converged"], found["message"]
     else:
         maximise = stack_mle.maximise if engine == "stack" else _scipy_maximise
-        params, logl, ok, message = maximise(model, stack[fit], starts[fit])
+        params, logl, ok, message = maximise(model, fitted, starts[fit])
     low, high = stack_mle.box(model.roi)
     u = stack_mle.to_internal(params, model.pixel_size)
     # b's bound 0 is physical; any other coordinate on its bound is a failed search
@@ -291,7 +292,7 @@ def fit_mle(
         if backend == "jax":
             cov[ok], definite = found["cov"][ok], found["definite"][ok]
         else:
-            cov[ok], definite = _laplace(model, stack[fit][ok], params[ok])
+            cov[ok], definite = _laplace(model, fitted[ok], params[ok])
         bad = np.flatnonzero(ok)[~definite]
         message[bad] = "observed information not positive definite"
         ok[bad] = False
@@ -324,10 +325,11 @@ def _mle_table(model, problems, fit, params, logl, bound, cov, ok, message) -> p
                 columns[column][fit] = cov[:, p, q] / (sd[:, p] * sd[:, q])
     converged = np.zeros(n, dtype=bool)
     converged[fit] = ok
-    messages = np.array([problem or "" for problem in problems], dtype=object)
-    messages[fit] = [str(m) for m in message]
-    status = np.where(converged, "converged", "not converged").astype(object)
-    status[[i for i, problem in enumerate(problems) if problem is not None]] = "refused"
+    messages = np.array(problems, dtype=object)  # the reason of each refused ROI
+    messages[fit] = message  # the optimiser's (str)
+    status = np.full(n, "refused", dtype=object)
+    status[fit] = "not converged"
+    status[converged] = "converged"
     table = pd.DataFrame(columns)
     table.insert(6, "photon_unit", model.photon_unit_label)
     table["converged"], table["message"], table["status"] = converged, messages, status
