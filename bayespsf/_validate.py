@@ -3,9 +3,9 @@ error naming the argument."""
 
 from __future__ import annotations
 
+import functools
 import numbers
 
-import numba
 import numpy as np
 
 from bayespsf.errors import BayespsfInputError
@@ -97,10 +97,9 @@ def as_generator(rng) -> np.random.Generator:
 PLATEAU_SPREAD = 1000  # a plateau counts where the ROI spans this many count quanta
 
 
-@numba.njit(cache=True, nogil=True)
-def suspect_rois(flat, low, floor, fraction, saturation):
-    """Which ROIs may have a problem, in one pass over each ROI's pixels (a screen: the
-    ROIs it flags are judged one by one; ``Model.roi_problems``).
+def suspect_rois(flat, low, floor, fraction, saturation) -> np.ndarray:
+    """Which ROIs may have a problem, in one compiled pass over each ROI's pixels (a screen:
+    the ROIs it flags are judged one by one; ``Model.roi_problems``).
 
     Parameters
     ----------
@@ -121,6 +120,19 @@ def suspect_rois(flat, low, floor, fraction, saturation):
     ndarray of bool, shape (n,)
         True for a ROI with a NaN or infinite pixel, every pixel equal, or any of the above.
     """
+    return _compiled_screen()(flat, low, floor, fraction, saturation)
+
+
+@functools.cache
+def _compiled_screen():
+    """``_screen`` compiled (numba, imported here: the modules that validate input need not
+    load it)."""
+    import numba
+
+    return numba.njit(cache=True, nogil=True)(_screen)
+
+
+def _screen(flat, low, floor, fraction, saturation):
     n, m = flat.shape
     out = np.zeros(n, dtype=np.bool_)
     for i in range(n):
