@@ -177,7 +177,9 @@ def host_seconds(call, expected: pd.DataFrame) -> float:
     each device program's outputs recorded (taken to the host), then again with them replayed
     in the same order, so that the second run does everything but the device's work and the
     transfers (ROI checks, stages cut and gathered, seeds, reasons, tables). The replayed
-    result must equal ``expected`` (``seconds`` aside): the replay is the same run."""
+    result must equal ``expected`` (``seconds`` aside): the replay is the same run. It
+    replaces the backend's own program factory (``jax_sampling._program``) and engine
+    (``jax_mle.maximise``) for the two runs, as only a benchmark of the backend should."""
     from bayespsf.inference import jax_mle, jax_sampling
 
     outputs, fits = [], []

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from bayespsf.errors import BayespsfInputError
+
 # numpy.random.SeedSequence's constants (numpy/random/bit_generator.pyx)
 _POOL = 4
 _INIT_A, _MULT_A = 0x43B0D7E5, 0x931E8875
@@ -66,8 +68,8 @@ def molecule_seeds(seed: int, indices: ArrayLike) -> np.ndarray:
 
     Raises
     ------
-    ValueError
-        For a negative seed or index (as ``SeedSequence`` does).
+    BayespsfInputError
+        For a negative seed, or indices that are not whole numbers >= 0.
 
     Examples
     --------
@@ -76,10 +78,10 @@ def molecule_seeds(seed: int, indices: ArrayLike) -> np.ndarray:
     True
     """
     if int(seed) < 0:
-        raise ValueError(f"seed must be >= 0; got {seed}")
+        raise BayespsfInputError(f"seed must be >= 0; got {seed}")
     index = np.asarray(indices)
     if index.size and (not np.issubdtype(index.dtype, np.integer) or index.min() < 0):
-        raise ValueError("indices must be whole numbers >= 0")
+        raise BayespsfInputError("indices must be whole numbers >= 0")
     index = index.astype(np.uint64)
     wide = index >= 2**32  # more than one 32-bit word of entropy: SeedSequence one by one
     out = _hashed(_words(int(seed)), np.where(wide, 0, index))

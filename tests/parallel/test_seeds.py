@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bayespsf.errors import BayespsfInputError
 from bayespsf.parallel import molecule_seed, molecule_seeds
 
 
@@ -35,9 +36,9 @@ def test_molecule_seeds_keep_the_shape_and_refuse_negatives():
     got = molecule_seeds(5, grid)
     assert got.shape == (2, 3) and int(got[1, 2]) == molecule_seed(5, 5)
     assert molecule_seeds(5, []).shape == (0,)
-    with pytest.raises(ValueError, match="seed"):
+    with pytest.raises(BayespsfInputError, match="seed"):
         molecule_seeds(-1, [0])
-    with pytest.raises(ValueError, match="indices"):
+    with pytest.raises(BayespsfInputError, match="indices"):
         molecule_seeds(1, [0, -2])
-    with pytest.raises(ValueError, match="indices"):
+    with pytest.raises(BayespsfInputError, match="indices"):
         molecule_seeds(1, [0.5])
