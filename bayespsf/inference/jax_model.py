@@ -97,8 +97,8 @@ def on_device(host: np.ndarray) -> jax.Array:
     jax.Array
         Its float64 copy on the device.
     """
-    kept = _ON_DEVICE.get(id(host))
-    if kept is None or kept[0] is not host:  # the entry holds ``host``: its id is not reused
+    kept = _ON_DEVICE.get(id(host))  # each entry holds its ``host``: the id is not reused
+    if kept is None:
         while len(_ON_DEVICE) >= TABLES_KEPT:
             _ON_DEVICE.pop(next(iter(_ON_DEVICE)))
         kept = _ON_DEVICE[id(host)] = (host, jnp.asarray(host, dtype=jnp.float64))

@@ -390,12 +390,12 @@ class _Run:
         done = (ess >= ess_target) & (khat <= KHAT_MAX)
         failed = ~done & ((khat > KHAT_MAX) | ~np.isfinite(khat) | last)
         told = np.flatnonzero(done | failed)  # each ROI's reason, in one string
-        after = np.isfinite(out["weight_sd"][rows[told]])  # the pilot's verdict comes first
+        piloted = np.isfinite(out["weight_sd"][rows[told]])  # the pilot's verdict comes first
         out["why"][rows[told]] = [
             f"{w + '; ' if prefix else ''}{'' if ok else 'chain: '}importance sampling from "
             f"{source}{'' if ok else ' failed'} (k-hat {k:.2f}, ESS {e:.0f} of {draws} draws)"
             for w, prefix, ok, k, e in zip(
-                out["why"][rows[told]], after.tolist(), done[told].tolist(),
+                out["why"][rows[told]], piloted.tolist(), done[told].tolist(),
                 khat[told].tolist(), ess[told].tolist(), strict=True,
             )
         ]  # fmt: skip
