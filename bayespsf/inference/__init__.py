@@ -6,7 +6,13 @@ sampling or an emcee chain, chosen by their diagnostics), returned as a ``Poster
 ``joint_posterior`` pools one molecule's frames. Model checks: ``bootstrap_check``.
 """
 
-from bayespsf.inference.estimators import covariance, fit_laplace, fit_mle, start_values
+from bayespsf.inference.estimators import (
+    covariance,
+    fit_laplace,
+    fit_mle,
+    fit_screened,
+    start_values,
+)
 from bayespsf.inference.gof import bootstrap_check
 from bayespsf.inference.joint import JointPosterior, joint_posterior
 from bayespsf.inference.lsq import fit_lsq
@@ -23,6 +29,7 @@ __all__ = [
     "fit_laplace",
     "fit_lsq",
     "fit_mle",
+    "fit_screened",
     "joint_posterior",
     "sample_posterior",
     "start_values",

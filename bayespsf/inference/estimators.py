@@ -76,6 +76,7 @@ CORRELATIONS = [
     for i in range(6)
     for j in range(i + 1, 6)
 ]
+_PAIRS = tuple(np.array([pair[k] for pair in CORRELATIONS]) for k in (0, 1))  # (i, j) arrays
 
 
 def _frame(rows: list[dict], model: Model) -> pd.DataFrame:
@@ -114,10 +115,13 @@ def covariance(fits: pd.DataFrame) -> np.ndarray:
     ndarray, shape (n, 6, 6)
         In the order ``x0 y0 s_x s_y N b``; NaN where the fit did not converge.
     """
-    sd = fits[[f"sd_{name}" for name in PARAMETER_NAMES]].to_numpy(float)
-    corr = np.broadcast_to(np.eye(6), (len(fits), 6, 6)).copy()
-    for i, j, column in CORRELATIONS:
-        corr[:, i, j] = corr[:, j, i] = fits[column].to_numpy(float)
+    names = [f"sd_{name}" for name in PARAMETER_NAMES] + [c for _, _, c in CORRELATIONS]
+    values = fits[names].to_numpy(float)  # one block: the table's columns read once
+    sd, upper = values[:, :6], values[:, 6:]
+    i, j = _PAIRS
+    corr = np.empty((len(fits), 6, 6))
+    corr[:, i, j] = corr[:, j, i] = upper
+    corr[:, np.arange(6), np.arange(6)] = 1.0
     return corr * sd[:, :, None] * sd[:, None, :]
 
 
@@ -162,7 +166,6 @@ def _scipy_maximise(model, stack, starts):
 ENGINES = ("stack", "scipy")
 
 
-@one_blas_thread
 def fit_mle(
     counts: ArrayLike,
     model: Model,
@@ -247,20 +250,63 @@ def fit_mle(
     if check_backend(backend) == "jax" and engine != "stack":
         raise BayespsfInputError("backend='jax' runs the stack engine; use engine='stack'")
     stack, problems = _stack(counts, model)
+    starts = None
     if start is not None:
         starts = finite_array("start", start).reshape(-1, 6)
         if len(starts) != len(stack):
             raise BayespsfInputError(
                 f"start must have one row per ROI ({len(stack)}), got {len(starts)}"
             )
-    elif backend != "jax":  # the JAX backend computes them on its device
+    return fit_screened(stack, model, problems, starts, laplace, engine, crlb, backend)
+
+
+@one_blas_thread
+def fit_screened(
+    stack: np.ndarray,
+    model: Model,
+    problems: list | None = None,
+    starts: np.ndarray | None = None,
+    laplace: bool = True,
+    engine: str = "stack",
+    crlb: bool = True,
+    backend: str = "numpy",
+) -> pd.DataFrame:
+    """``fit_mle`` of a stack whose ROIs ``Model.roi_problems`` has already judged: the fit
+    without judging them again (``sample_many`` screens a stack once, then fits it).
+
+    Parameters
+    ----------
+    stack : ndarray, shape (n, roi, roi)
+        ROIs in ADU, as ``Model.check_shape`` gives them.
+    model : Model
+        Geometry, camera law and photon unit.
+    problems : list of (str or None), optional
+        ``model.roi_problems(stack)``: the ROIs with a reason are refused rows with it. None:
+        every ROI passed.
+    starts : ndarray, shape (n, 6), optional
+        Starting values (``fit_mle``'s ``start``, validated).
+    laplace, engine, crlb, backend
+        As ``fit_mle`` (``engine`` and ``backend`` validated).
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``fit_mle``'s table.
+
+    See Also
+    --------
+    fit_mle : the same fit of counts not yet judged.
+    """
+    if problems is None:
+        problems = [None] * len(stack)
+    if starts is None and backend != "jax":  # the JAX backend computes them on its device
         starts = start_values(model.to_photons(stack), model)
     fit = np.flatnonzero(np.equal(np.array(problems, dtype=object), None))
     fitted = stack if len(fit) == len(stack) else stack[fit]  # no copy where every ROI fits
     if backend == "jax":
         from bayespsf.inference import jax_mle
 
-        given = None if start is None else starts[fit]
+        given = None if starts is None else starts[fit]
         found = jax_mle.maximise(model, fitted, given, laplace, crlb)
         params, logl = found["params"], found["log_likelihood"]
         ok, message = found["converged"], found["message"]
@@ -307,6 +353,7 @@ def _mle_table(model, problems, fit, params, logl, bound, cov, ok, message) -> p
     fitted rows from the arrays, refused rows NaN with their reason."""
     n = len(problems)
     columns = {name: np.full(n, np.nan) for name in PARAMETER_NAMES}
+    columns["photon_unit"] = model.photon_unit_label
     columns["log_likelihood"] = np.full(n, np.nan)
     for k, name in enumerate(PARAMETER_NAMES):
         columns[name][fit] = params[:, k]
@@ -330,10 +377,7 @@ def _mle_table(model, problems, fit, params, logl, bound, cov, ok, message) -> p
     status = np.full(n, "refused", dtype=object)
     status[fit] = "not converged"
     status[converged] = "converged"
-    table = pd.DataFrame(columns)
-    table.insert(6, "photon_unit", model.photon_unit_label)
-    table["converged"], table["message"], table["status"] = converged, messages, status
-    return table
+    return pd.DataFrame(columns | {"converged": converged, "message": messages, "status": status})
 
 
 def _in_blocks(function, *arrays, roi: int):

@@ -183,18 +183,19 @@ def _keyed(function, position: int):
     return keyed
 
 
-def _scored(kind: str, keep: bool, jm, arrays: list, chunk: int, *shared, **static) -> list:
+def _scored(kind: str, keep: bool, jm, arrays: list, chunk: int, *shared, rows=None, **static):
     """``_chunked`` of a scoring program (``jax_programs``: its first output says per ROI
-    whether the interpolated law passed its check), then the same program with the law itself
-    (``exact``) on the ROIs that did not pass; the outputs after the first."""
+    whether the interpolated law passed its check) over the ROIs ``rows`` of ``arrays`` (all
+    where None), then the same program with the law itself (``exact``) on the ROIs that did
+    not pass; the outputs after the first."""
     usable, *results = _chunked(
-        _program(kind, keep, exact=False, **static), jm, arrays, chunk, *shared
+        _program(kind, keep, exact=False, **static), jm, arrays, chunk, *shared, rows=rows
     )
     redo = np.flatnonzero(~usable)
     if redo.size:
         _, *again = _chunked(
-            _program(kind, keep, exact=True, **static), jm, [a[redo] for a in arrays], chunk,
-            *shared,
+            _program(kind, keep, exact=True, **static), jm, arrays, chunk, *shared,
+            rows=redo if rows is None else rows[redo],
         )  # fmt: skip
         for result, value in zip(results, again, strict=True):
             if result is not None:
@@ -222,19 +223,25 @@ def round_size(needed):
     return int(sizes) if sizes.ndim == 0 else sizes
 
 
-def _chunked(program, jm, arrays: list, size: int, *shared) -> list[np.ndarray]:
-    """``program(jm, *arrays)`` over the ROIs (the host arrays' first axis) in chunks of
-    ``size`` (the last padded with its first ROI), outputs gathered on the host. Chunks are cut
-    on the host: the device sees only the programs' own fixed shapes, never an operation whose
-    shape depends on how many ROIs a stage holds, which would compile anew for each count."""
-    n = len(arrays[0])
+def _chunked(program, jm, arrays: list, size: int, *shared, rows=None) -> list[np.ndarray]:
+    """``program(jm, *arrays)`` over the ROIs ``rows`` (indices into the host arrays' first
+    axis; all where None) in chunks of ``size`` (the last padded with its first ROI), outputs
+    gathered on the host. Chunks are cut on the host, each ROI's inputs copied once (a chunk
+    of consecutive ROIs is a view): the device sees only the programs' own fixed shapes, never
+    an operation whose shape depends on how many ROIs a stage holds, which would compile anew
+    for each count."""
+    n = len(arrays[0]) if rows is None else len(rows)
     size = bucket(n, size)
     parts = []
     for first in range(0, n, size):
         k = min(size, n - first)
-        rows = np.full(size, first)
-        rows[:k] += np.arange(k)
-        chunk = [a[rows] for a in arrays]
+        if rows is None and k == size:
+            chunk = [a[first : first + size] for a in arrays]
+        else:
+            take = np.full(size, first)
+            take[:k] += np.arange(k)
+            take = take if rows is None else rows[take]
+            chunk = [a[take] for a in arrays]
         out = program(jm, *chunk, *shared)
         out = out if isinstance(out, tuple) else (out,)
         parts.append([None if o is None else np.asarray(o)[:k] for o in out])
@@ -286,15 +293,17 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
     todo = np.flatnonzero(ok)
     if todo.size == 0:
         return out
-    centre, cov = laplace_in_z(fits.iloc[todo], model)
+    centre, cov = laplace_in_z(fits if todo.size == n else fits.iloc[todo], model)
     chol = _choleskys(cov)
     usable = np.all(np.isfinite(chol), axis=(1, 2))
     out["why"][todo[~usable]] = "chain: the Laplace covariance is not positive definite"
-    todo, centre, chol = todo[usable], centre[usable], chol[usable]
+    if not usable.all():
+        todo, centre, chol = todo[usable], centre[usable], chol[usable]
     theta = fits[["x0", "y0", "s_x", "s_y", "N", "b"]].to_numpy(float)[todo]
     fallback = np.clip(theta, *model.prior_bounds())  # inside the prior: scored in its place
     truth = np.full((n, 6), np.nan) if truths is None else np.asarray(truths, float)
-    data = [np.asarray(stack[todo], float), centre, chol, seed_words(seeds)[todo],
+    counts = np.asarray(stack, float)
+    data = [counts if todo.size == n else counts[todo], centre, chol, seed_words(seeds)[todo],
             fallback, truth[todo]]  # fmt: skip  # on the host: ``_chunked``
     run = _Run(jm, out, todo, data, settings, budget, keep_draws)
     left = np.ones(len(todo), bool)
@@ -336,8 +345,9 @@ class _Run:
             results = _chunked(
                 _program("laplace", self.keep, wanted=wanted),
                 self.jm,
-                [self.data[k][pick] for k in (1, 2, 3, 5)],
+                [self.data[k] for k in (1, 2, 3, 5)],
                 max(1, self.budget // (2 * wanted * 6)),
+                rows=None if take.all() else pick,
             )
             rows = todo[pick]
             _store(out, rows, results, self.keep)
@@ -353,15 +363,17 @@ class _Run:
         if settings.method == "auto":
             continued = np.flatnonzero(left & (weight_sd <= GAUSSIAN_WEIGHT_SD))
             if continued.size:
-                done = self.gaussian(continued, pilot_ratio[continued])
+                done = self.gaussian(continued, pilot_ratio)
                 left[continued[done]] = False
         return left
 
     def gaussian(self, rows: np.ndarray, pilot_ratio: np.ndarray) -> np.ndarray:
         """The Gaussian round of the ROIs ``rows`` (positions in ``todo``), each sized from
-        its pilot's raw ESS; returns which succeeded."""
+        its pilot's raw ESS (``pilot_ratio``: the pilot's log weights, every ROI of
+        ``todo``); returns which succeeded."""
         ess, limit = self.settings.ess, int(MAX_DRAWS_PER_ESS * self.settings.ess)
-        w = np.exp(pilot_ratio - pilot_ratio.max(axis=1, keepdims=True))
+        ratio = pilot_ratio[rows]
+        w = np.exp(ratio - ratio.max(axis=1, keepdims=True))
         raw = np.sum(w, axis=1) ** 2 / np.sum(w * w, axis=1)
         needed = GAUSSIAN_MARGIN * (ess - raw) * PILOT / np.maximum(raw, 1.0)
         most = limit - PILOT  # the run's draws stay within MAX_DRAWS_PER_ESS * ess
@@ -371,9 +383,8 @@ class _Run:
             group = np.flatnonzero(sizes == size)
             pick = rows[group]
             results = _scored(
-                "gaussian", self.keep, self.jm,
-                [*(a[pick] for a in self.data), pilot_ratio[group]],
-                self._chunk(PILOT + int(size)), size=int(size),
+                "gaussian", self.keep, self.jm, [*self.data, pilot_ratio],
+                self._chunk(PILOT + int(size)), rows=pick, size=int(size),
             )  # fmt: skip
             self.scored[pick] += size
             done[group] = self._judged(pick, results, PILOT + int(size), "the Laplace Gaussian")
@@ -423,8 +434,8 @@ class _Run:
             if pending.size == 0:
                 break
             results = _scored(
-                "importance", self.keep, self.jm, [a[pending] for a in self.data],
-                self._chunk(size), jnp.asarray(round_), size=size,
+                "importance", self.keep, self.jm, self.data, self._chunk(size),
+                jnp.asarray(round_), rows=pending, size=size,
             )  # fmt: skip
             self.scored[pending] += size
             settled = self._judged(

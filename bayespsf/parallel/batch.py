@@ -315,9 +315,10 @@ def sample_many(
         ):
             made, pieces = None, []  # the chunks' tables (the batched methods)
             if settings.method != "mcmc" and backend == "jax" and todo:
+                todo = np.asarray(todo)
                 made, verdicts = device_posteriors(
-                    np.asarray(todo),
-                    stack[todo],
+                    todo,
+                    stack if len(todo) == n else stack[todo],
                     model,
                     molecule_seeds(seed, todo),
                     None if truths is None else truths[todo],
@@ -412,24 +413,28 @@ def _table(pieces: list[pd.DataFrame], rows: dict[int, dict]) -> pd.DataFrame:
         key=lambda piece: piece["molecule"].iloc[0],
     )
     table = concat_tables(pieces)  # seeds kept whole where some tables' are uint64
+    if table["molecule"].is_monotonic_increasing:  # one piece, or pieces in turn
+        return table
     return table.sort_values("molecule", kind="stable", ignore_index=True)
 
 
 @one_blas_thread
 def _posteriors_of_chunk(task):
-    """Worker side: ``fit_mle`` and the chain-free posteriors (``bayespsf.inference.batched``)
-    of a chunk of ROIs (molecule ``i`` seeded with ``molecule_seed(settings.seed, i)``), each
-    written to the store (a path, or None) as it is made. Returns the table of their summary
-    rows, in molecule order, and for each ROI that needs the chain its verdict: the method
-    asked for, why, and its model check (picklable in and out; a table, not rows, as the
-    parent takes a table's columns in a fraction of the time it takes rows')."""
-    from bayespsf.inference import fit_mle
+    """Worker side: the fit (``fit_screened``) and the chain-free posteriors
+    (``bayespsf.inference.batched``) of a chunk of ROIs (molecule ``i`` seeded with
+    ``molecule_seed(settings.seed, i)``), each written to the store (a path, or None) as it is
+    made. Returns the table of their summary rows, in molecule order, and for each ROI that
+    needs the chain its verdict: the method asked for, why, and its model check (picklable in
+    and out; a table, not rows, as the parent takes a table's columns in a fraction of the time
+    it takes rows')."""
+    from bayespsf.inference import fit_screened
     from bayespsf.inference.batched import as_posterior, cheap_posteriors
 
     indices, stack, model, truths, settings, scene, store, check = task
     seeds = molecule_seeds(settings.seed, indices).tolist()
     started = time.perf_counter()
-    fits = fit_mle(stack, model, crlb=bool(check))  # the bound only for the model checks
+    # screened by ``sample_many``; the bound only for the model checks
+    fits = fit_screened(stack, model, crlb=bool(check))
     outcomes = cheap_posteriors(stack, model, fits, seeds, settings)
     seconds = (time.perf_counter() - started) / len(indices)
     checks = _model_checks(stack, model, seeds, check, fits) if check else [{}] * len(indices)

@@ -1,11 +1,11 @@
 """``sample_many``'s batched pass on JAX's device (``backend="jax"``).
 
-The stack is fitted (``fit_mle(backend="jax")``) and its chain-free posteriors made
-(``bayespsf.inference.jax_sampling``) in this process, on whatever device JAX finds; the
-summary rows of the posteriors made are assembled column by column (a dataset of 10^6 ROIs is
-not a loop of rows); the ROIs whose diagnostics need the chain are handed back, with why, for
-``sample_many`` to run on the CPU as with the NumPy backend. With a store, each posterior is
-written to its file as the NumPy backend writes it.
+The stack, screened by ``sample_many``, is fitted (``fit_screened(backend="jax")``) and its
+chain-free posteriors made (``bayespsf.inference.jax_sampling``) in this process, on whatever
+device JAX finds; the summary rows of the posteriors made are assembled column by column (a
+dataset of 10^6 ROIs is not a loop of rows); the ROIs whose diagnostics need the chain are
+handed back, with why, for ``sample_many`` to run on the CPU as with the NumPy backend. With a
+store, each posterior is written to its file as the NumPy backend writes it.
 """
 
 from __future__ import annotations
@@ -78,11 +78,11 @@ def device_posteriors(indices, stack, model, seeds, truths, settings, scene, sto
 def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
     from scipy import stats
 
-    from bayespsf.inference import fit_mle
+    from bayespsf.inference import fit_screened
     from bayespsf.inference.jax_sampling import pearson, posteriors
 
     started = time.perf_counter()
-    fits = fit_mle(stack, model, backend="jax")
+    fits = fit_screened(stack, model, backend="jax")  # screened by ``sample_many``
     out = posteriors(stack, model, fits, seeds, settings, truths, keep_draws=store is not None)
     seconds = (time.perf_counter() - started) / len(indices)
     made = out["made"]
@@ -97,12 +97,12 @@ def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
         for i in np.flatnonzero(~made)
     }
     rows = np.flatnonzero(made)
-    theta = fits[list(PARAMETER_NAMES)].to_numpy(float)[rows]
-    table = _table(indices[rows], seeds[rows], out, rows, seconds, truths)
-    chi2 = pearson(model, stack[rows], theta)
+    every = rows.size == len(stack)  # then no copy of the stack
+    theta = fits[list(PARAMETER_NAMES)].to_numpy(float)
+    chi2 = pearson(model, stack if every else stack[rows], theta if every else theta[rows])
     dof = model.roi * model.roi - 6
-    table["chi2"], table["chi2_dof"] = chi2, dof
-    table["chi2_p"], table["chi2_at"] = stats.chi2.sf(chi2, dof), "mle"
+    gof = {"chi2": chi2, "chi2_dof": dof, "chi2_p": stats.chi2.sf(chi2, dof), "chi2_at": "mle"}
+    table = _table(indices[rows], seeds[rows], out, rows, seconds, truths, gof)
     if check:
         for key in ("gof_p", "gof_discrepancy", "gof_replicates"):
             table[key] = [checks[i][key] for i in rows]
@@ -111,36 +111,40 @@ def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
     return table, verdicts
 
 
-def _table(molecules, seeds, out, rows, seconds, truths) -> pd.DataFrame:
-    """The summary rows (``bayespsf.inference.summary.draws_row``'s columns), as columns."""
+def _table(molecules, seeds, out, rows, seconds, truths, gof) -> pd.DataFrame:
+    """The summary rows (``bayespsf.inference.summary.draws_row``'s columns, then ``gof``'s),
+    as columns."""
     n = len(rows)
+    mean, sd, quantiles = out["mean"][rows], out["sd"][rows], out["quantiles"][rows]
+    ess, draws = out["ess"][rows], out["draws"][rows]
     columns = {
         "molecule": molecules.astype(int),
-        "seed": [int(s) for s in seeds],  # Python ints: 64-bit seeds, as the NumPy rows
+        "seed": seeds.tolist(),  # Python ints: 64-bit seeds, as the NumPy rows
         "converged": out["converged"][rows],
         "status": np.where(out["converged"][rows], "converged", "not converged"),
         "message": np.full(n, "", dtype=object),
         "method": out["method"][rows],
         "why": out["why"][rows],
         "steps": np.zeros(n, int),
-        "draws": out["draws"][rows],
+        "draws": draws,
         "acceptance": np.full(n, np.nan),
         "seconds": np.full(n, seconds),
     }
+    if truths is not None:
+        truth, rank = np.asarray(truths, float)[rows], out["rank"][rows]
     for k, name in enumerate(PARAMETER_NAMES):
-        columns[f"{name}_mean"] = out["mean"][rows, k]
-        columns[f"{name}_sd"] = out["sd"][rows, k]
+        columns[f"{name}_mean"] = mean[:, k]
+        columns[f"{name}_sd"] = sd[:, k]
         for j, q in enumerate(QUANTILES):
-            columns[quantile_column(name, q)] = out["quantiles"][rows, j, k]
+            columns[quantile_column(name, q)] = quantiles[:, j, k]
         columns[f"{name}_tau"] = np.ones(n)
-        columns[f"{name}_ess"] = out["ess"][rows]
+        columns[f"{name}_ess"] = ess
         if truths is not None:
-            rank = out["rank"][rows, k]
-            columns[f"{name}_truth"] = np.asarray(truths, float)[rows, k]
-            ranked = np.where((rank >= 0) & (out["draws"][rows] >= RANK_DRAWS), rank, np.nan)
+            columns[f"{name}_truth"] = truth[:, k]
+            ranked = np.where((rank[:, k] >= 0) & (draws >= RANK_DRAWS), rank[:, k], np.nan)
             # whole numbers where every ROI is ranked, as the NumPy backend's rows give them
             columns[f"{name}_rank"] = ranked if np.isnan(ranked).any() else ranked.astype(int)
-    return pd.DataFrame(columns)
+    return pd.DataFrame(columns | gof)
 
 
 def _write(store, table, out, rows, indices, stack, model, truths, scene, settings) -> None:

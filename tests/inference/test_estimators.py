@@ -1,11 +1,12 @@
 """Least squares, maximum likelihood and Laplace fits on simulated molecules; gain calibration."""
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from bayespsf import Scene, load_scene, simulate
 from bayespsf.calibration import calibrate_gain
-from bayespsf.inference import covariance, fit_lsq, fit_mle, start_values
+from bayespsf.inference import covariance, fit_lsq, fit_mle, fit_screened, start_values
 from bayespsf.inference.lsq import lsq_first_order
 from bayespsf.model import Model
 from bayespsf.theory import crlb, scene_params
@@ -168,6 +169,32 @@ def test_laplace_covariance_is_kept_with_the_sds():
     np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2))
     sds = fits[[f"sd_{c}" for c in COLUMNS]].to_numpy()
     np.testing.assert_allclose(np.sqrt(np.diagonal(cov, axis1=1, axis2=2)), sds, rtol=1e-12)
+    for i, p in enumerate(COLUMNS):  # every entry from its table columns
+        for j, q in enumerate(COLUMNS):
+            corr = 1.0 if i == j else fits[f"corr_{COLUMNS[min(i, j)]}_{COLUMNS[max(i, j)]}"]
+            expected = corr * fits[f"sd_{p}"] * fits[f"sd_{q}"]
+            np.testing.assert_allclose(cov[:, i, j], expected, rtol=1e-14)
+
+
+def test_a_screened_stack_is_fitted_as_fit_mle_fits_it(monkeypatch):
+    """``fit_screened`` with the stack's own problems gives ``fit_mle``'s table, and does not
+    judge the ROIs again (``sample_many`` screens once)."""
+    scene = load_scene("emccd-typical")
+    counts, _ = simulate(scene, 5, seed=6)
+    counts[1] = 500.0  # constant: refused
+    model = Model.from_scene(scene)
+    expected = fit_mle(counts, model)
+    problems = model.roi_problems(counts)
+
+    def judged_again(self, counts):
+        raise AssertionError("the stack was judged again")
+
+    monkeypatch.setattr(Model, "roi_problems", judged_again)
+    pd.testing.assert_frame_equal(fit_screened(counts, model, problems), expected)
+    clean = np.delete(counts, 1, axis=0)  # problems None: every ROI passed
+    pd.testing.assert_frame_equal(
+        fit_screened(clean, model), expected.drop(index=1).reset_index(drop=True)
+    )
 
 
 def test_a_bad_roi_is_a_row_not_an_exception_for_the_stack():
@@ -187,7 +214,6 @@ def test_a_bad_roi_is_a_row_not_an_exception_for_the_stack():
 
 def test_fit_tables_print_concatenate_and_save(tmp_path):
     # repr() raised under pandas 2.3 (a NumPy array in attrs) and pd.concat of two results failed
-    import pandas as pd
 
     scene = load_scene("ideal")
     model = Model.from_scene(scene)
