@@ -214,7 +214,6 @@ def test_a_bad_roi_is_a_row_not_an_exception_for_the_stack():
 
 def test_fit_tables_print_concatenate_and_save(tmp_path):
     # repr() raised under pandas 2.3 (a NumPy array in attrs) and pd.concat of two results failed
-
     scene = load_scene("ideal")
     model = Model.from_scene(scene)
     a = fit_mle(simulate(scene, 2, seed=1)[0], model)
