@@ -229,10 +229,12 @@ def _chunked(program, jm, arrays: list, size: int, *shared, rows=None) -> list[n
     gathered on the host. Chunks are cut on the host, each ROI's inputs copied once (a chunk
     of consecutive ROIs is a view): the device sees only the programs' own fixed shapes, never
     an operation whose shape depends on how many ROIs a stage holds, which would compile anew
-    for each count."""
+    for each count. Each chunk is dispatched before the one before it is gathered, so that
+    the device computes while the host waits for and copies the last chunk's outputs (JAX
+    dispatches asynchronously; two chunks at most are in flight)."""
     n = len(arrays[0]) if rows is None else len(rows)
     size = bucket(n, size)
-    parts = []
+    parts, flight = [], []
     for first in range(0, n, size):
         k = min(size, n - first)
         if rows is None and k == size:
@@ -243,11 +245,18 @@ def _chunked(program, jm, arrays: list, size: int, *shared, rows=None) -> list[n
             take = take if rows is None else rows[take]
             chunk = [a[take] for a in arrays]
         out = program(jm, *chunk, *shared)
-        out = out if isinstance(out, tuple) else (out,)
-        parts.append([None if o is None else np.asarray(o)[:k] for o in out])
+        flight.append((out if isinstance(out, tuple) else (out,), k))
+        if len(flight) == 2:
+            parts.append(_gathered(*flight.pop(0)))
+    parts += [_gathered(*one) for one in flight]
     return [
         None if column[0] is None else np.concatenate(column) for column in zip(*parts, strict=True)
     ]
+
+
+def _gathered(outputs: tuple, k: int) -> list:
+    """A chunk's outputs on the host, its first ``k`` ROIs (the rest are padding)."""
+    return [None if o is None else np.asarray(o)[:k] for o in outputs]
 
 
 def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: bool = False):
