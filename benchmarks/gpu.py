@@ -18,7 +18,10 @@ N = 1000, b = 10), in one run:
    the ROIs whose diagnostics need a chain run it on the CPU, counted in the table). The
    host's own work in ``fit_mle`` (the ROI checks and the table) is timed with the engine's
    results replayed, and in ``sample_many`` with every device program's outputs replayed
-   (``host_seconds``): it bounds the whole call's rate on any device.
+   (``host_seconds``): it bounds the whole call's rate on any device. The device's own time
+   in ``sample_many`` is split by program, each waited for as it is called
+   (``program_seconds``): the fit's engine, the pilot, the Laplace, the Gaussian round, the
+   Student-t rounds, the law's reruns, Pearson's statistic.
 3. **Streaming**: ``--stream`` ROIs through the fit and the posteriors in blocks of ``--rois``
    (the simulated block reused with each ROI's own seed, as a dataset's ROIs would be read
    block by block), with the peak resident memory of the process.
@@ -153,6 +156,7 @@ def device_rates(counts, model) -> tuple[dict, dict]:
     t_post_host = host_seconds(
         lambda: sample_many(counts, model, seed=2, workers=1, backend="jax"), table
     )
+    programs = program_seconds(lambda: sample_many(counts, model, seed=2, workers=1, backend="jax"))
     sources = pd.Series(out["why"]).str.extract(r"sampling from the Laplace (\w+)")[0]
     rates = {
         f"fit_mle jax engine ({n} ROIs: fit, Laplace, CRLB)": n / t_engine,
@@ -168,6 +172,10 @@ def device_rates(counts, model) -> tuple[dict, dict]:
         "from the Laplace Gaussian": int((sources == "Gaussian").sum()),
         "from the Laplace Student-t": int((sources == "Student").sum()),
         "draws scored per ROI (mean)": float(np.mean(out["draws_scored"])),
+    } | {
+        f"sample_many auto jax, {'' if name == 'the whole call' else 'device program '}{name} "
+        "(µs per ROI, programs waited for)": 1e6 * t / n
+        for name, t in programs.items()
     }
     return rates, made
 
@@ -211,6 +219,47 @@ def host_seconds(call, expected: pd.DataFrame) -> float:
         replayed.drop(columns="seconds"), expected.drop(columns="seconds")
     )
     return seconds
+
+
+def program_seconds(call) -> dict:
+    """Where the device's time goes in ``call`` (a ``backend="jax"`` call): each device
+    program of the posteriors (``jax_sampling._program``: the pilot, the Laplace, the
+    Gaussian round, the Student-t rounds, the law's reruns, Pearson's statistic) waited for
+    as it is called, and the fit's engine (``jax_mle.maximise``), in seconds by program. The
+    calls run one after another here, without the overlap of a normal run; ``the whole call``
+    is that run's seconds, the programs' and the host's."""
+    import jax
+
+    from bayespsf.inference import jax_mle, jax_sampling
+
+    seconds: dict[str, float] = {}
+    program, maximise = jax_sampling._program, jax_mle.maximise
+
+    def add(name, started):
+        seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - started
+
+    def timed(*args, **static):
+        run = program(*args, **static)  # as called: the same cached (compiled) program
+        name = f"{args[0]} (the law itself)" if static.get("exact") else args[0]
+
+        def waited(*inputs):
+            started = time.perf_counter()
+            out = jax.block_until_ready(run(*inputs))
+            add(name, started)
+            return out
+
+        return waited
+
+    def fit(*args):
+        started = time.perf_counter()
+        found = maximise(*args)  # host arrays: it has waited for the device
+        add("fit (engine: fit, Laplace, CRLB)", started)
+        return found
+
+    with mock.patch.object(jax_sampling, "_program", timed):
+        with mock.patch.object(jax_mle, "maximise", fit):
+            _, whole = _timed(call)
+    return seconds | {"the whole call": whole}
 
 
 def stream(counts, model, total: int) -> dict:

@@ -124,6 +124,12 @@ def test_gpu_benchmark_quick():
     made = result["work per ROI"]
     assert made["from the Laplace Gaussian"] + made["from the Laplace Student-t"] == 64
     assert made["draws scored per ROI (mean)"] >= 400
+    # the device's time by program: each program the run used, within the whole call's time
+    programs = {k: v for k, v in made.items() if "programs waited for" in k}
+    whole = programs.pop("sample_many auto jax, the whole call (µs per ROI, programs waited for)")
+    names = [k.split("device program ")[1].split(" (")[0] for k in programs]
+    assert {"fit", "pilot", "gaussian", "pearson"} <= set(names)
+    assert all(v > 0 for v in programs.values()) and sum(programs.values()) < whole
 
 
 def test_movie_benchmark_quick():
