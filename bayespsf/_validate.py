@@ -136,23 +136,23 @@ def _screen(flat, low, floor, fraction, saturation):
     n, m = flat.shape
     out = np.zeros(n, dtype=np.bool_)
     for i in range(n):
-        first, top = flat[i, 0], -np.inf
-        finite, equal, under, below = True, True, False, 0
-        for j in range(m):
-            v = flat[i, j]
-            finite &= np.isfinite(v)
-            equal &= v == first
-            under |= v < floor
+        row = flat[i]
+        top, bottom = row[0], row[0]
+        nonfinite, below = 0, 0
+        for j in range(m):  # counts and extremes, no branch: the loop vectorises
+            v = row[j]
+            nonfinite += (v - v) != 0.0  # NaN for NaN and +-inf; the extremes then unused
             below += v < low[j]
-            top = max(top, v)
+            top, bottom = max(top, v), min(bottom, v)
         if saturation > 0:
             capped = top >= saturation
         else:
             ties = 0
             for j in range(m):
-                ties += flat[i, j] == top
+                ties += row[j] == top
             capped = ties >= 2
-        out[i] = (not finite) or equal or under or below / m > fraction or capped
+        equal = top == bottom  # every pixel equal
+        out[i] = nonfinite > 0 or equal or bottom < floor or below / m > fraction or capped
     return out
 
 

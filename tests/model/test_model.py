@@ -177,7 +177,7 @@ def test_the_one_pass_screen_flags_what_the_array_passes_flag(floor, saturation)
     rows = np.arange(len(flat))
     flat[kind == 1, pixel[kind == 1]] = np.nan
     flat[kind == 2, pixel[kind == 2]] = rng.choice([np.inf, -np.inf], (kind == 2).sum())
-    flat[kind == 3] = 7.0  # every pixel equal
+    flat[kind == 3] = 200.0  # every pixel equal (above the floor and the camera's low counts)
     flat[kind == 4, :6] -= 90.0  # some pixels far below the camera's floor
     flat[kind == 5, pixel[kind == 5]] = 3000.0  # at the saturation
     top = flat[kind == 6].max(axis=1)
