@@ -245,27 +245,24 @@ def fit_mle(
     >>> fits[["x0", "sd_x0", "crlb_x0"]].notna().all().all(), fits["status"].tolist()
     (np.True_, ['converged', 'converged'])
     """
+    _check_engine(engine, backend)  # before the screen: a bad option costs no work
+    stack, problems = _stack(counts, model)
+    return fit_screened(stack, model, problems, start, laplace, engine, crlb, backend)
+
+
+def _check_engine(engine: str, backend: str) -> None:
     if engine not in ENGINES:
         raise BayespsfInputError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
     if check_backend(backend) == "jax" and engine != "stack":
         raise BayespsfInputError("backend='jax' runs the stack engine; use engine='stack'")
-    stack, problems = _stack(counts, model)
-    starts = None
-    if start is not None:
-        starts = finite_array("start", start).reshape(-1, 6)
-        if len(starts) != len(stack):
-            raise BayespsfInputError(
-                f"start must have one row per ROI ({len(stack)}), got {len(starts)}"
-            )
-    return fit_screened(stack, model, problems, starts, laplace, engine, crlb, backend)
 
 
 @one_blas_thread
 def fit_screened(
-    stack: np.ndarray,
+    stack: ArrayLike,
     model: Model,
     problems: list | None = None,
-    starts: np.ndarray | None = None,
+    start: ArrayLike | None = None,
     laplace: bool = True,
     engine: str = "stack",
     crlb: bool = True,
@@ -276,31 +273,52 @@ def fit_screened(
 
     Parameters
     ----------
-    stack : ndarray, shape (n, roi, roi)
-        ROIs in ADU, as ``Model.check_shape`` gives them.
+    stack : array_like, shape (n, roi, roi)
+        ROIs in ADU. Their values are not judged here: a ROI that ``roi_problems`` would
+        refuse, given as passed, is fitted as it is.
     model : Model
         Geometry, camera law and photon unit.
     problems : list of (str or None), optional
-        ``model.roi_problems(stack)``: the ROIs with a reason are refused rows with it. None:
-        every ROI passed.
-    starts : ndarray, shape (n, 6), optional
-        Starting values (``fit_mle``'s ``start``, validated).
-    laplace, engine, crlb, backend
-        As ``fit_mle`` (``engine`` and ``backend`` validated).
+        ``model.roi_problems(stack)``, one entry per ROI: those with a reason are refused rows
+        with it. None: every ROI passed.
+    start, laplace, engine, crlb, backend
+        As ``fit_mle``.
 
     Returns
     -------
     pandas.DataFrame
         ``fit_mle``'s table.
 
+    Raises
+    ------
+    BayespsfInputError
+        As ``fit_mle`` for the stack's shape and the options; ``problems`` not one entry per
+        ROI.
+
     See Also
     --------
     fit_mle : the same fit of counts not yet judged.
     """
+    _check_engine(engine, backend)
+    stack = model.check_shape(stack)
+    if stack.ndim != 3:
+        raise BayespsfInputError(f"stack must have shape (n, roi, roi), got {stack.shape}")
     if problems is None:
         problems = [None] * len(stack)
-    if starts is None and backend != "jax":  # the JAX backend computes them on its device
+    elif len(problems) != len(stack):
+        raise BayespsfInputError(
+            f"problems must have one entry per ROI ({len(stack)}), got {len(problems)}"
+        )
+    if start is not None:
+        starts = finite_array("start", start).reshape(-1, 6)
+        if len(starts) != len(stack):
+            raise BayespsfInputError(
+                f"start must have one row per ROI ({len(stack)}), got {len(starts)}"
+            )
+    elif backend != "jax":  # the JAX backend computes them on its device
         starts = start_values(model.to_photons(stack), model)
+    else:
+        starts = None
     fit = np.flatnonzero(np.equal(np.array(problems, dtype=object), None))
     fitted = stack if len(fit) == len(stack) else stack[fit]  # no copy where every ROI fits
     if backend == "jax":

@@ -195,6 +195,14 @@ def test_a_screened_stack_is_fitted_as_fit_mle_fits_it(monkeypatch):
     pd.testing.assert_frame_equal(
         fit_screened(clean, model), expected.drop(index=1).reset_index(drop=True)
     )
+    with pytest.raises(ValueError, match="problems must have one entry per ROI"):
+        fit_screened(counts, model, problems[:-1])
+    with pytest.raises(ValueError, match="engine must be one of"):
+        fit_screened(counts, model, problems, engine="newton")
+    with pytest.raises(ValueError, match=r"stack must have shape \(n, roi, roi\)"):
+        fit_screened(counts[0], model)
+    with pytest.raises(ValueError, match="start must have one row per ROI"):
+        fit_screened(counts, model, problems, start=np.ones((2, 6)))
 
 
 def test_a_bad_roi_is_a_row_not_an_exception_for_the_stack():

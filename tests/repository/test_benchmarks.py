@@ -130,6 +130,11 @@ def test_gpu_benchmark_quick():
     names = [k.split("device program ")[1].split(" (")[0] for k in programs]
     assert {"fit", "pilot", "gaussian", "pearson"} <= set(names)
     assert all(v > 0 for v in programs.values()) and sum(programs.values()) < whole
+    # the Gaussian round in parts, each compiled alone: the draws cost less than the draws
+    # with the spot's factors, and those less than the whole program
+    parts = {k.split(": ")[1].split(" (")[0]: v for k, v in made.items() if "round of" in k}
+    assert len(parts) == 5 and all(v > 0 for v in parts.values())
+    assert parts["draws"] < parts["draws and the spot's factors"] < parts["the whole program"]
 
 
 def test_movie_benchmark_quick():
