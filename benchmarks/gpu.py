@@ -193,10 +193,10 @@ def host_seconds(call, expected: pd.DataFrame) -> float:
     each device program's outputs recorded (taken to the host), then again with them replayed
     in the same order, so that the second run does everything but the device's work and the
     transfers (ROI checks, stages cut and gathered, seeds, reasons, tables): the best of three
-    replays. The replayed result must equal ``expected`` (``seconds`` aside): the replay is
-    the same run. It
-    replaces the backend's own program factory (``jax_sampling._program``) and engine
-    (``jax_mle.maximise``) for the two runs, as only a benchmark of the backend should."""
+    replays. Each replayed result must equal ``expected`` (``seconds`` aside): the replay is
+    the same run. It replaces the backend's own program factory (``jax_sampling._program``)
+    and engine (``jax_mle.maximise``) for these runs, as only a benchmark of the backend
+    should."""
     from bayespsf.inference import jax_mle, jax_sampling
 
     outputs, fits = [], []
@@ -280,7 +280,8 @@ def round_parts(counts, model, fits, size: int = 374) -> dict:
     (µs per ROI): its draws; the draws and the spot's factors (``JaxModel.spot``); the draws
     scored (the law interpolated per pixel, ``jax_programs.log_posterior``); the weights
     smoothed, resampled and summarised (``jax_programs._weighted``, on random log ratios);
-    and the whole program. ``size`` is emccd-typical's usual round at ESS 400."""
+    and the whole program. ``size`` is emccd-typical's usual round at ESS 400. The parts are
+    the backend's own internal functions, compiled here one by one."""
     import jax
     import jax.numpy as jnp
 
