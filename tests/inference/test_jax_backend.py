@@ -64,6 +64,36 @@ def test_the_mle_is_the_numpy_engines_to_1e6(scene):
     np.testing.assert_allclose(b["log_likelihood"], a["log_likelihood"], rtol=1e-10)
 
 
+@pytest.mark.parametrize(
+    ("scene", "tier"),
+    [("emccd-typical", None), ("emccd-typical", "high-gain"), ("emccd-typical", "gaussian"),
+     ("emccd-typical", "poisson"), ("ideal", None)],
+)  # fmt: skip
+def test_the_laplace_by_the_chain_rule_is_jaxs_hessian(scene, tier):
+    # the Laplace's information from the law's two derivatives per pixel and the expected
+    # counts' Jacobian and second derivatives: the Hessian of the whole log-likelihood, to
+    # rounding (entries within 1e-8 relative of their matrix's largest)
+    import jax
+    import jax.numpy as jnp
+
+    from bayespsf.inference import jax_mle
+
+    counts, truths, _ = simulated(scene, 8)
+    model = Model.from_scene(load_scene(scene), **({} if tier is None else {"likelihood": tier}))
+    jm = JaxModel.from_model(model)
+    p = jnp.asarray(truths * [1.0, 1.0, 1.05, 0.95, 1.1, 1.0])  # not at the optimum: l' != 0
+    cov, definite = jax_mle._compiled(model.roi)[1](jm, jnp.asarray(counts), p)
+
+    def information(c, q):
+        return jax.hessian(lambda v: -jm.log_likelihood(c, v))(q)
+
+    want = np.asarray(jax.vmap(information)(jnp.asarray(counts), p))
+    got = np.linalg.inv(np.asarray(cov))
+    assert np.asarray(definite).all()
+    scale = np.abs(want).max(axis=(1, 2), keepdims=True)
+    np.testing.assert_allclose(got / scale, want / scale, atol=1e-8)
+
+
 def test_the_poisson_tier_converges_as_on_the_numpy_engine():
     # the EMCCD's poisson tier scores counts as Poisson photons: the fit's metric is that
     # law's information, 1/lam, not the camera's (half of it, with which the steps overshot
