@@ -80,6 +80,8 @@ def _options(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--out", default="benchmarks/results", help="where gpu.md goes")
     options = parser.parse_args(argv)
+    if options.parts is not None and options.parts < 1:
+        parser.error(f"--parts: a whole number >= 1, got {options.parts}")
     if options.quick:
         options.compare, options.rois, options.stream, options.parts = 64, 64, 128, 64
     return options

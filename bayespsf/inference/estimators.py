@@ -116,6 +116,12 @@ def covariance(fits: pd.DataFrame) -> np.ndarray:
         In the order ``x0 y0 s_x s_y N b``; NaN where the fit did not converge.
     """
     names = [f"sd_{name}" for name in PARAMETER_NAMES] + [c for _, _, c in CORRELATIONS]
+    missing = [name for name in names if name not in fits]
+    if missing:
+        raise BayespsfInputError(
+            f"fits has no {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}: "
+            "covariance needs fit_mle's table with laplace=True"
+        )
     values = fits[names].to_numpy(float)  # one block: the table's columns read once
     sd, upper = values[:, :6], values[:, 6:]
     i, j = _PAIRS
@@ -305,9 +311,12 @@ def fit_screened(
         raise BayespsfInputError(f"stack must have shape (n, roi, roi), got {stack.shape}")
     if problems is None:
         problems = [None] * len(stack)
-    elif len(problems) != len(stack):
+    elif len(problems) != len(stack) or any(
+        not (p is None or isinstance(p, str)) for p in problems
+    ):  # e.g. a boolean mask would refuse every ROI with the reason True
         raise BayespsfInputError(
-            f"problems must have one entry per ROI ({len(stack)}), got {len(problems)}"
+            f"problems must be one reason (str) or None per ROI ({len(stack)}), as "
+            f"Model.roi_problems gives them; got {len(problems)} entries"
         )
     if start is not None:
         starts = finite_array("start", start).reshape(-1, 6)

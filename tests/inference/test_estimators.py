@@ -169,6 +169,8 @@ def test_laplace_covariance_is_kept_with_the_sds():
     np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2))
     sds = fits[[f"sd_{c}" for c in COLUMNS]].to_numpy()
     np.testing.assert_allclose(np.sqrt(np.diagonal(cov, axis1=1, axis2=2)), sds, rtol=1e-12)
+    with pytest.raises(ValueError, match="laplace=True"):  # no SDs: named, not a KeyError
+        covariance(fit_mle(counts, Model.from_scene(scene), laplace=False))
     for i, p in enumerate(COLUMNS):  # every entry from its table columns
         for j, q in enumerate(COLUMNS):
             corr = 1.0 if i == j else fits[f"corr_{COLUMNS[min(i, j)]}_{COLUMNS[max(i, j)]}"]
@@ -195,8 +197,10 @@ def test_a_screened_stack_is_fitted_as_fit_mle_fits_it(monkeypatch):
     pd.testing.assert_frame_equal(
         fit_screened(clean, model), expected.drop(index=1).reset_index(drop=True)
     )
-    with pytest.raises(ValueError, match="problems must have one entry per ROI"):
+    with pytest.raises(ValueError, match="problems must be one reason"):
         fit_screened(counts, model, problems[:-1])
+    with pytest.raises(ValueError, match="problems must be one reason"):  # not a mask
+        fit_screened(counts, model, [p is None for p in problems])
     with pytest.raises(ValueError, match="engine must be one of"):
         fit_screened(counts, model, problems, engine="newton")
     with pytest.raises(ValueError, match=r"stack must have shape \(n, roi, roi\)"):
