@@ -88,9 +88,10 @@ class Table:
         cells = self.xi.size - 1
         self.near_offset = cells * (self.eta.size - 1)
         shape = (self.near_offset + cells * (self.tau.size - 1), 16)
-        # built once per machine (seconds), then read from the on-disk cache (milliseconds)
+        # built once per machine (seconds), then mapped from the on-disk cache: the processes
+        # of a machine share one copy, and each reads only the cells its data touch
         name = f"emccd-table-{float(r).hex()}-{_SOURCE_DIGEST}"
-        self.coef = _table_cache.load_or_compute(name, self._build, shape)
+        self.coef = _table_cache.load_or_compute(name, self._build, shape, mapped=True)
         self.nbytes = self.coef.nbytes
 
     def _build(self) -> np.ndarray:

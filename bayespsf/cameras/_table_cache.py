@@ -35,14 +35,19 @@ def digest(*sources: str | Path) -> str:
     return h.hexdigest()[:16]
 
 
-def load_or_compute(name: str, compute, shape: tuple[int, ...]) -> np.ndarray:
+def load_or_compute(name: str, compute, shape: tuple[int, ...], mapped: bool = False) -> np.ndarray:
     """The array cached as ``name`` if it is there, whole and of ``shape``; else ``compute()``,
-    stored for the next process."""
+    stored for the next process.
+
+    ``mapped``: the cached file is mapped into memory read-only rather than read, so that every
+    process of the machine (a pool's workers) shares one copy of it in the page cache and reads
+    only the pages it touches; the array is read-only however it was made (one type for
+    compiled code that takes it)."""
     where = folder()
     path = None if where is None else where / f"{name}.npy"
     if path is not None and path.exists():
         try:
-            array = np.load(path, allow_pickle=False)
+            array = np.load(path, mmap_mode="r" if mapped else None, allow_pickle=False)
             if array.shape == shape:
                 return array
         except (OSError, ValueError, EOFError):  # damaged: computed and replaced below
@@ -50,6 +55,8 @@ def load_or_compute(name: str, compute, shape: tuple[int, ...]) -> np.ndarray:
     array = compute()
     if path is not None:
         _store(path, array)
+    if mapped:
+        array.flags.writeable = False
     return array
 
 

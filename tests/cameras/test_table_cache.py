@@ -62,4 +62,25 @@ def test_the_table_tier_reads_its_table_from_the_cache(cache, monkeypatch):
     second = _emccd_table.Table(0.123)
     assert builds == [0.123]
     np.testing.assert_array_equal(first.coef, second.coef)
+    assert isinstance(second.coef, np.memmap) and not second.coef.flags.writeable
     assert len(list(cache.glob("emccd-table-*.npy"))) == 1
+
+
+@pytest.mark.parametrize("damage", [b"", b"\x93NUMPY\x01\x00v\x00{"])
+def test_a_mapped_array_is_shared_read_only_and_a_short_file_computed_again(cache, damage):
+    # ``mapped``: a later process maps the file (the processes of a pool share its pages)
+    # rather than reading it; computed or mapped, the array is read-only, so compiled code
+    # that takes it sees one type
+    made = _table_cache.load_or_compute("thing", lambda: np.arange(6.0), (6,), mapped=True)
+    again = _table_cache.load_or_compute("thing", lambda: np.zeros(6), (6,), mapped=True)
+    assert not made.flags.writeable and not again.flags.writeable
+    assert isinstance(again, np.memmap) and not isinstance(made, np.memmap)
+    np.testing.assert_array_equal(again, np.arange(6.0))
+    (cache / "other.npy").write_bytes(damage)
+    out = _table_cache.load_or_compute("other", lambda: np.ones(3), (3,), mapped=True)
+    np.testing.assert_array_equal(out, np.ones(3))
+    np.save(cache / "short.npy", np.ones(8))  # a header promising more than the file holds
+    (cache / "short.npy").write_bytes((cache / "short.npy").read_bytes()[:-16])
+    out = _table_cache.load_or_compute("short", lambda: np.zeros(8), (8,), mapped=True)
+    np.testing.assert_array_equal(out, np.zeros(8))
+    assert not isinstance(out, np.memmap)
