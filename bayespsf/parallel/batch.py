@@ -59,9 +59,15 @@ def chunk_count(n: int, parallel: int, ess: float) -> int:
     the ``parallel`` workers to get one (chunks of at least ``MIN_CHUNK`` ROIs), of at most
     ``CHUNK`` ROIs at the default ESS of 400 and proportionally fewer above it (a chunk holds
     about ``50 ess`` draws of six parameters per ROI: 256 ROIs at ESS 20 000 would be ~1.6 GB).
-    A ROI's result does not depend on its chunk."""
+    Where there are more chunks than workers, their number is rounded up to a multiple of
+    ``parallel`` while the chunks keep at least ``MIN_CHUNK`` ROIs, so that every worker gets
+    as many equal chunks (125 chunks on 16 workers would leave 3 idle for the last chunk's
+    time; 128 do not). A ROI's result does not depend on its chunk."""
     largest = max(2, min(CHUNK, int(CHUNK * 400.0 / ess)))
-    return max(-(-n // largest), min(parallel, -(-n // MIN_CHUNK)), 1)
+    parts = max(-(-n // largest), min(parallel, -(-n // MIN_CHUNK)), 1)
+    if parts > parallel > 1:
+        parts = max(min(-(-parts // parallel) * parallel, n // MIN_CHUNK), parts)
+    return parts
 
 
 def _sample_one(task):

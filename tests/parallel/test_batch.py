@@ -281,6 +281,15 @@ def test_chunks_keep_every_worker_busy_and_memory_bounded():
     assert chunk_count(10 * CHUNK, 2, 400.0) == 10  # large stacks: chunks of CHUNK
     assert chunk_count(1000, 1, 20_000.0) == 200  # ESS 20 000: 5 ROIs per chunk
     assert chunk_count(1000, 1, 1e7) == 500  # never fewer than 2 ROIs per chunk
+    # more chunks than workers: a multiple of the workers, of at most CHUNK ROIs, where the
+    # chunks stay at least MIN_CHUNK ROIs (chunks already smaller, at a high ESS, are kept)
+    assert chunk_count(32_000, 16, 400.0) == 128  # 125 of CHUNK would leave 3 workers idle
+    assert chunk_count(100_000, 16, 400.0) == 400
+    assert chunk_count(11 * CHUNK, 2, 400.0) == 12
+    assert chunk_count(1000, 16, 20_000.0) == 200  # 5 ROIs per chunk: kept
+    for n, workers in [(5000, 3), (32_000, 16), (999, 7), (300, 16)]:
+        parts = chunk_count(n, workers, 400.0)
+        assert -(-n // parts) <= CHUNK and (parts <= workers or n // parts >= MIN_CHUNK)
 
 
 def test_the_table_of_chunks_and_single_rows_is_that_of_every_row_in_order():
