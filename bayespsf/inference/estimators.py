@@ -66,13 +66,15 @@ def start_values(photons, model, xp=np):
     )
     b = xp.maximum(xp.median(border, axis=1), 0.0)
     lo, hi = 0.5 * a, 0.5 * roi * a
-    x0, y0, sx, sy, n = _moments(xp.maximum(photons - b[:, None, None], 0.0), c, a, xp)
+    clipped = xp.maximum(photons - b[:, None, None], 0.0)
+    x0, y0, sx, sy, n = _moments(clipped.sum(axis=1), clipped.sum(axis=2), c, a, xp)
     sx, sy, n = xp.clip(sx, lo, hi), xp.clip(sy, lo, hi), xp.maximum(n, 1.0)
-    signal = photons - b[:, None, None]
-    for _ in range(WINDOW_ROUNDS):
-        in_x = (xp.abs(c[None, :] - x0[:, None]) <= WINDOW * sx[:, None]).astype(signal.dtype)
-        in_y = (xp.abs(c[None, :] - y0[:, None]) <= WINDOW * sy[:, None]).astype(signal.dtype)
-        wx, wy, wsx, wsy, total = _moments(signal * in_y[:, :, None] * in_x[:, None, :], c, a, xp)
+    for _ in range(WINDOW_ROUNDS):  # the window's marginals, without a masked copy of the ROIs
+        in_x = (xp.abs(c[None, :] - x0[:, None]) <= WINDOW * sx[:, None]).astype(photons.dtype)
+        in_y = (xp.abs(c[None, :] - y0[:, None]) <= WINDOW * sy[:, None]).astype(photons.dtype)
+        px = xp.einsum("nij,ni->nj", photons, in_y) - (b * in_y.sum(axis=1))[:, None]
+        py = xp.einsum("nij,nj->ni", photons, in_x) - (b * in_x.sum(axis=1))[:, None]
+        wx, wy, wsx, wsy, total = _moments(px * in_x, py * in_y, c, a, xp)
         ok = total > 0.25 * n
         x0, y0 = xp.where(ok, wx, x0), xp.where(ok, wy, y0)
         sx = xp.where(ok & (wsx > 0), xp.clip(wsx, lo, hi), sx)
@@ -85,13 +87,13 @@ WINDOW = 2.5  # start_values' refinement: the pixels within this many widths of 
 WINDOW_ROUNDS = 2
 
 
-def _moments(signal, c, a, xp):
+def _moments(px, py, c, a, xp):
     """Centroid, widths (0 where the second moment less the pixel's ``a^2/12`` is not
-    positive) and total of ``signal`` (n, roi, roi); the centroid 0 where the total is not
-    positive. ``c``: the pixel centres (roi,)."""
-    total = signal.sum(axis=(1, 2))
+    positive) and total of a signal whose marginals along x and y are ``px``, ``py``
+    (n, roi); the centroid 0 where the total is not positive. ``c``: the pixel centres
+    (roi,)."""
+    total = px.sum(axis=1)
     weight = xp.where(total > 0, total, 1.0)
-    px, py = signal.sum(axis=1), signal.sum(axis=2)
     x0 = xp.where(total > 0, px @ c / weight, 0.0)
     y0 = xp.where(total > 0, py @ c / weight, 0.0)
     vx = px @ c**2 / weight - x0**2 - a * a / 12
