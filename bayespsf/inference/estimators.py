@@ -56,8 +56,9 @@ def start_values(photons, model, xp=np):
     ``WINDOW`` widths of the centre, background subtracted without clipping (the noise then
     averages out): position, widths and N from those pixels' moments and total, where that
     total is above a quarter of the first estimate's N and the moments are real (else the
-    previous estimate stays). The maximum-likelihood fit starts nearer its optimum: ~18% fewer
-    iterations on emccd-typical.
+    previous estimate stays). The maximum-likelihood fit starts nearer its optimum
+    (emccd-typical at N = 1 000: 6.7 evaluations per ROI instead of 8.1 from the clipped
+    estimate).
     """
     a, roi = model.pixel_size, model.roi
     c = xp.asarray(pixel_centres(roi, a))
