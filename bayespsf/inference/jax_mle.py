@@ -5,7 +5,7 @@ a function of one ROI and mapped over a chunk of ROIs with ``jax.vmap``, so that
 whatever device JAX finds: Levenberg-Marquardt with Fisher scoring in the coordinates
 ``u = (x0/a, y0/a, log s_x/a, log s_y/a, log N, b)``, the same search box, projected bounds,
 damping schedule, secant updates of the metric near the optimum, iteration limit and
-convergence test (the Newton decrement below 1e-10).
+convergence test (the Newton decrement below 1e-10, by the Fisher metric).
 Where the NumPy engine differentiates by hand (the PSF Jacobian times the camera's score), this
 one differentiates the same log-likelihood automatically (``jax.grad``; ``jax.jacfwd`` for the
 metric's PSF Jacobian), and the Laplace covariance is the inverse of the exact Hessian
@@ -157,7 +157,7 @@ def _compiled(roi: int):
         return dict(
             u=jnp.clip(u0, low, high), f=jnp.full(n, jnp.inf), g=jnp.zeros((n, 6)),
             m=jnp.tile(jnp.eye(6), (n, 1, 1)), damping=jnp.full(n, 1e-3),
-            previous=jnp.full(n, jnp.inf), done=jnp.zeros(n, bool), failed=jnp.zeros(n, bool),
+            secant=jnp.zeros(n, bool), done=jnp.zeros(n, bool), failed=jnp.zeros(n, bool),
             code=jnp.zeros(n, jnp.int32), it=jnp.asarray(0),
         )  # fmt: skip
 
@@ -184,16 +184,19 @@ def _compiled(roi: int):
             )
             solve = jax.vmap(jnp.linalg.solve)
             decrement = jnp.einsum("nk,nk->n", grad, solve(metric, grad))
-            finished = live & (decrement < solver.DECREMENT)
-            # the NumPy engine's rule: within CHORD and converging fast, a step's metric is the
-            # secant update of the one it leaves (there it is then not computed; here every
-            # lane computes it, and the rule keeps the two engines' steps the same)
-            keeps = live & (decrement < solver.CHORD) & (decrement < solver.FAST * s["previous"])
-            stepping = live & ~finished
+            # the NumPy engine's rules: within CHORD a step's metric is the secant update of
+            # the one it leaves (there it is then not computed; here every lane computes it,
+            # and the rule keeps the two engines' steps the same), and a lane below DECREMENT
+            # by the secant's metric takes the Fisher metric where it stands before it is done
+            below = live & (decrement < solver.DECREMENT)
+            verify = below & s["secant"]
+            finished = below & ~verify
+            keeps = live & (decrement < solver.CHORD) & ~verify
+            stepping = live & ~finished & ~verify
             diagonal = jnp.einsum("nkk->nk", metric)
             lm = metric + (s["damping"][:, None] * diagonal)[:, :, None] * jnp.eye(6)
             trial = jnp.clip(s["u"] + solve(lm, -grad), low, high)
-            trial = jnp.where(first, s["u"], trial)
+            trial = jnp.where((first | verify)[:, None], s["u"], trial)
             real = jnp.all(jnp.isfinite(trial), axis=1)
             f_t, g_t, m_t = evaluate(counts, jnp.where(real[:, None], trial, s["u"]))
             f_t = jnp.where(real, f_t, jnp.inf)
@@ -211,9 +214,9 @@ def _compiled(roi: int):
                 u=jnp.where(better[:, None], trial, s["u"]),
                 f=jnp.where(better, f_t, s["f"]),
                 g=jnp.where(better[:, None], g_t, s["g"]),
-                m=jnp.where(better[:, None, None], m_t, s["m"]),
+                m=jnp.where((better | verify)[:, None, None], m_t, s["m"]),
                 damping=damping,
-                previous=jnp.where(live, decrement, s["previous"]),
+                secant=jnp.where(better, keeps, s["secant"] & ~verify),
                 done=s["done"] | finished | stuck,
                 failed=s["failed"] | (stuck & ~flat),
                 code=code,

@@ -96,3 +96,32 @@ def test_the_fit_takes_fewer_evaluations_to_the_same_optimum(monkeypatch):
     fit = fit_mle(counts, model, laplace=False)
     assert fit["converged"].all()
     assert sum(evaluated) / len(counts) < 7.5
+
+
+def test_a_fit_converged_by_the_secant_metric_is_checked_with_fishers(monkeypatch):
+    # the secant's metric learns the curvature along the steps taken; a decrement below 1e-10
+    # by it alone declared 2 of these 1 000 dim fits converged whose decrement by the Fisher
+    # metric was up to 0.32. Such a ROI takes the Fisher metric where it stands, and is done
+    # only when that decrement is below 1e-10 too. Dim spots converge more often, and sooner,
+    # than by Fisher scoring alone (this stack: 979 and 34 evaluations per ROI; now 997 and 14)
+    scene = load_scene("emccd-typical").replace(emitter={"photons": 200.0})
+    model = Model.from_scene(scene)
+    counts, _ = simulate(scene, 1000, seed=21)
+    starts = start_values(model.to_photons(counts), model)
+    evaluated = []
+    evaluate = solver.evaluate
+
+    def counted(model, counts, p, need=None):
+        evaluated.append(len(p))
+        return evaluate(model, counts, p, need)
+
+    monkeypatch.setattr(solver, "evaluate", counted)
+    p, _, converged, _ = solver.maximise(model, counts, starts)
+    monkeypatch.undo()
+    assert converged.sum() >= 990 and sum(evaluated) / len(counts) < 20
+    low, high = solver.box(model.roi)
+    _, grad, metric = solver.evaluate(model, counts[converged], p[converged])
+    u = solver.to_internal(p[converged], model.pixel_size)
+    grad, metric = solver.freeze_bounds(u, grad, metric, low, high)
+    decrement = np.einsum("nk,nk->n", grad, np.linalg.solve(metric, grad[..., None])[..., 0])
+    assert decrement.max() < 1e-9
