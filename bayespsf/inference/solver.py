@@ -9,15 +9,11 @@ in the coordinates ``u = (x0/a, y0/a, log s_x/a, log s_y/a, log N, b)``, the ste
 shrinks tenfold, one that does not is refused and ``lambda`` grows tenfold. A ROI has
 converged when its Newton decrement ``g' M^-1 g`` falls below ``DECREMENT`` (the log-likelihood
 is within ~1e-10 of its maximum, a step far below one standard deviation). Fisher scoring
-converges linearly (emccd-typical: the decrement falls ~30-fold per step near the optimum, and
-a dim spot's fit can crawl for hundreds of steps), so once a ROI's decrement is below ``CHORD``
-its metric is not computed again: the metric it leaves is carried to the new point with the
-BFGS secant update (``secant``), which learns the log-likelihood's curvature from the exact
-gradients and converges superlinearly. A ROI whose decrement by the secant's metric falls below
-``DECREMENT`` takes the Fisher metric where it stands (no step) and has converged only when
-that decrement is below too. With the start's windowed moments (``estimators.start_values``),
-an emccd-typical ROI takes 6.7 evaluations instead of 9.7 at N = 1 000, and 14 instead of 34
-at N = 200, where more dim fits converge. All the arithmetic of
+converges linearly, so below a decrement of ``CHORD`` a ROI's metric is carried by the BFGS
+secant update (``secant``: superlinear, no information computed), and a ROI below
+``DECREMENT`` by the secant's metric converges only once the Fisher metric where it stands
+agrees (emccd-typical: 6.7 evaluations per ROI instead of 9.7 at N = 1 000, 14 instead of 34
+at N = 200; ``docs/decisions.md``). All the arithmetic of
 an iteration is one array pass over the active ROIs of a block: the stack's cost is a few dozen
 vectorised likelihood calls, not a Python loop per ROI. Each trial point is evaluated once,
 ``-log L`` with its gradient and metric (``evaluate``: one PSF pass, and one camera pass for
@@ -460,9 +456,8 @@ def _maximise_block(model, counts, starts, held):
 def secant(metric, step, change, xp=np):
     """BFGS update of ``metric`` (n, 6, 6) by a ``step`` (n, 6) and the gradient's ``change``
     over it (n, 6): the metric that maps the step to the change (Nocedal & Wright, Numerical
-    Optimization (2006), eq. 6.19), positive definite where ``metric`` is. A pair whose
-    curvature ``change . step`` is not positive (or not finite) leaves its metric as it is.
-    ``xp``: NumPy or ``jax.numpy`` (the JAX engine takes the same steps)."""
+    Optimization (2006), eq. 6.19), positive definite where ``metric`` is; a pair whose
+    curvature ``change . step`` is not positive leaves it as it is. ``xp``: NumPy or JAX."""
     ms = xp.einsum("nij,nj->ni", metric, step)
     sms = xp.einsum("ni,ni->n", step, ms)
     ys = xp.einsum("ni,ni->n", change, step)
