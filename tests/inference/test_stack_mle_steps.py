@@ -12,6 +12,19 @@ from bayespsf.inference import fit_mle, solver, start_values
 NAMES = list(PARAMETER_NAMES)
 
 
+def _counted_evaluations(monkeypatch) -> list:
+    """``solver.evaluate`` patched to record the ROIs of each call in the list returned."""
+    evaluated = []
+    evaluate = solver.evaluate
+
+    def counted(model, counts, p, need=None):
+        evaluated.append(len(p))
+        return evaluate(model, counts, p, need)
+
+    monkeypatch.setattr(solver, "evaluate", counted)
+    return evaluated
+
+
 def _positive_definite(rng, n):
     a = rng.normal(size=(n, 6, 6))
     return a @ a.transpose(0, 2, 1) + 6 * np.eye(6)
@@ -80,19 +93,12 @@ def test_the_windowed_start_is_near_the_fit_and_the_clipped_one_where_no_spot():
 def test_the_fit_takes_fewer_evaluations_to_the_same_optimum(monkeypatch):
     # evaluations per ROI (each one PSF and camera pass over a ROI), counted, not timed: the
     # clipped start with Fisher scoring to the end took 9.7 per emccd-typical ROI at N = 1 000;
-    # the windowed start with the secant steps takes 6.7 (either alone: ~8). The optimum is
-    # held to the scipy path in test_stack_mle.py
+    # the windowed start with the secant steps takes 6.7 (and one Fisher metric pass at the
+    # end, not counted). The optimum is held to the scipy path in test_stack_mle.py
     scene = load_scene("emccd-typical")
     model = Model.from_scene(scene)
     counts, _ = simulate(scene, 300, seed=5)
-    evaluated = []
-    evaluate = solver.evaluate
-
-    def counted(model, counts, p, need=None):
-        evaluated.append(len(p))
-        return evaluate(model, counts, p, need)
-
-    monkeypatch.setattr(solver, "evaluate", counted)
+    evaluated = _counted_evaluations(monkeypatch)
     fit = fit_mle(counts, model, laplace=False)
     assert fit["converged"].all()
     assert sum(evaluated) / len(counts) < 7.5
@@ -108,14 +114,7 @@ def test_a_fit_converged_by_the_secant_metric_is_checked_with_fishers(monkeypatc
     model = Model.from_scene(scene)
     counts, _ = simulate(scene, 1000, seed=21)
     starts = start_values(model.to_photons(counts), model)
-    evaluated = []
-    evaluate = solver.evaluate
-
-    def counted(model, counts, p, need=None):
-        evaluated.append(len(p))
-        return evaluate(model, counts, p, need)
-
-    monkeypatch.setattr(solver, "evaluate", counted)
+    evaluated = _counted_evaluations(monkeypatch)
     p, _, converged, _ = solver.maximise(model, counts, starts)
     monkeypatch.undo()
     assert converged.sum() >= 990 and sum(evaluated) / len(counts) < 20
