@@ -45,13 +45,19 @@ def load_or_compute(name: str, compute, shape: tuple[int, ...], mapped: bool = F
     compiled code that takes it)."""
     where = folder()
     path = None if where is None else where / f"{name}.npy"
-    if path is not None and path.exists():
+    # a folder whose files cannot be mapped (some network file systems) is read instead
+    for mode in ("r", None) if mapped else (None,):
+        if path is None or not path.exists():
+            break
         try:
-            array = np.load(path, mmap_mode="r" if mapped else None, allow_pickle=False)
-            if array.shape == shape:
-                return array
+            array = np.load(path, mmap_mode=mode, allow_pickle=False)
         except (OSError, ValueError, EOFError):  # damaged: computed and replaced below
-            pass
+            continue
+        if array.shape != shape:
+            break
+        if mapped:
+            array.flags.writeable = False
+        return array
     array = compute()
     if path is not None:
         _store(path, array)

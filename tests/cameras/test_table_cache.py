@@ -84,3 +84,20 @@ def test_a_mapped_array_is_shared_read_only_and_a_short_file_computed_again(cach
     out = _table_cache.load_or_compute("short", lambda: np.zeros(8), (8,), mapped=True)
     np.testing.assert_array_equal(out, np.zeros(8))
     assert not isinstance(out, np.memmap)
+
+
+def test_a_file_that_cannot_be_mapped_is_read_not_built_again(cache, monkeypatch):
+    # some file systems refuse memory maps: the cached file is then read (read-only all the
+    # same), not computed again and rewritten by every process
+    _table_cache.load_or_compute("thing", lambda: np.arange(4.0), (4,), mapped=True)
+    load = np.load
+
+    def no_maps(path, mmap_mode=None, **kwargs):
+        if mmap_mode is not None:
+            raise OSError("mmap not supported")
+        return load(path, **kwargs)
+
+    monkeypatch.setattr(np, "load", no_maps)
+    out = _table_cache.load_or_compute("thing", lambda: np.zeros(4), (4,), mapped=True)
+    np.testing.assert_array_equal(out, np.arange(4.0))
+    assert not out.flags.writeable and not isinstance(out, np.memmap)
