@@ -411,7 +411,7 @@ class EMCCD(Camera):
             Expected photoelectrons per pixel ``lam``, finite and >= 0.
         method : {"exact", "excess-noise"}, optional
             ``"exact"``: ``E[(d log p / d lam)^2]`` of the true law, by quadrature, tabulated
-            once per ``readout_sd / gain`` (a few seconds; ~1e-6 relative).
+            once per ``readout_sd / gain`` (a few seconds; within 5e-6 relative).
             ``"excess-noise"``: the shortcut ``1 / (2 lam + (readout_sd / gain)^2)``.
 
         Returns

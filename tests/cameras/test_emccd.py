@@ -232,6 +232,17 @@ class TestFisherInformation:
         direct = _emccd_fisher.fisher_times_lam(lam, 0.15) / lam
         assert np.allclose(cam.fisher_information(lam), direct, rtol=1e-5)
 
+    @pytest.mark.parametrize("r, bound", [(0.0, 5e-6), (0.25, 1e-6)])
+    def test_spline_within_its_stated_error(self, r, bound):
+        # the module's stated interpolation error, at the midpoint of every interval of the
+        # grid (where a cubic spline is farthest from its knots), against the quadrature
+        from bayespsf.cameras import _emccd_fisher
+
+        knots = _emccd_fisher._table(r).x
+        lam = 10.0 ** (0.5 * (knots[1:] + knots[:-1]))
+        direct = _emccd_fisher.fisher_times_lam(lam, r) / lam
+        assert np.max(np.abs(_emccd_fisher.fisher_information(lam, r) / direct - 1)) < bound
+
     def test_against_monte_carlo_score(self):
         # I = E[score^2] and E[score] = 0, with the score by central differences of the
         # likelihood itself; 4 Monte Carlo standard errors
