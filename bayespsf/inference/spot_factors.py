@@ -27,6 +27,7 @@ import numpy as np
 from scipy import special
 
 from bayespsf.inference.chebyshev import AT_CHECKS, DEGREE, POINTS, TO_COEFFICIENTS, clenshaw, terms
+from bayespsf.psf.gaussian import pixel_mass
 
 TOLERANCE = 1e-9  # the largest |interpolant - log Q| at the check points
 NEAR = 1.0  # an edge's range may reach this many widths across the centre
@@ -102,18 +103,8 @@ def _direct(centre, width, roi, a, sampled, out):
         for j in range(roi):
             far = ((j + 1.0 - 0.5 * roi) * a - c) / w
             far_tail = 0.5 * math.erfc(abs(far) * _INV_SQRT2)
-            out[j, d] = _mass(near, far, near_tail, far_tail)
+            out[j, d] = pixel_mass(near, far, near_tail, far_tail)
             near, near_tail = far, far_tail
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _mass(near, far, near_tail, far_tail):
-    """A pixel's mass from its edges ``near < far`` and the tails beyond them, ``Q(|z|)``."""
-    if near >= 0.0:
-        return near_tail - far_tail
-    if far <= 0.0:
-        return far_tail - near_tail
-    return 1.0 - near_tail - far_tail
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
@@ -167,7 +158,7 @@ def _masses(centre, scale, roi, a, starts, usable, upper, tail, out):
             near_tail, far_tail, mass = tail[j, first:last], tail[j + 1, first:last], out[j]
             for d in range(last - first):
                 near, far = (near_edge - c[d]) * v[d], (far_edge - c[d]) * v[d]
-                mass[first + d] = _mass(near, far, near_tail[d], far_tail[d])
+                mass[first + d] = pixel_mass(near, far, near_tail[d], far_tail[d])
 
 
 __all__ = ["NEAR", "TOLERANCE", "factors"]

@@ -150,8 +150,8 @@ def test_far_tail_pixels_relative_accuracy(axis):
     want = mp_expected_counts(params, TAIL_ROI, TAIL_A)
     # Pixels 10, 20 and 30 sigma away hold 1e-23 ... 1e-198 of the mass relative to their
     # neighbours: a difference of erf values would give 0 (or noise) here. Tolerance 1e-10:
-    # log_ndtr is accurate to ~1e-16 in absolute log terms (relative ~|log| eps ~ 5e-14 at
-    # z = 30) and edge rounding adds ~z**2 eps ~ 1e-13; 1e-10 keeps a safe margin.
+    # erfc keeps ~1e-15 relative precision at any z until it underflows (z ~ 38), and edge
+    # rounding adds ~z**2 eps ~ 1e-13; 1e-10 keeps a safe margin.
     assert np.all(want > 0)
     assert np.all(got > 0)
     assert_allclose(got, want, rtol=1e-10, atol=0)
