@@ -112,7 +112,11 @@ def fisher_information(lam, r: float) -> np.ndarray:
     spline = _table(float(r))
     flat = np.ascontiguousarray(lam).ravel()
     out = np.empty(flat.shape)
-    if _evaluate(flat, spline.x, spline.c, out):
+    with np.errstate(divide="ignore"):  # log10(0) = -inf: I(0) = inf, set by _evaluate
+        misses = _evaluate(flat, np.log10(flat), spline.x, spline.c, out)
+    np.exp(out, out=out)  # NumPy's exp and log10 are vectorised; the C library's are not
+    out /= flat
+    if misses:
         above = flat > 10.0**GRID_LOG10_MAX
         v = 2.0 * flat[above] + r * r
         out[above] = 1.0 / v + 2.0 / (v * v)
@@ -122,30 +126,31 @@ def fisher_information(lam, r: float) -> np.ndarray:
     return out.reshape(lam.shape)
 
 
-@numba.njit(cache=True, nogil=True)
-def _evaluate(lam, knots, c, out):
-    """``exp(spline(log10 lam)) / lam`` per pixel (the piecewise cubic of ``_table``, its
-    coefficients ``c`` (4, knots - 1)), ``inf`` where ``lam`` is not positive; NaN, counted,
-    off the grid. A compiled loop: the spline's own evaluation with the logarithm, the
-    exponential and the masks around it cost ~3x more per pixel."""
+@numba.njit(cache=True, nogil=True, fastmath={"contract"})
+def _evaluate(lam, x, knots, c, out):
+    """The spline of ``_table`` (its coefficients ``c`` (4, knots - 1)) at ``x = log10 lam``
+    per pixel, ``log(lam I)``, into ``out``; ``inf`` where ``lam`` is not positive; NaN,
+    counted, off the grid. The caller takes ``log10`` and ``exp`` in NumPy, whose vectorised
+    loops make the whole 4x faster than the same in this loop (5 against 21 ns per pixel on
+    a 2-core x86_64)."""
+    first, end = knots[0], knots[-1]
     last = knots.size - 2
-    step = (knots[-1] - knots[0]) / (last + 1)
+    per_step = (last + 1) / (end - first)
     misses = 0
     for k in range(lam.size):
-        value = lam[k]
-        if not value > 0.0:
+        if not lam[k] > 0.0:
             out[k] = np.inf
             continue
-        x = np.log10(value)
-        if not knots[0] <= x <= knots[-1]:
+        value = x[k]
+        if not first <= value <= end:
             out[k] = np.nan
             misses += 1
             continue
-        i = min(int((x - knots[0]) / step), last)
-        if x < knots[i]:  # rounding: the interval whose knots bracket x, as the spline's search
+        i = min(int((value - first) * per_step), last)
+        if value < knots[i]:  # rounding: the interval whose knots bracket x, as the spline's search
             i -= 1
-        elif i < last and x >= knots[i + 1]:
+        elif i < last and value >= knots[i + 1]:
             i += 1
-        d = x - knots[i]
-        out[k] = np.exp(((c[0, i] * d + c[1, i]) * d + c[2, i]) * d + c[3, i]) / value
+        d = value - knots[i]
+        out[k] = ((c[0, i] * d + c[1, i]) * d + c[2, i]) * d + c[3, i]
     return misses
