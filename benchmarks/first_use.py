@@ -6,7 +6,9 @@ Fisher-information spline (``_emccd_fisher.py``) of a new readout/gain ratio are
 quadrature on the machine's first use of it, then kept in the on-disk cache
 (``_table_cache``). Every row is a fresh process (``python -c``) with ``BAYESPSF_CACHE`` set to
 a temporary folder: empty for a first use, filled by that first use for a warm run. The
-process imports bayespsf, simulates one ``emccd-typical`` ROI (readout/gain 0.25), builds its
+process imports bayespsf, reads one ``emccd-typical`` ROI (readout/gain 0.25) and its parameters,
+simulated by this script (so that, as in a user's first analysis of data, nothing has been
+compiled before the timed calls: the first of them loads numba's compiled loops), builds its
 model, evaluates ``Model.log_likelihood`` (the likelihood table) and then
 ``camera.fisher_information`` of the ROI's expected photons (the Fisher spline), each step
 timed; its peak resident memory is read after the imports and at the end: ``VmHWM`` of
@@ -30,6 +32,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 from _report import publish_table, quick_run
 
@@ -37,6 +40,7 @@ CHILD = """
 import json, resource, sys, time
 
 started = time.perf_counter()
+import numpy as np
 import bayespsf
 from bayespsf.cameras import _emccd_law
 
@@ -55,11 +59,11 @@ def peak_mib():
 
 imported = time.perf_counter()
 after_imports = peak_mib()
-if len(sys.argv) > 1:
-    _emccd_law._BLOCK = int(sys.argv[1])
+if len(sys.argv) > 2:
+    _emccd_law._BLOCK = int(sys.argv[2])
 scene = bayespsf.load_scene("emccd-typical")
-counts, truth = bayespsf.simulate(scene, 1, seed=1)
-params = truth.to_numpy()
+with np.load(sys.argv[1]) as roi:
+    counts, params = roi["counts"], roi["params"]
 began = time.perf_counter()
 model = bayespsf.Model.from_scene(scene)
 model.log_likelihood(counts, params)
@@ -81,12 +85,22 @@ def _megabytes(folder: Path) -> float:
     return sum(f.stat().st_size for f in folder.glob("*.npy")) / 1e6
 
 
-def process(cache: Path, block: int | None = None) -> dict:
-    """One fresh process's times and peak memory, with ``BAYESPSF_CACHE=cache``, and the size
-    of the cache's tables before and after it (MB)."""
+def write_roi(folder: Path) -> Path:
+    """One simulated ``emccd-typical`` ROI and its true parameters, as ``folder/roi.npz``."""
+    import bayespsf
+
+    counts, truth = bayespsf.simulate(bayespsf.load_scene("emccd-typical"), 1, seed=1)
+    np.savez(folder / "roi.npz", counts=counts, params=truth.to_numpy())
+    return folder / "roi.npz"
+
+
+def process(cache: Path, roi: Path, block: int | None = None) -> dict:
+    """One fresh process's times and peak memory, with ``BAYESPSF_CACHE=cache`` and the ROI
+    file ``roi`` (``write_roi``), and the size of the cache's tables before and after it
+    (MB)."""
     before = _megabytes(cache)
     env = {**os.environ, "BAYESPSF_CACHE": str(cache)}
-    command = [sys.executable, "-c", CHILD, *([] if block is None else [str(block)])]
+    command = [sys.executable, "-c", CHILD, str(roi), *([] if block is None else [str(block)])]
     out = subprocess.run(command, env=env, capture_output=True, text=True, check=True).stdout
     return {
         **json.loads(out.splitlines()[-1]),
@@ -101,17 +115,19 @@ def run(quick: bool) -> pd.DataFrame:
     processes."""
     repeats = 1 if quick else 3
     results: dict[str, list[dict]] = {"first use (empty cache)": [], "warm (cache filled)": []}
-    for _ in range(repeats):
-        with tempfile.TemporaryDirectory() as folder:
-            cache = Path(folder)
-            results["first use (empty cache)"].append(process(cache))
-            results["warm (cache filled)"].append(process(cache))
-    if not quick:
-        name = "first use, quadrature in one pass (no blocks)"
-        results[name] = []
+    with tempfile.TemporaryDirectory() as data:
+        roi = write_roi(Path(data))
         for _ in range(repeats):
             with tempfile.TemporaryDirectory() as folder:
-                results[name].append(process(Path(folder), ONE_PASS))
+                cache = Path(folder)
+                results["first use (empty cache)"].append(process(cache, roi))
+                results["warm (cache filled)"].append(process(cache, roi))
+        if not quick:
+            name = "first use, quadrature in one pass (no blocks)"
+            results[name] = []
+            for _ in range(repeats):
+                with tempfile.TemporaryDirectory() as folder:
+                    results[name].append(process(Path(folder), roi, ONE_PASS))
     rows = []
     for name, runs in results.items():
         frame = pd.DataFrame(runs)
