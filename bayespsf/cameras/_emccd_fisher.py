@@ -6,7 +6,7 @@ In gain units (``t = electrons / gain``, ``r = readout_sd / gain``) the law depe
 excess-noise factor F^2 = 2); its logarithm, splined on a grid of 10 points per decade of lam,
 interpolates to < 5e-6 relative: worst near lam = 3 with little readout, < 1e-6 for
 readout/gain >= 0.25 (measured at the quarter points of every interval for readout/gain from 0
-to 10; a test holds it). Above the grid
+to 10; a test holds it at the midpoints). Above the grid
 (lam > 1e6) the law is Gaussian with mean lam and variance ``v = 2 lam + r^2`` to within its
 skewness, and the Fisher information of ``Normal(lam, v(lam))``, ``1/v + 2/v^2`` (Kay,
 Fundamentals of Statistical Signal Processing I (1993), eq. 3.31), is used: measured against the
@@ -131,8 +131,9 @@ def _evaluate(lam, x, knots, c, out):
     """The spline of ``_table`` (its coefficients ``c`` (4, knots - 1)) at ``x = log10 lam``
     per pixel, ``log(lam I)``, into ``out``; ``inf`` where ``lam`` is not positive; NaN,
     counted, off the grid. The caller takes ``log10`` and ``exp`` in NumPy, whose vectorised
-    loops make the whole 4x faster than the same in this loop (5 against 21 ns per pixel on
-    a 2-core x86_64)."""
+    loops make ``fisher_information`` 1.7x faster than with both in this loop (12 against 21
+    ns per pixel over 450 000 pixels on a 2-core x86_64; the loop, ``log10`` and ``exp``
+    themselves ~5, the rest the call's fresh arrays)."""
     first, end = knots[0], knots[-1]
     last = knots.size - 2
     per_step = (last + 1) / (end - first)
