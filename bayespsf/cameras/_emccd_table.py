@@ -113,12 +113,12 @@ class Table:
         lam = np.broadcast_to(lam, t.shape)
         return log_density(t.ravel(), lam.ravel(), self.r).reshape(t.shape)
 
-    def log_p(self, t: np.ndarray, lam: np.ndarray, score: np.ndarray | None = None):
+    def log_p(self, t: np.ndarray, lam: np.ndarray, score=None, curve=None):
         """``log p(t | lam)`` for 1-D ``t`` and ``lam > 0``: interpolated, exact outside.
 
         With ``score`` (an array like ``t``), also fills it with ``d log p / d lam`` of the
         interpolant, from the same patches in the same pass; NaN off the grids (where ``log p``
-        is the exact quadrature).
+        is the exact quadrature); with ``curve`` as well, the second derivative (``_interpolate``).
         """
         out = np.empty(t.shape)
         misses = _interpolate(
@@ -135,6 +135,7 @@ class Table:
             self.r,
             out,
             score,
+            curve,
         )
         if misses:
             outside = np.isnan(out)
@@ -144,7 +145,7 @@ class Table:
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"})
 def _interpolate(
-    t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset, r, out, score=None
+    t, lam, coef, xi0, n_xi, eta0, n_eta, tau0, n_tau, near_offset, r, out, score=None, curve=None
 ):
     """Bicubic patch evaluation, one pixel at a time; NaN (and a count) for off-grid points.
 
@@ -153,7 +154,10 @@ def _interpolate(
     (``tau``, or ``eta = v(t) - sqrt(lam)`` in the bulk), ``d/dlam = P_a / (lam XI_STEP) +
     (2 eta - P_s / ETA_STEP) / (2 sqrt(lam))`` in the bulk (``P_s`` term absent near the
     offset, where ``tau`` does not depend on lam). The patches are C1 across cells, so this is
-    continuous; it is NaN where ``out`` is.
+    continuous; it is NaN where ``out`` is. With ``curve`` too, the second derivative by lam
+    within the cell (the patches are C1, so it jumps across cells): the chain rule through
+    ``a`` (``a' = 1 / (lam XI_STEP)``) and, in the bulk, ``s`` (``s' = -1 / (2 sqrt(lam)
+    ETA_STEP)``), and ``-eta**2``'s ``-1 / (2 lam) - eta / (2 lam**1.5)``.
 
     A compiled loop: in NumPy the same arithmetic on 7 200 pixels is ~2.4x slower (16
     strided column passes; measured in benchmarks/README.md). The Horner chains are
@@ -186,6 +190,8 @@ def _interpolate(
             out[k] = np.nan
             if score is not None:
                 score[k] = np.nan
+            if curve is not None:
+                curve[k] = np.nan
             misses += 1
             continue
         i = int(row)
@@ -211,6 +217,22 @@ def _interpolate(
                 d3 = c[13] + s * (2.0 * c[14] + 3.0 * s * c[15])
                 d_col = d0 + a * (d1 + a * (d2 + a * d3))
                 score[k] = d_row + (eta - (0.5 * inv_eta) * d_col) * inv_root
+            if curve is not None:
+                a1 = inv_lam * inv_xi  # da/dlam; d2a/dlam2 = -a1 / lam
+                curve[k] = (
+                    (2.0 * q2 + 6.0 * a * q3) * a1 * a1
+                    - d_row * inv_lam
+                    - 0.5 * inv_lam * (1.0 + eta * inv_root)
+                )
+                if not near:
+                    s1 = -0.5 * inv_eta * inv_root  # ds/dlam; d2s/dlam2 = -s1 / (2 lam)
+                    d_as = d1 + a * (2.0 * d2 + 3.0 * a * d3)
+                    e0 = 2.0 * c[2] + 6.0 * s * c[3]
+                    e1 = 2.0 * c[6] + 6.0 * s * c[7]
+                    e2 = 2.0 * c[10] + 6.0 * s * c[11]
+                    e3 = 2.0 * c[14] + 6.0 * s * c[15]
+                    d_ss = e0 + a * (e1 + a * (e2 + a * e3))
+                    curve[k] += (2.0 * d_as * a1 + d_ss * s1 - 0.5 * d_col * inv_lam) * s1
     return misses
 
 
@@ -263,34 +285,42 @@ def log_table(t, lam, r):
     return _log_table(t, lam, r, None)
 
 
-def log_and_score_table(t, lam, r):
+def log_and_score_table(t, lam, r, curvature: bool = False):
     """``log_table`` and its derivative by lam where it interpolates (``R_MIN <= r <= R_MAX``,
     ``lam >= LAM_MIN``, the point on a grid): the patches' exact derivative, from the same
     compiled pass as the log density. The score is NaN elsewhere (quadrature, the small-lam
     expansion, the readout alone at ``lam == 0``), where the caller differentiates
-    ``log_table`` numerically."""
+    ``log_table`` numerically. With ``curvature``, also the second derivative by lam of the
+    interpolant within its cell, from the same pass (NaN where the score is):
+    ``(log p, score, curvature)``."""
     t, lam = np.broadcast_arrays(np.asarray(t, float), np.asarray(lam, float))
     score = np.full(t.shape, np.nan)
-    return _log_table(t, lam, r, score), score
+    curve = np.full(t.shape, np.nan) if curvature else None
+    log_p = _log_table(t, lam, r, score, curve)
+    return (log_p, score, curve) if curvature else (log_p, score)
 
 
-def _log_table(t, lam, r, score):
-    """``log_table``, filling ``score`` (an array of the broadcast shape, or None) where the
-    table interpolates."""
+def _log_table(t, lam, r, score, curve=None):
+    """``log_table``, filling ``score`` and ``curve`` (arrays of the broadcast shape, or
+    None) where the table interpolates."""
     if not R_MIN <= r <= R_MAX:
         return law.log_exact(t, lam, r)
     t, lam = np.broadcast_arrays(np.asarray(t, float), np.asarray(lam, float))
     shape = t.shape
     t, lam = np.ascontiguousarray(t).ravel(), np.ascontiguousarray(lam).ravel()
-    flat = None if score is None else score.reshape(-1)  # a view: filled in place
+    flat = None if score is None else score.reshape(-1)  # views: filled in place
+    flat_curve = None if curve is None else curve.reshape(-1)
     on_grid = lam >= LAM_MIN
     if on_grid.all():
-        return table_for(float(r)).log_p(t, lam, flat).reshape(shape)
+        return table_for(float(r)).log_p(t, lam, flat, flat_curve).reshape(shape)
     out = -lam + law.log_normal_pdf(t, r)  # lam == 0: readout noise only
     part = None if score is None else np.empty(int(on_grid.sum()))
-    out[on_grid] = table_for(float(r)).log_p(t[on_grid], lam[on_grid], part)
+    part_curve = None if curve is None else np.empty(int(on_grid.sum()))
+    out[on_grid] = table_for(float(r)).log_p(t[on_grid], lam[on_grid], part, part_curve)
     if score is not None:
         flat[on_grid] = part
+    if curve is not None:
+        flat_curve[on_grid] = part_curve
     # below the grid: closed form, not quadrature (a pixel far from a spot without background)
     below = (lam > 0) & ~on_grid
     tiny = below & (lam * (np.abs(t) + r) <= SMALL_LAM_REACH)

@@ -173,6 +173,17 @@ class Camera(ABC):
         (the stack MLE); cameras that can share work between the two override it."""
         return self._log_likelihood(counts, expected), self._score(counts, expected)
 
+    def _score_and_curvature(self, counts: np.ndarray, expected: np.ndarray):
+        """``_score`` and its derivative by lam, the law's curvature (the observed
+        information's): a central difference of the score, ``1e-4 max(lam, 1)`` each way
+        (forward where that would go below 0; near ``lam = 0``, no background, a secant over
+        1e-4 photons, where the law's tangent curvature is unbounded). Cameras with it in
+        closed form override."""
+        step = 1e-4 * np.maximum(expected, 1.0)
+        low, high = np.maximum(expected - step, 0.0), expected + step
+        curvature = (self._score(counts, high) - self._score(counts, low)) / (high - low)
+        return self._score(counts, expected), curvature
+
     def _step_information(self, expected: np.ndarray) -> np.ndarray:
         """Per-pixel information that steers an optimiser's steps (the stack MLE's metric),
         where only its scale and shape matter, not its last digits: the Fisher information

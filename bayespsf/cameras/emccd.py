@@ -36,29 +36,13 @@ The atom without readout: with ``readout_sd = 0`` the law puts probability ``exp
 measure plus a unit point mass at the offset: at the offset it returns ``-lam`` (the log mass),
 elsewhere the log density in ADU; below the offset ``-inf``.
 
-Numerical domain (written down here and in docs/cameras.md, "Numerical domain"; outside it
-``BayespsfInputError`` names the limit, except ``expected`` above ``MAX_EXPECTED`` for the
-closed-form tiers, which compute it untested):
-
-* ``gain >= 1`` (finite), ``e_per_adu > 0``, ``offset`` finite;
-* ``readout_sd = 0`` or ``RATIO_MIN <= readout_sd / gain <= RATIO_MAX`` (1e-12 to 1e6;
-  physical cameras have 1e-4 to 300);
-* ``expected`` in ``[0, MAX_EXPECTED]`` photons per pixel (1e10);
-* ``counts`` finite with ``|counts - offset| * e_per_adu / gain <= MAX_GAIN_UNITS`` (1e15
-  electrons per gain step).
-
-There every tier's ``log_likelihood`` is finite, or ``-inf`` exactly outside the tier's support:
-below the offset without readout (``exact``, ``table``, ``high-gain``) or for the ``poisson``
-tier; above the offset with ``expected == 0`` and no readout (all mass at the offset; the
-``poisson`` tier at any readout); off ``counts == offset`` for the ``gaussian`` tier with
-``expected == 0`` and no readout; and for the ``gaussian`` tier without readout where its log
-density is below -1.8e308 (``expected`` < ~1e-278). ``score`` is finite wherever
-``log_likelihood`` is and ``expected >= 1e-100`` (at ``expected == 0`` it is the one-sided
-derivative, ``+inf`` where the count is impossible without photons, NaN for the ``gaussian``
-tier's atom without readout). No operation warns. tests/cameras/test_camera_domain.py checks all of
-it. Where ``readout_sd / gain`` is so small that the readout cannot change ``log p`` at double
-precision the ``exact`` tier is the closed form, with the error bound of
-``_emccd_law.readout_negligible``.
+Numerical domain: ``gain >= 1``; ``readout_sd = 0`` or ``RATIO_MIN <= readout_sd / gain <=
+RATIO_MAX``; ``expected`` in ``[0, MAX_EXPECTED]``; ``|counts - offset| e_per_adu / gain <=
+MAX_GAIN_UNITS``. There every tier's ``log_likelihood`` is finite, or ``-inf`` exactly outside
+the tier's support, and no operation warns; outside it ``BayespsfInputError`` names the limit.
+docs/cameras.md ("Numerical domain") lists the supports, the score's limits and where the
+``exact`` tier takes the readout-free closed form; tests/cameras/test_camera_domain.py checks
+all of it.
 """
 
 from __future__ import annotations
@@ -394,6 +378,22 @@ class EMCCD(Camera):
             c, lam = np.broadcast_arrays(np.asarray(counts, float), expected)
             score[missing] = super()._score(c[missing], lam[missing])
         return log_p + self._log_jacobian, score
+
+    def _score_and_curvature(self, counts, expected):
+        """The ``table`` tier with readout: both from the interpolant in one compiled pass
+        (``_emccd_table.log_and_score_table``) where ``lam >= 1``; below, where the base
+        class's secant stands in for an unbounded tangent, and off the table, the base's."""
+        r = self.readout_in_gain_units
+        if self.likelihood != "table" or r == 0:
+            return super()._score_and_curvature(counts, expected)
+        c, lam = np.broadcast_arrays(np.asarray(counts, float), np.asarray(expected, float))
+        _, score, curvature = _emccd_table.log_and_score_table(self.gain_units(c), lam, r, True)
+        missing = np.isnan(curvature) | (lam < 1.0)
+        if missing.any():
+            score[missing], curvature[missing] = super()._score_and_curvature(
+                c[missing], lam[missing]
+            )
+        return score, curvature
 
     def _variance(self, expected):
         """``(2 lam G^2 + readout_sd^2) / e_per_adu^2`` (ADU^2)."""

@@ -282,15 +282,11 @@ def observed_information(model, counts, p):
     """The Hessian of ``-log L`` in the parameters, (n, 6, 6): over the pixels, the law's
     curvature in the expected count times ``J J'``, minus its score times the expected
     count's second derivatives (from the spot's 1-D factors and their curvatures,
-    ``psf.gaussian.axis_curvature``; analytic). The law's curvature is a central difference
-    of its score, ``1e-4 max(lam, 1)`` each way (forward where that would go below 0): near
-    ``lam = 0`` (no background) a secant over 1e-4 photons, as steps of the background give,
-    where the law's tangent curvature is unbounded."""
+    ``psf.gaussian.axis_curvature``; analytic). The law's score and curvature come from
+    ``camera._score_and_curvature``: in closed form where the camera has it (the EMCCD table
+    tier's interpolant), else the curvature a central difference of the score."""
     lam, x, y = _expected_and_factors(model, p)
-    camera = model.camera
-    step = 1e-4 * np.maximum(lam, 1.0)  # at least the 1e-4 photons of the old b step
-    low, high = np.maximum(lam - step, 0.0), lam + step
-    curvature = (camera._score(counts, high) - camera._score(counts, low)) / (high - low)
+    score, curvature = model.camera._score_and_curvature(counts, lam)
     xc = axis_curvature(p[:, 0], p[:, 2], model.roi, model.pixel_size, model.pixel_model)
     yc = axis_curvature(p[:, 1], p[:, 3], model.roi, model.pixel_size, model.pixel_model)
     hessian = np.empty((len(p), 6, 6))
@@ -301,7 +297,7 @@ def observed_information(model, counts, p):
         np.ascontiguousarray(yc),
         np.ascontiguousarray(p[:, 4], dtype=np.float64),
         float(model.photoelectrons_per_photon),
-        np.ascontiguousarray(camera._score(counts, lam), dtype=np.float64),
+        np.ascontiguousarray(score, dtype=np.float64),
         np.ascontiguousarray(curvature, dtype=np.float64),
         hessian,
     )

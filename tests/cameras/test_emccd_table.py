@@ -132,3 +132,48 @@ def test_score_off_the_grids_is_differences_of_the_tier():
     lam = np.array([0.0, 1e-7, 5.0, 2e5])
     counts = np.array([off + 3.0, off + 10.0, off + 200.0 * g, off + 2e5 * g])
     assert np.array_equal(cam.score(counts, lam), Camera._score(cam, counts, lam))
+
+
+@pytest.mark.parametrize("params", REALISTIC, ids=lambda p: f"G{p['gain']:g}-s{p['readout_sd']:g}")
+def test_curvature_is_the_second_derivative_of_the_interpolant(params):
+    # the curvature of the one pass (the observed information's, used where lam >= 1) against
+    # central differences of the interpolant's own score, step 1e-6 lam: within a cell both
+    # are the patch's second derivative (truncation ~1e-12 relative; rounding: the score's
+    # terms, up to 1 / (lam XI_STEP) = 20 / lam, times 1e-16 over the step, ~2e-9 / lam**2);
+    # a step straddling a cell boundary sees the jump of a C1 patch's second derivative, so
+    # one pixel in ~1e4 may differ there. Near and bulk grids both covered.
+    cam = EMCCD(**params, likelihood="table")
+    rng = np.random.default_rng(6)
+    lam = 10 ** rng.uniform(0, 4.5, 20_000)
+    t = cam.gain_units(cam.sample(lam, rng))
+    r = cam.readout_in_gain_units
+    _, score, curvature = table.log_and_score_table(t, lam, r, curvature=True)
+    np.testing.assert_array_equal(np.isnan(curvature), np.isnan(score))
+    h = 1e-6 * lam
+    up = table.log_and_score_table(t, lam + h, r)[1]
+    down = table.log_and_score_table(t, lam - h, r)[1]
+    differences = (up - down) / (2 * h)
+    scale = np.abs(differences) + np.abs(score) / lam
+    off = np.abs(curvature - differences) > 1e-6 * scale
+    assert np.isfinite(curvature).mean() > 0.99
+    assert off.sum() <= 2, np.c_[t[off], lam[off], curvature[off], differences[off]][:5]
+
+
+def test_the_observed_information_takes_the_curvature_where_lam_is_at_least_one():
+    # EMCCD._score_and_curvature: the interpolant's where lam >= 1 (within 1e-6 of the base
+    # class's central differences of the score there, whose step 1e-4 lam gives ~1e-8), the
+    # base class's secant below (b = 0: the law's tangent curvature at lam -> 0 is unbounded)
+    from bayespsf.cameras import Camera
+
+    params = REALISTIC[1]
+    cam = EMCCD(**params, likelihood="table")
+    rng = np.random.default_rng(7)
+    lam = np.concatenate([10 ** rng.uniform(0, 4, 2000), 10 ** rng.uniform(-8, -0.01, 200)])
+    counts = cam.sample(lam, rng)
+    score, curvature = cam._score_and_curvature(counts, lam)
+    base_score, base_curvature = Camera._score_and_curvature(cam, counts, lam)
+    low = lam < 1
+    np.testing.assert_array_equal(curvature[low], base_curvature[low])
+    np.testing.assert_allclose(score, base_score, rtol=1e-12, atol=1e-12)
+    scale = np.abs(base_curvature) + np.abs(score) / lam
+    assert np.all(np.abs(curvature - base_curvature)[~low] < 1e-6 * scale[~low])
