@@ -16,7 +16,8 @@ stores the 16 power-basis coefficients of a bicubic Hermite patch, with derivati
 splines along each axis. Interpolation costs one read of 16 contiguous numbers and ~40
 arithmetic operations per pixel, with no special function, in a compiled (numba) loop. The
 same pass can return the interpolant's exact derivative by lam (the score the MLE needs,
-``log_and_score_table``), so a fit reads each pixel's patch once per iteration.
+``log_and_score_table``), so a fit reads each pixel's patch once per iteration, and its second
+derivative within the cell (the law's curvature in the Laplace's observed information).
 
 Below LAM_MIN the law's second-order expansion in lam is used (``_emccd_law.log_small_lam``,
 closed form; a spot without background has pixels there) where its neglected third-order term,
