@@ -251,7 +251,9 @@ print(imported - started, time.perf_counter() - began)
 def cold_start(quick: bool = False) -> pd.DataFrame:
     """The first fit of a new process (emccd-typical, table tier): on a machine without the
     EMCCD tables (they are built) and then in a second process (they are read from the on-disk
-    cache); imports timed apart. ``quick``: only a process reading this machine's own cache,
+    cache); imports timed apart. Each process reads its ROI from a file this one wrote, so that
+    nothing is compiled before the timed fit (the simulator runs a compiled loop), as in a
+    user's first fit of data. ``quick``: only a process reading this machine's own cache,
     which this process's fits have filled (building the tables takes ~15 s)."""
     import subprocess
     import sys
