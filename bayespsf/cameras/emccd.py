@@ -380,14 +380,15 @@ class EMCCD(Camera):
         return log_p + self._log_jacobian, score
 
     def _score_and_curvature(self, counts, expected):
-        """The ``table`` tier with readout: both from the interpolant in one compiled pass
-        (``_emccd_table.log_and_score_table``) where ``lam >= 1``; below, where the base
-        class's secant stands in for an unbounded tangent, and off the table, the base's."""
+        """The ``table`` tier with readout: both from the interpolant in one compiled pass where
+        ``lam >= 1``; below (the base class's differences over 1e-4 photons, a secant where the
+        tangent is unbounded) and off the table, the base class's."""
         r = self.readout_in_gain_units
         if self.likelihood != "table" or r == 0:
             return super()._score_and_curvature(counts, expected)
         c, lam = np.broadcast_arrays(np.asarray(counts, float), np.asarray(expected, float))
-        _, score, curvature = _emccd_table.log_and_score_table(self.gain_units(c), lam, r, True)
+        t = self.gain_units(c)
+        _, score, curvature = _emccd_table.log_and_score_table(t, lam, r, curvature=True)
         missing = np.isnan(curvature) | (lam < 1.0)
         if missing.any():
             score[missing], curvature[missing] = super()._score_and_curvature(
