@@ -20,8 +20,8 @@ vectorised likelihood calls, not a Python loop per ROI. Each trial point is eval
 the log-likelihood and the score together), and a ROI keeps those of the point it stands on, so
 a step costs one evaluation whether it is taken or refused. The Jacobian is never formed as
 ``(n, 6, roi, roi)`` images: the spot is separable, so its rows are outer products of 1-D
-factors (``psf.gaussian.axis_factors``), and one compiled loop (``_reduce_pixels``) forms
-``J' score`` and ``J' diag(F) J`` pixel by pixel from them.
+factors (``psf.gaussian.axis_factors``), and compiled loops (``inference.separable``) form
+the expected counts, ``J' score`` and ``J' diag(F) J`` from them a pixel row at a time.
 
 The box, the flags and the Laplace SDs are those of ``bayespsf.fit_mle`` (same search box, same
 observed information by differences of the analytic gradient), so the two paths give the same
@@ -33,6 +33,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from bayespsf.inference.separable import expected_counts, jacobian_sums
 from bayespsf.psf.gaussian import axis_curvature, axis_factor, axis_factors
 
 DECREMENT = 1e-10  # Newton decrement (in log-likelihood units) below which a ROI has converged
@@ -135,8 +136,16 @@ def _expected_and_factors(model, p, x=None, y=None):
             p[:, centre], p[:, width], model.roi, model.pixel_size, model.pixel_model
         )
         x, y = (made, y) if x is None else (x, made)
-    n_py = p[:, 4][:, None, None] * y[:, 0, :, None]
-    return model._detected(n_py * x[:, 0, None, :] + p[:, 5][:, None, None]), x, y
+    lam = expected_counts(
+        x[:, 0],
+        y[:, 0],
+        p[:, 4],
+        p[:, 5],
+        model.photoelectrons_per_photon,
+        model.clock_induced_charge,
+        np.empty((len(p), model.roi, model.roi)),
+    )
+    return lam, x, y
 
 
 def _reduce(model, p, x, y, score, fisher=None, need=None):
@@ -149,7 +158,7 @@ def _reduce(model, p, x, y, score, fisher=None, need=None):
     metric = np.zeros((n, 6, 6) if fisher is not None else (0, 6, 6))
     fisher = np.empty((0, 1, 1)) if fisher is None else np.ascontiguousarray(fisher, np.float64)
     need = np.ones(len(metric), dtype=bool) if need is None else np.asarray(need, dtype=bool)
-    _reduce_pixels(
+    jacobian_sums(
         np.ascontiguousarray(x),
         np.ascontiguousarray(y),
         np.ascontiguousarray(p[:, 4], dtype=np.float64),
@@ -161,51 +170,6 @@ def _reduce(model, p, x, y, score, fisher=None, need=None):
         metric,
     )
     return grad, metric
-
-
-@numba.njit(cache=True, nogil=True)
-def _reduce_pixels(x, y, photons, scale, score, fisher, need, grad, metric):
-    """The pixel sums of ``_reduce``, one ROI at a time, into ``grad`` and ``metric`` (zeroed;
-    ``metric`` of length 0 for the gradient alone; NaN for a ROI that ``need`` leaves out).
-    The Jacobian's rows at pixel (i, j) are ``c N Py dPx``, ``c N dPy Px``, ``c N Py dPx/ds``,
-    ``c N dPy/ds Px``, ``c Py Px`` and ``c`` (``c``: photoelectrons per photon;
-    ``psf.gaussian.axis_factors``)."""
-    roi = x.shape[2]
-    jac = np.empty(6)
-    g = np.empty(6)
-    m = np.empty((6, 6))
-    for r in range(x.shape[0]):
-        with_metric = metric.shape[0] > 0 and need[r]
-        spot = scale * photons[r]
-        g[:] = 0.0
-        m[:] = 0.0
-        for i in range(roi):
-            row_x0, row_y0 = spot * y[r, 0, i], spot * y[r, 1, i]
-            row_sy, row_n = spot * y[r, 2, i], scale * y[r, 0, i]
-            for j in range(roi):
-                jac[0] = row_x0 * x[r, 1, j]
-                jac[1] = row_y0 * x[r, 0, j]
-                jac[2] = row_x0 * x[r, 2, j]
-                jac[3] = row_sy * x[r, 0, j]
-                jac[4] = row_n * x[r, 0, j]
-                jac[5] = scale
-                s = score[r, i, j]
-                for k in range(6):
-                    g[k] += jac[k] * s
-                if with_metric:
-                    f = fisher[r, i, j]
-                    for k in range(6):
-                        weighted = jac[k] * f
-                        for q in range(k + 1):
-                            m[k, q] += weighted * jac[q]
-        for k in range(6):
-            grad[r, k] = g[k]
-        if with_metric:
-            for k in range(6):
-                for q in range(k + 1):
-                    metric[r, k, q] = metric[r, q, k] = m[k, q]
-        elif metric.shape[0] > 0:
-            metric[r] = np.nan
 
 
 def _in_internal(model, p, lam, x, y, score, need=None):

@@ -1,0 +1,115 @@
+"""The stack fit's pixel loops, written for the separable spot.
+
+A pixel-integrated (or sampled) Gaussian is separable: its mass in pixel ``(i, j)`` is
+``N Py[i] Px[j]``, and each row of its Jacobian by ``(x0, y0, s_x, s_y, N, b)`` is an outer
+product ``A_k[i] B_k[j]`` of 1-D factors (``psf.gaussian.axis_factors``): ``B_k`` is one of
+``Px``, ``dPx/dx0``, ``dPx/ds_x`` and the constant 1. So the sums that a Fisher-scoring step
+needs, ``J' score`` and ``J' diag(F) J``, are taken a pixel row at a time: along the row, the
+score against the four ``B`` and the information against the ten products ``B_k B_q``
+(fourteen multiply-adds per pixel, with independent accumulators); then each row's sums times
+the ``A`` factors. ``solver._reduce`` calls this; its test reference is the full Jacobian's
+contraction (``tests/inference/test_stack_mle_factors.py``).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# the x factor of each Jacobian row (0: Px, 1: dPx/dx0, 2: dPx/ds_x, 3: the constant 1) and
+# the index of each unordered pair of x factors in a row's ten information sums
+COLUMN = np.array([1, 0, 2, 0, 0, 3])
+PAIR = np.array([[0, 1, 2, 3], [1, 4, 5, 6], [2, 5, 7, 8], [3, 6, 8, 9]])
+
+
+@numba.njit(cache=True, nogil=True)
+def expected_counts(px, py, photons, background, scale, offset, out):
+    """``(N Py[i] Px[j] + b) scale + offset`` into ``out`` (n, roi, roi), the same arithmetic
+    as ``Model.expected`` of the separable spot (``Model._detected``: ``scale`` photoelectrons
+    per photon, ``offset`` the clock-induced charge), so the same numbers bit for bit.
+
+    ``px``, ``py`` (n, roi): the spot's 1-D masses; ``photons``, ``background`` (n,).
+    Returns ``out``."""
+    for r in range(out.shape[0]):
+        n, b = photons[r], background[r]
+        for i in range(out.shape[1]):
+            row = n * py[r, i]
+            for j in range(out.shape[2]):
+                out[r, i, j] = (row * px[r, j] + b) * scale + offset
+    return out
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"})
+def jacobian_sums(x, y, photons, scale, score, fisher, need, grad, metric):
+    """``J' score`` into ``grad`` (n, 6) and ``J' diag(fisher) J`` into ``metric`` (n, 6, 6).
+
+    ``x``, ``y`` (n, 3, roi): the 1-D factors along x and y (mass, derivative by the centre,
+    by the width); ``photons`` (n,); ``scale``: photoelectrons per photon; ``score`` and
+    ``fisher`` (n, roi, roi), per pixel. The Jacobian's rows at pixel ``(i, j)`` are
+    ``c N Py dPx``, ``c N dPy Px``, ``c N Py dPx/ds``, ``c N dPy/ds Px``, ``c Py Px`` and
+    ``c`` (``c = scale``). ``metric`` of length 0 gives the gradient alone; a ROI that
+    ``need`` (n,) bool leaves out gets a NaN metric, and its ``fisher`` is not read. Fused
+    multiply-adds only (``docs/decisions.md``): the sums' order is fixed, so the same inputs
+    give the same numbers on every machine that has them."""
+    roi = x.shape[2]
+    products = np.empty((10, roi))
+    a = np.empty(6)
+    t = np.empty(10)
+    m = np.empty((6, 6))
+    for r in range(x.shape[0]):
+        with_metric = metric.shape[0] > 0 and need[r]
+        spot = scale * photons[r]
+        if with_metric:
+            for j in range(roi):
+                b0, b1, b2 = x[r, 0, j], x[r, 1, j], x[r, 2, j]
+                products[0, j], products[1, j], products[2, j] = b0 * b0, b0 * b1, b0 * b2
+                products[3, j], products[4, j], products[5, j] = b0, b1 * b1, b1 * b2
+                products[6, j], products[7, j], products[8, j] = b1, b2 * b2, b2
+                products[9, j] = 1.0
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+        m[:] = 0.0
+        for i in range(roi):
+            s0 = s1 = s2 = s3 = 0.0
+            for j in range(roi):
+                s = score[r, i, j]
+                s0 += x[r, 0, j] * s
+                s1 += x[r, 1, j] * s
+                s2 += x[r, 2, j] * s
+                s3 += s
+            a[0] = a[2] = spot * y[r, 0, i]
+            a[1], a[3] = spot * y[r, 1, i], spot * y[r, 2, i]
+            a[4], a[5] = scale * y[r, 0, i], scale
+            g0 += a[0] * s1
+            g1 += a[1] * s0
+            g2 += a[2] * s2
+            g3 += a[3] * s0
+            g4 += a[4] * s0
+            g5 += a[5] * s3
+            if not with_metric:
+                continue
+            t0 = t1 = t2 = t3 = t4 = t5 = t6 = t7 = t8 = t9 = 0.0
+            for j in range(roi):  # ten accumulators: independent chains, not one
+                f = fisher[r, i, j]
+                t0 += products[0, j] * f
+                t1 += products[1, j] * f
+                t2 += products[2, j] * f
+                t3 += products[3, j] * f
+                t4 += products[4, j] * f
+                t5 += products[5, j] * f
+                t6 += products[6, j] * f
+                t7 += products[7, j] * f
+                t8 += products[8, j] * f
+                t9 += f
+            t[0], t[1], t[2], t[3], t[4] = t0, t1, t2, t3, t4
+            t[5], t[6], t[7], t[8], t[9] = t5, t6, t7, t8, t9
+            for k in range(6):
+                for q in range(k + 1):
+                    m[k, q] += a[k] * a[q] * t[PAIR[COLUMN[k], COLUMN[q]]]
+        grad[r, 0], grad[r, 1], grad[r, 2] = g0, g1, g2
+        grad[r, 3], grad[r, 4], grad[r, 5] = g3, g4, g5
+        if with_metric:
+            for k in range(6):
+                for q in range(k + 1):
+                    metric[r, k, q] = metric[r, q, k] = m[k, q]
+        elif metric.shape[0] > 0:
+            metric[r] = np.nan
