@@ -313,7 +313,7 @@ class EMCCD(Camera):
         if tier in ("exact", "table", "high-gain"):
             return self._log_high_gain(t, expected, r, log_jacobian)
         if tier == "gaussian":
-            return _gaussian_log_pdf(t, expected, r) + log_jacobian
+            return _emccd_law.gaussian_log_pdf(t, expected, r) + log_jacobian
         return np.where(t >= 0, poisson_log_pmf(np.maximum(t, 0.0), expected), -np.inf) + (
             log_jacobian
         )
@@ -351,9 +351,9 @@ class EMCCD(Camera):
         if tier == "poisson":
             return poisson_score(t, expected)
         if tier == "gaussian":
-            return _gaussian_score(t, expected, r)
+            return _emccd_law.gaussian_score(t, expected, r)
         if r == 0:
-            return _readout_free_score(t, expected)
+            return _emccd_law.readout_free_score(t, expected)
         if tier != "exact":
             return super()._score(counts, expected)
         t, lam = np.broadcast_arrays(t, expected)
@@ -457,44 +457,3 @@ class EMCCD(Camera):
             f"EMCCD(gain={self.gain:g}, readout_sd={self.readout_sd:g}, offset={self.offset:g}, "
             f"e_per_adu={self.e_per_adu:g}, likelihood={self.likelihood!r})"
         )
-
-
-def _readout_free_score(t, lam):
-    """Score of the closed form without readout; at ``lam == 0``, ``-1`` at the offset and
-    ``+inf`` above it (the one-sided derivative of ``log(lam) + ...``)."""
-    positive = lam > 0
-    score = _emccd_law.score_high_gain(t, np.where(positive, lam, 1.0))
-    return np.where(positive, score, np.where(t > 0, np.inf, -1.0))
-
-
-def _gaussian_score(t, lam, r):
-    """``d/dlam`` of ``log Normal(t; lam, 2 lam + r^2)``:
-    ``(t - lam) / v + (t - lam)^2 / v^2 - 1 / v`` with ``v = 2 lam + r^2``; NaN at the
-    degenerate ``v = 0`` (``lam = r = 0``), where the law is an atom at 0 with no derivative.
-
-    Without readout and below ``lam ~ 1e-150`` the true value can exceed the double range: it
-    is then ``+inf`` or ``-inf`` by the sign of ``z^2 - 1``, ``z^2 = (t - lam)^2 / v``.
-    """
-    v = 2.0 * lam + r * r
-    degenerate = v == 0
-    vs = np.where(degenerate, 1.0, v)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        d = (t - lam) / vs
-        score = d + d * d - 1.0 / vs
-        z2 = (t - lam) * d
-    score = np.where(np.isnan(score), np.where(z2 > 1.0, np.inf, -np.inf), score)
-    return np.where(degenerate, np.nan, score)
-
-
-def _gaussian_log_pdf(t, lam, r):
-    """Normal(lam, 2 lam + r^2) in gain units; the degenerate ``lam = r = 0`` is the atom at 0.
-
-    Without readout and at ``lam`` below ~1e-278 the log density of a count far from ``lam`` is
-    below -1.8e308: it is ``-inf``, the nearest double (the overflow is expected, not warned).
-    """
-    var = 2.0 * lam + r * r
-    degenerate = var == 0
-    v = np.where(degenerate, 1.0, var)
-    with np.errstate(over="ignore"):
-        log_pdf = -0.5 * (t - lam) ** 2 / v - 0.5 * np.log(2.0 * np.pi * v)
-    return np.where(degenerate, np.where(t == 0, 0.0, -np.inf), log_pdf)

@@ -149,7 +149,7 @@ def log_readout_free(t, x, lam, log_jacobian: float):
 
 
 def log_gaussian(t, x, lam, r: float):
-    """``Normal(lam, 2 lam + r**2)`` in gain units (``emccd._gaussian_log_pdf``); the
+    """``Normal(lam, 2 lam + r**2)`` in gain units (``_emccd_law.gaussian_log_pdf``); the
     degenerate ``lam = r = 0`` is the atom at the offset."""
     var = 2.0 * lam + r * r
     degenerate = var == 0
