@@ -3,7 +3,8 @@
 For a 15x15 ROI x 32 walkers (one vectorised call, as in the log-posterior), each tier's
 evaluations per second as a ratio to the Poisson tier measured in the same run, and its worst
 |log p - exact| on (a) that ROI and (b) 20 000 counts drawn from the law with lam log-uniform in
-[1e-2, 1e4] (the realistic domain). Also the table tier's build time and memory.
+[1e-2, 1e4] (the realistic domain). Also the table tier's memory; its first use, the
+table built, is ``benchmarks/first_use.py``'s.
 
     python benchmarks/likelihood.py            # full run, rewrites its section of README.md
     python benchmarks/likelihood.py --quick    # small and fast, prints only
@@ -12,7 +13,6 @@ evaluations per second as a ratio to the Poisson tier measured in the same run, 
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 import pandas as pd
@@ -43,9 +43,6 @@ def run(quick: bool) -> pd.DataFrame:
     n_domain = 2000 if quick else 20_000
     rows = []
     for name, params in CAMERAS.items():
-        start = time.perf_counter()
-        _emccd_table.table_for(params["readout_sd"] / params["gain"])
-        build = time.perf_counter() - start
         exact = EMCCD(**params)
         lam_roi = walker_roi(rng)
         counts_roi = exact.sample(lam_roi[0], rng)[None]  # one observed ROI, 32 walkers
@@ -74,7 +71,6 @@ def run(quick: bool) -> pd.DataFrame:
                     ),
                     "worst |Δlog p| domain": np.max(np.abs(dom[finite] - ref_dom[finite])),
                     "-inf in domain": int((~finite).sum()),
-                    "table build s": build if tier == "table" else np.nan,
                 }
             )
         for row in rows[-len(TIERS) :]:
@@ -90,7 +86,6 @@ def markdown(df: pd.DataFrame, command: str) -> str:
     for col in ("worst |Δlog p| ROI", "worst |Δlog p| domain"):
         table[col] = table[col].map(lambda v: f"{v:.1e}")
     table["throughput / poisson"] = table["throughput / poisson"].map(lambda v: f"{v:.3f}")
-    table["table build s"] = table["table build s"].map(lambda v: "" if np.isnan(v) else f"{v:.1f}")
     mem = _emccd_table.table_for(0.1).nbytes / 1e6
     return (
         f"Command: `{command}` on {machine()}.\n\n"
