@@ -9,9 +9,7 @@ alternatives would give.
    compiled (numba) table interpolation alone, i.e. the arithmetic floor of the likelihood.
 3. emcee's own cost per step: the same sampler and moves on a log-probability that costs
    nothing (a Gaussian in 6 dimensions), steps per second.
-4. What numba would give for the PSF: a compiled loop of the same erf differences, against the
-   NumPy version on the same 32 walkers (measured, not adopted: see the README's reading).
-5. Importance sampling instead of MCMC (`sample_posterior(method="importance")`: Laplace
+4. Importance sampling instead of MCMC (`sample_posterior(method="importance")`: Laplace
    Student-t draws scored in one vectorised call, Pareto-smoothed weights): its time per
    molecule against one MLE, its Pareto k-hat (reliable below 0.7) and its ESS.
 
@@ -22,11 +20,9 @@ alternatives would give.
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 import emcee
-import numba
 import numpy as np
 import pandas as pd
 
@@ -127,49 +123,15 @@ def log_posterior_parts(model, c, repeat: int) -> pd.DataFrame:
 
     timings = {
         "whole log_posterior (32 walkers)": lambda: model.log_posterior(z, c),
-        "PSF (NumPy erf / log_ndtr)": lambda: psf.expected_counts_unchecked(
-            p, model.roi, model.pixel_size
-        ),
-        "PSF, compiled loop (numba, measured only)": lambda: _psf_numba(
-            p, model.roi, model.pixel_size
+        "PSF (its two axes' compiled loops, the outer product)": lambda: (
+            psf.expected_counts_unchecked(p, model.roi, model.pixel_size)
         ),
         "likelihood: camera._log_likelihood": lambda: model.camera._log_likelihood(c, lam),
         "likelihood: the table's interpolation alone": lambda: table.log_p(tt, ll),
         "prior": lambda: model.log_prior(p),
     }
-    _psf_numba(p, model.roi, model.pixel_size)  # compile
     rows = [{"part": k, "microseconds": 1e6 * best_time(f, repeat)} for k, f in timings.items()]
-    numpy_psf = psf.expected_counts_unchecked(p, model.roi, model.pixel_size)
-    gap = np.max(np.abs(_psf_numba(p, model.roi, model.pixel_size) / numpy_psf - 1))
-    rows.append({"part": "numba PSF max relative difference from NumPy", "microseconds": gap})
     return pd.DataFrame(rows)
-
-
-@numba.njit(cache=True)
-def _psf_numba(p, roi, a):
-    """The pixel-integrated spot by erf differences in a compiled loop (near-centre form only:
-    no log-space tails, so it is a speed probe, not a replacement)."""
-    n = p.shape[0]
-    out = np.empty((n, roi, roi))
-    px = np.empty(roi)
-    py = np.empty(roi)
-    for w in range(n):
-        x0, y0, sx, sy, photons, b = p[w, 0], p[w, 1], p[w, 2], p[w, 3], p[w, 4], p[w, 5]
-        for k in range(roi):
-            lo = (k - roi / 2.0) * a
-            hi = lo + a
-            px[k] = 0.5 * (
-                math.erf((hi - x0) / (sx * math.sqrt(2.0)))
-                - math.erf((lo - x0) / (sx * math.sqrt(2.0)))
-            )
-            py[k] = 0.5 * (
-                math.erf((hi - y0) / (sy * math.sqrt(2.0)))
-                - math.erf((lo - y0) / (sy * math.sqrt(2.0)))
-            )
-        for i in range(roi):
-            for j in range(roi):
-                out[w, i, j] = photons * py[i] * px[j] + b
-    return out
 
 
 def emcee_floor(steps: int) -> pd.DataFrame:

@@ -71,9 +71,9 @@ def test_hot_path_benchmark_quick():
     # (total minus the timed stages) could go negative
     stages = parts[parts["stage"] != "total"]
     assert np.all(stages["seconds"] > 0)
-    # the compiled PSF probe computes the same spot as the NumPy one (near the centre)
-    gap = call.set_index("part").loc["numba PSF max relative difference from NumPy"]
-    assert float(gap.iloc[0]) < 1e-12
+    # every part of the log-posterior call is timed (a part that failed would be missing)
+    assert len(call) == 5 and np.all(np.isfinite(call["microseconds"]))
+    assert np.all(call["microseconds"] > 0)
     assert np.all(floor["steps/s with a free log-probability"] > 0)
     assert np.all(psis["Pareto k-hat"] <= 0.7) and np.all(psis["ESS"] >= 400)
 
