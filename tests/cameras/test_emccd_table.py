@@ -91,8 +91,8 @@ def test_below_the_grid_the_closed_form_equals_the_quadrature(monkeypatch):
 
 def test_below_the_grid_far_counts_use_the_quadrature():
     # the second-order expansion in lam misses the n >= 3 terms, ~(lam t)^2 / 12 relative: at
-    # lam = 9e-7 it was off by 47 in log p at t = 1e9; beyond lam (|t| + r) = 1e-3 the table
-    # tier now uses the exact law there
+    # lam = 9e-7 it is off by 47 in log p at t = 1e9, so beyond lam (|t| + r) = 1e-3 the table
+    # tier takes the exact law
     t = np.array([1e3, 1e5, 1e6, 1e9])
     lam = np.full_like(t, 9e-7)
     exact = EMCCD(gain=1.0, readout_sd=0.25).log_likelihood(t, lam)
