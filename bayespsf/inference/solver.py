@@ -30,10 +30,9 @@ numbers to the optimisers' tolerance (``tests/inference/test_stack_mle.py``).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
-from bayespsf.inference.separable import expected_counts, jacobian_sums
+from bayespsf.inference.separable import expected_counts, hessian_sums, jacobian_sums
 from bayespsf.psf.gaussian import axis_curvature, axis_factor, axis_factors
 
 DECREMENT = 1e-10  # Newton decrement (in log-likelihood units) below which a ROI has converged
@@ -254,7 +253,7 @@ def observed_information(model, counts, p):
     xc = axis_curvature(p[:, 0], p[:, 2], model.roi, model.pixel_size, model.pixel_model)
     yc = axis_curvature(p[:, 1], p[:, 3], model.roi, model.pixel_size, model.pixel_model)
     hessian = np.empty((len(p), 6, 6))
-    _hessian_pixels(
+    hessian_sums(
         np.ascontiguousarray(x),
         np.ascontiguousarray(y),
         np.ascontiguousarray(xc),
@@ -266,46 +265,6 @@ def observed_information(model, counts, p):
         hessian,
     )
     return hessian
-
-
-@numba.njit(cache=True, nogil=True)
-def _hessian_pixels(x, y, xc, yc, photons, scale, score, curvature, hessian):
-    """``sum_pixels -curvature J J' - score K`` per ROI, ``K`` the expected count's second
-    derivatives: ``c N`` times the products of the factors' derivatives (``c N Py Px''`` for
-    x0 twice, ``c N Py' Px'`` for x0 and y0, ...), ``c`` times one factor's derivative times
-    the other factor for N and a position or width, and 0 for N twice and for b."""
-    roi = x.shape[2]
-    jac = np.empty(6)
-    k = np.zeros((6, 6))
-    h = np.empty((6, 6))
-    for r in range(x.shape[0]):
-        spot = scale * photons[r]
-        h[:] = 0.0
-        for i in range(roi):
-            py, dy, wy = y[r, 0, i], y[r, 1, i], y[r, 2, i]
-            for j in range(roi):
-                px, dx, wx = x[r, 0, j], x[r, 1, j], x[r, 2, j]
-                jac[0], jac[1] = spot * py * dx, spot * dy * px
-                jac[2], jac[3] = spot * py * wx, spot * wy * px
-                jac[4], jac[5] = scale * py * px, scale
-                row, column = spot * py, spot * px
-                k[0, 0], k[0, 2], k[2, 2] = row * xc[r, 0, j], row * xc[r, 1, j], row * xc[r, 2, j]
-                k[1, 1], k[1, 3], k[3, 3] = (
-                    yc[r, 0, i] * column,
-                    yc[r, 1, i] * column,
-                    yc[r, 2, i] * column,
-                )
-                k[0, 1], k[0, 3] = spot * dy * dx, spot * wy * dx
-                k[1, 2], k[2, 3] = spot * dy * wx, spot * wy * wx
-                k[0, 4], k[2, 4] = scale * py * dx, scale * py * wx
-                k[1, 4], k[3, 4] = scale * dy * px, scale * wy * px
-                c, s = curvature[r, i, j], score[r, i, j]
-                for a in range(6):
-                    for b in range(a, 6):
-                        h[a, b] -= c * jac[a] * jac[b] + s * k[a, b]
-        for a in range(6):
-            for b in range(a, 6):
-                hessian[r, a, b] = hessian[r, b, a] = h[a, b]
 
 
 def maximise(model, counts: np.ndarray, starts: np.ndarray, held=None):
