@@ -168,7 +168,7 @@ def _products(x, products):
         products[9, j] = 1.0
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"})
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, inline="always")
 def _pair_sums(weights, products, t):
     """``t[p] = sum_j products[p, j] weights[j]``, one pass over a pixel row with ten
     accumulators (independent chains, not one)."""
