@@ -265,7 +265,8 @@ def fit_mle(
     same physical box (a fit ending on a bound is flagged), with the analytic gradient (PSF
     Jacobian times the camera's per-pixel score). With ``laplace``, ``sd_<p>`` columns are
     the square roots of the diagonal of the inverse observed information (the Hessian of
-    -log L by differences of the analytic gradient) and ``corr_<p>_<q>`` its correlations
+    -log L, analytic in the spot's 1-D factors and the camera law's score and curvature:
+    ``solver.observed_information``) and ``corr_<p>_<q>`` its correlations
     (``covariance(fits)`` rebuilds the ``(n, 6, 6)`` matrices; NaN where not converged).
     ``crlb_<p>`` columns hold the Cramér-Rao bound at the fit (the inverse expected
     information, the plug-in error bar other fitters report; ``solver.crlb``). Not

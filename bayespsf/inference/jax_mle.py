@@ -8,9 +8,11 @@ damping schedule, secant updates of the metric near the optimum, iteration limit
 convergence test (the Newton decrement below 1e-10, by the Fisher metric).
 Where the NumPy engine differentiates by hand (the PSF Jacobian times the camera's score), this
 one differentiates the same log-likelihood automatically (``jax.grad``; ``jax.jacfwd`` for the
-metric's PSF Jacobian), and the Laplace covariance is the inverse of the exact Hessian
-(``jax.hessian``) rather than central differences of the gradient: the two agree to the
-differences' truncation error (~1e-6 relative; ``tests/inference/test_jax_backend.py``).
+metric's PSF Jacobian), and the Laplace covariance is the inverse of the Hessian by the chain
+rule through the expected counts (the law's two derivatives per pixel, the PSF's Jacobian and
+``jax.hessian`` of the expected counts), where the NumPy engine forms the same terms from the
+spot's 1-D factors and takes the law's curvature from its table's interpolant or a difference
+of its score: the two agree within 1e-7 relative (``tests/inference/test_jax_backend.py``).
 
 ROIs go to the device in chunks of a fixed size (the last one padded), so one compiled program
 serves a whole dataset and the host holds one chunk's arrays at a time; a ROI's fit does not

@@ -13,7 +13,7 @@ It is sampled without a Markov chain, as the batched engine samples one ROI
    of ``bayespsf.inference.solver`` on the joint gradient and information (the frames' blocks summed
    over the shared parameters), from the per-frame fits;
 2. its Laplace approximation: the Gaussian whose precision is the joint observed information
-   (the frames' ``observed_information``, by differences of the analytic gradient), in the
+   (the frames' ``observed_information``, analytic: ``bayespsf.inference.solver``), in the
    sampling coordinates ``(x0, y0, log s_x, log s_y, log N, b)``;
 3. Pareto-smoothed importance sampling (``bayespsf.inference.importance``) from that Gaussian
    mixed with a wider one (``DefensiveProposal``): exact where its k-hat is at most

@@ -51,8 +51,8 @@ def jacobian_sums(x, y, photons, scale, score, fisher, need, grad, metric):
     ``c N Py dPx``, ``c N dPy Px``, ``c N Py dPx/ds``, ``c N dPy/ds Px``, ``c Py Px`` and
     ``c`` (``c = scale``). ``metric`` of length 0 gives the gradient alone; a ROI that
     ``need`` (n,) bool leaves out gets a NaN metric, and its ``fisher`` is not read. Fused
-    multiply-adds only (``docs/decisions.md``): the sums' order is fixed, so the same inputs
-    give the same numbers on every machine that has them."""
+    multiply-adds only (``docs/decisions.md``): no reassociation, so the sums keep the order
+    written here."""
     roi = x.shape[2]
     products = np.empty((10, roi))
     a = np.empty(6)

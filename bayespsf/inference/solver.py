@@ -23,8 +23,9 @@ a step costs one evaluation whether it is taken or refused. The Jacobian is neve
 factors (``psf.gaussian.axis_factors``), and compiled loops (``inference.separable``) form
 the expected counts, ``J' score`` and ``J' diag(F) J`` from them a pixel row at a time.
 
-The box, the flags and the Laplace SDs are those of ``bayespsf.fit_mle`` (same search box, same
-observed information by differences of the analytic gradient), so the two paths give the same
+The box, the flags and the Laplace SDs are those of ``bayespsf.fit_mle``'s one-ROI scipy path
+(the same search box, the same observed information: ``observed_information``, analytic in the
+spot's factors and the camera law's score and curvature), so the two paths give the same
 numbers to the optimisers' tolerance (``tests/inference/test_stack_mle.py``).
 """
 
