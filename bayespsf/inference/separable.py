@@ -73,9 +73,7 @@ def jacobian_sums(x, y, photons, scale, score, fisher, need, grad, metric):
                 s1 += x[r, 1, j] * s
                 s2 += x[r, 2, j] * s
                 s3 += s
-            a[0] = a[2] = spot * y[r, 0, i]
-            a[1], a[3] = spot * y[r, 1, i], spot * y[r, 2, i]
-            a[4], a[5] = scale * y[r, 0, i], scale
+            _row_factors(y[r, :, i], spot, scale, a)
             g0 += a[0] * s1
             g1 += a[1] * s0
             g2 += a[2] * s2
@@ -132,9 +130,8 @@ def hessian_sums(x, y, xc, yc, photons, scale, score, curvature, hessian):
                 c1 += xc[r, 1, j] * s
                 c2 += xc[r, 2, j] * s
             _pair_sums(curvature[r, i], products, t)
+            _row_factors(y[r, :, i], spot, scale, a)
             y0, y1, y2 = y[r, 0, i], y[r, 1, i], y[r, 2, i]
-            a[0] = a[2] = spot * y0
-            a[1], a[3], a[4], a[5] = spot * y1, spot * y2, scale * y0, scale
             for k in range(6):
                 for q in range(k + 1):
                     h[q, k] -= a[k] * a[q] * t[PAIR[COLUMN[k], COLUMN[q]]]
@@ -155,6 +152,16 @@ def hessian_sums(x, y, xc, yc, photons, scale, score, curvature, hessian):
         for k in range(6):
             for q in range(k, 6):
                 hessian[r, k, q] = hessian[r, q, k] = h[k, q]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _row_factors(y, spot, scale, a):
+    """The y factor ``A_k[i]`` of each Jacobian row at pixel row ``i``, from that row's ``Py``,
+    ``dPy/dy0``, ``dPy/ds_y`` (``y``, length 3): ``c N Py``, ``c N dPy``, ``c N Py``,
+    ``c N dPy/ds``, ``c Py``, ``c`` (``spot = c N``, ``scale = c``)."""
+    a[0] = a[2] = spot * y[0]
+    a[1], a[3] = spot * y[1], spot * y[2]
+    a[4], a[5] = scale * y[0], scale
 
 
 @numba.njit(cache=True, nogil=True)
