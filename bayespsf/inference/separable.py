@@ -54,10 +54,7 @@ def jacobian_sums(x, y, photons, scale, score, fisher, need, grad, metric):
     multiply-adds only (``docs/decisions.md``): no reassociation, so the sums keep the order
     written here."""
     roi = x.shape[2]
-    products = np.empty((10, roi))
-    a = np.empty(6)
-    t = np.empty(10)
-    m = np.empty((6, 6))
+    products, a, t, m = _scratch(roi)
     for r in range(x.shape[0]):
         with_metric = metric.shape[0] > 0 and need[r]
         spot = scale * photons[r]
@@ -110,10 +107,7 @@ def hessian_sums(x, y, xc, yc, photons, scale, score, curvature, hessian):
     too, so a pixel row takes the score against six x factors and the curvature against the
     ten products of ``jacobian_sums``."""
     roi = x.shape[2]
-    products = np.empty((10, roi))
-    a = np.empty(6)
-    t = np.empty(10)
-    h = np.empty((6, 6))
+    products, a, t, h = _scratch(roi)
     for r in range(x.shape[0]):
         spot = scale * photons[r]
         _products(x[r], products)
@@ -152,6 +146,13 @@ def hessian_sums(x, y, xc, yc, photons, scale, score, curvature, hessian):
         for k in range(6):
             for q in range(k, 6):
                 hessian[r, k, q] = hessian[r, q, k] = h[k, q]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _scratch(roi):
+    """Working arrays of the two sums: the ten x-factor products per pixel of a row, a row's
+    six y factors, its ten weighted sums, and the 6 x 6 accumulator."""
+    return np.empty((10, roi)), np.empty(6), np.empty(10), np.empty((6, 6))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
