@@ -317,7 +317,7 @@ class Model:
     def _suspects(self, flat, offset, readout) -> np.ndarray:
         """ROIs that may have a problem (``_roi_problem`` decides), by whole-stack screens."""
         try:
-            self.camera._check_counts(flat.reshape(-1, self.roi, self.roi))
+            self.camera.check_counts(flat.reshape(-1, self.roi, self.roi))
         except BayespsfInputError:
             return np.ones(len(flat), dtype=bool)
         cam = self.camera
@@ -335,7 +335,7 @@ class Model:
         if bad:
             return f"{bad} pixels are NaN or infinite"
         try:
-            self.camera._check_counts(roi.reshape(self.roi, self.roi))
+            self.camera.check_counts(roi.reshape(self.roi, self.roi))
         except BayespsfInputError as exc:
             return str(exc)
         if np.all(roi == roi[0]):
@@ -399,7 +399,7 @@ class Model:
         """
         c = self.check_counts(counts)
         lam = self.expected(finite_array("params", params))
-        return self.camera._log_likelihood(c, lam).sum(axis=(-2, -1))
+        return self.camera.log_likelihood_unchecked(c, lam).sum(axis=(-2, -1))
 
     def log_likelihood_unchecked(self, counts: np.ndarray, params: np.ndarray) -> np.ndarray:
         """``log_likelihood`` without checking its inputs: ``counts`` already validated
@@ -413,7 +413,7 @@ class Model:
     def pixel_log_likelihood(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
         """Per-pixel log p of validated ``counts`` given ``expected`` photoelectrons, unchecked:
         the law of ``log_likelihood_unchecked`` (``bayespsf.inference.fused``'s nodes)."""
-        return self.camera._log_likelihood(counts, expected)
+        return self.camera.log_likelihood_unchecked(counts, expected)
 
     def to_photons(self, counts: ArrayLike) -> np.ndarray:
         """Counts converted to N's unit with the camera's mean conversion (offset removed,

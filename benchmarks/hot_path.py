@@ -126,7 +126,9 @@ def log_posterior_parts(model, c, repeat: int) -> pd.DataFrame:
         "PSF (its two axes' compiled loops, the outer product)": lambda: (
             psf.expected_counts_unchecked(p, model.roi, model.pixel_size)
         ),
-        "likelihood: camera._log_likelihood": lambda: model.camera._log_likelihood(c, lam),
+        "likelihood: camera.log_likelihood_unchecked": lambda: (
+            model.camera.log_likelihood_unchecked(c, lam)
+        ),
         "likelihood: the table's interpolation alone": lambda: table.log_p(tt, ll),
         "prior": lambda: model.log_prior(p),
     }

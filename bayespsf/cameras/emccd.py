@@ -290,7 +290,7 @@ class EMCCD(Camera):
                 f"readout (got {lam.max():.3g}); no camera pixel holds that many"
             )
 
-    def _check_counts(self, counts):
+    def check_counts(self, counts):
         c = np.asarray(counts, dtype=np.float64)  # t rises with the counts: its ends bound |t|
         t = np.abs(self.gain_units([c.min(initial=self.offset), c.max(initial=self.offset)])).max()
         if t > MAX_GAIN_UNITS:
@@ -301,7 +301,7 @@ class EMCCD(Camera):
                 f"{t * self.gain / self.e_per_adu:.3g} ADU from the offset"
             )
 
-    def _log_likelihood(self, counts, expected):
+    def log_likelihood_unchecked(self, counts, expected):
         t = self.gain_units(counts)
         log_jacobian = self._log_jacobian
         r = self.readout_in_gain_units
@@ -334,7 +334,7 @@ class EMCCD(Camera):
             electrons = add_normal(electrons, self.readout_sd, rng)
         return self.offset + electrons / self.e_per_adu
 
-    def _score(self, counts, expected):
+    def score_unchecked(self, counts, expected):
         """``d log p / d lam`` in closed form for each tier but ``high-gain`` with readout:
         the exact tier by quadrature with readout (``log_and_score_exact``), the Bessel ratio
         without; the ``table`` tier as the exact derivative of its interpolant
@@ -346,7 +346,7 @@ class EMCCD(Camera):
         r = self.readout_in_gain_units
         tier = self.likelihood
         if tier == "table" and r != 0:
-            return self._log_likelihood_and_score(counts, expected)[1]
+            return self.log_likelihood_and_score_unchecked(counts, expected)[1]
         t = self.gain_units(counts)
         if tier == "poisson":
             return poisson_score(t, expected)
@@ -355,43 +355,43 @@ class EMCCD(Camera):
         if r == 0:
             return _emccd_law.readout_free_score(t, expected)
         if tier != "exact":
-            return super()._score(counts, expected)
+            return super().score_unchecked(counts, expected)
         t, lam = np.broadcast_arrays(t, expected)
         out = np.empty(t.shape)
         positive = lam > 0
         out[positive] = _emccd_law.log_and_score_exact(t[positive], lam[positive], r)[1]
         if not positive.all():
             zero = ~positive
-            out[zero] = super()._score(np.asarray(counts, float)[zero], lam[zero])
+            out[zero] = super().score_unchecked(np.asarray(counts, float)[zero], lam[zero])
         return out
 
-    def _log_likelihood_and_score(self, counts, expected):
+    def log_likelihood_and_score_unchecked(self, counts, expected):
         """The ``table`` tier with readout: log p and its derivative from one compiled pass over
         the table (``_emccd_table.log_and_score_table``), the score by differences of the
         tier's log-likelihood where it does not interpolate. Other tiers: the two methods."""
         if self.likelihood != "table" or self.readout_in_gain_units == 0:
-            return super()._log_likelihood_and_score(counts, expected)
+            return super().log_likelihood_and_score_unchecked(counts, expected)
         t = self.gain_units(counts)
         log_p, score = _emccd_table.log_and_score_table(t, expected, self.readout_in_gain_units)
         missing = np.isnan(score)
         if missing.any():
             c, lam = np.broadcast_arrays(np.asarray(counts, float), expected)
-            score[missing] = super()._score(c[missing], lam[missing])
+            score[missing] = super().score_unchecked(c[missing], lam[missing])
         return log_p + self._log_jacobian, score
 
-    def _score_and_curvature(self, counts, expected):
+    def score_and_curvature_unchecked(self, counts, expected):
         """The ``table`` tier with readout: both from the interpolant in one compiled pass where
         ``lam >= 1``; below (the base class's differences over 1e-4 photons, a secant where the
         tangent is unbounded) and off the table, the base class's."""
         r = self.readout_in_gain_units
         if self.likelihood != "table" or r == 0:
-            return super()._score_and_curvature(counts, expected)
+            return super().score_and_curvature_unchecked(counts, expected)
         c, lam = np.broadcast_arrays(np.asarray(counts, float), np.asarray(expected, float))
         t = self.gain_units(c)
         _, score, curvature = _emccd_table.log_and_score_table(t, lam, r, curvature=True)
         missing = np.isnan(curvature) | (lam < 1.0)
         if missing.any():
-            score[missing], curvature[missing] = super()._score_and_curvature(
+            score[missing], curvature[missing] = super().score_and_curvature_unchecked(
                 c[missing], lam[missing]
             )
         return score, curvature
@@ -440,13 +440,13 @@ class EMCCD(Camera):
         with np.errstate(divide="ignore"):
             return 1.0 / (2.0 * lam + self.readout_in_gain_units**2)
 
-    def _fisher_information(self, expected):
+    def fisher_information_unchecked(self, expected):
         return _emccd_fisher.fisher_information(expected, self.readout_in_gain_units)
 
-    def _step_information(self, expected):
+    def step_information_unchecked(self, expected):
         # the poisson tier's own: steered by the camera's, half of it, steps overshoot twofold
         poisson = self.likelihood == "poisson"
-        return 1.0 / expected if poisson else self._fisher_information(expected)
+        return 1.0 / expected if poisson else self.fisher_information_unchecked(expected)
 
     def to_dict(self):
         names = ("gain", "readout_sd", "offset", "e_per_adu", "likelihood")

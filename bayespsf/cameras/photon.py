@@ -57,19 +57,19 @@ class Photon(Camera):
     array([1.  , 0.25])
     """
 
-    def _check_counts(self, counts):
+    def check_counts(self, counts):
         if np.any(counts < 0) or np.any(counts != np.round(counts)):
             raise BayespsfInputError(
                 "counts must be non-negative integers (photons) for the Photon camera"
             )
 
-    def _log_likelihood(self, counts, expected):
+    def log_likelihood_unchecked(self, counts, expected):
         return poisson_log_pmf(counts, expected)
 
     def _sample(self, expected, rng):
         return rng.poisson(expected).astype(np.float64)
 
-    def _score(self, counts, expected):
+    def score_unchecked(self, counts, expected):
         """``k / lam - 1`` (``-1`` where ``k == 0``): ``poisson_score``."""
         return poisson_score(counts, expected)
 
@@ -79,7 +79,7 @@ class Photon(Camera):
     def photons_per_adu(self):
         return 1.0, 0.0
 
-    def _fisher_information(self, expected):
+    def fisher_information_unchecked(self, expected):
         """``1 / lam`` (infinite at ``lam == 0``)."""
         with np.errstate(divide="ignore"):
             return 1.0 / expected

@@ -254,11 +254,11 @@ class SCMOS(Camera):
             lam, s2 = np.broadcast_arrays(lam, self._v / (self._g * self._g))
             with np.errstate(divide="ignore"):
                 return 1.0 / (lam + s2)
-        return self._fisher_information(lam)
+        return self.fisher_information_unchecked(lam)
 
     # ---- unchecked implementations ----------------------------------------------------------
 
-    def _check_counts(self, counts: np.ndarray) -> None:
+    def check_counts(self, counts: np.ndarray) -> None:
         self._check_shape("counts/expected", counts.shape)
 
     def _check_shape(self, name: str, shape: tuple[int, ...]) -> None:
@@ -279,7 +279,7 @@ class SCMOS(Camera):
         c, lam, g, o, v = (a.ravel() for a in (c, lam, g, o, v))
         return c, lam, g, o, (c - o) / g, np.sqrt(v) / g
 
-    def _log_likelihood(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
+    def log_likelihood_unchecked(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
         shape = np.broadcast_shapes(counts.shape, expected.shape)
         c, lam, g, o, y, s = self._electrons(counts, expected)
         out = np.empty(y.shape)
@@ -302,11 +302,11 @@ class SCMOS(Camera):
         out -= np.log(g)
         return out.reshape(shape)
 
-    def _score(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
+    def score_unchecked(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
         """Differences of the log-likelihood (base class) where ``v > 0``; on the lattice of
         readout-free pixels the Poisson score ``n / lam - 1`` (``poisson_score``), where
         differences would step onto ``lam = 0``, outside the support of any ``n >= 1``."""
-        score = super()._score(counts, expected)
+        score = super().score_unchecked(counts, expected)
         if self._all_readout:
             return score
         shape = score.shape
@@ -331,7 +331,7 @@ class SCMOS(Camera):
     def photons_per_adu(self):
         return 1.0 / self._g, self._o
 
-    def _fisher_information(self, expected: np.ndarray) -> np.ndarray:
+    def fisher_information_unchecked(self, expected: np.ndarray) -> np.ndarray:
         self._check_shape("expected", expected.shape)
         lam, g, v = np.broadcast_arrays(expected, self._g, self._v)
         s = (np.sqrt(v) / g).ravel()
@@ -343,7 +343,7 @@ class SCMOS(Camera):
             out[~readout] = 1.0 / lam[~readout]
         return out.reshape(expected.shape)
 
-    def _step_information(self, expected: np.ndarray) -> np.ndarray:
+    def step_information_unchecked(self, expected: np.ndarray) -> np.ndarray:
         """Huang et al.'s ``1 / (lam + s^2)`` (``s`` the readout SD in photoelectrons), a lower
         bound of the exact information within a few percent beyond a few photoelectrons: the
         exact one costs a quadrature per pixel (~2 ms each), which made every step of the

@@ -405,9 +405,10 @@ class JaxModel:
         return laws.fisher_spline(lam, self.r, self.fisher_knots, self.fisher_coefficients, lo, hi)
 
     def step_information(self, lam):
-        """Per-pixel information that steers the fit's steps (``camera._step_information``):
-        ``fisher``, but for the EMCCD's ``poisson`` tier, which scores the counts as Poisson
-        photons, that law's own ``1 / lam`` (the camera's is half of it).
+        """Per-pixel information that steers the fit's steps
+        (``camera.step_information_unchecked``): ``fisher``, but for the EMCCD's ``poisson`` tier,
+        which scores the counts as Poisson photons, that law's own ``1 / lam`` (the camera's is half
+        of it).
 
         Parameters
         ----------

@@ -108,7 +108,7 @@ def _start(counts, model, walkers, rng, fits=None):
 def _explain_no_support(counts, model, centre) -> None:
     """Name the pixels the likelihood tier gives zero density, if that is why no walker fits."""
     lam = model.expected(centre)
-    per_pixel = model.camera._log_likelihood(counts, lam)
+    per_pixel = model.camera.log_likelihood_unchecked(counts, lam)
     bad = np.argwhere(~np.isfinite(per_pixel))
     if bad.size:
         where = ", ".join(f"({r}, {c}) = {counts[r, c]:.6g} ADU" for r, c in bad[:5])

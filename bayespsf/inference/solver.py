@@ -88,24 +88,24 @@ def _chain(p: np.ndarray, a: float) -> np.ndarray:
 def _objective(model, counts, p):
     """``-log L`` per ROI (n,) at parameters ``p`` (n, 6)."""
     lam = model.expected(p)
-    return -model.camera._log_likelihood(counts, lam).sum(axis=(-2, -1))
+    return -model.camera.log_likelihood_unchecked(counts, lam).sum(axis=(-2, -1))
 
 
 def _gradient_and_metric(model, counts, p):
     """Gradient of ``-log L`` and the expected information, both in ``u``: (n, 6), (n, 6, 6),
     from the camera's score alone (``evaluate`` takes it with the log-likelihood)."""
     lam, x, y = _expected_and_factors(model, p)
-    return _in_internal(model, p, lam, x, y, model.camera._score(counts, lam))
+    return _in_internal(model, p, lam, x, y, model.camera.score_unchecked(counts, lam))
 
 
 def evaluate(model, counts, p, need=None):
-    """``_objective`` and ``_gradient_and_metric`` at once, the same numbers (to rounding)
-    from one PSF pass and one camera pass (``camera._log_likelihood_and_score``): (n,), (n, 6),
-    (n, 6, 6). The gradient and metric are NaN where ``-log L`` is not finite (never formed
-    there). ``need`` (n,) bool: the ROIs whose metric is wanted (default all); the others'
-    metric is NaN, and the camera's information is not computed for their pixels."""
+    """``_objective`` and ``_gradient_and_metric`` at once, the same numbers (to rounding) from one
+    PSF pass and one camera pass (``camera.log_likelihood_and_score_unchecked``): (n,), (n, 6),
+    (n, 6, 6). The gradient and metric are NaN where ``-log L`` is not finite (never formed there).
+    ``need`` (n,) bool: the ROIs whose metric is wanted (default all); the others' metric is NaN,
+    and the camera's information is not computed for their pixels."""
     lam, x, y = _expected_and_factors(model, p)
-    log_l, score = model.camera._log_likelihood_and_score(counts, lam)
+    log_l, score = model.camera.log_likelihood_and_score_unchecked(counts, lam)
     f = -log_l.sum(axis=(-2, -1))
     finite = np.isfinite(f)
     if finite.all():
@@ -181,11 +181,13 @@ def _in_internal(model, p, lam, x, y, score, need=None):
     # below METRIC_FLOOR, where a camera's tabulated information ends, are scored at the floor
     if need is None or need.all():
         need = None
-        fisher = model.camera._step_information(np.maximum(lam, METRIC_FLOOR))
+        fisher = model.camera.step_information_unchecked(np.maximum(lam, METRIC_FLOOR))
     else:
         fisher = np.empty_like(lam)
         if need.any():
-            fisher[need] = model.camera._step_information(np.maximum(lam[need], METRIC_FLOOR))
+            fisher[need] = model.camera.step_information_unchecked(
+                np.maximum(lam[need], METRIC_FLOOR)
+            )
     chain = _chain(p, model.pixel_size)
     grad, metric = _reduce(model, p, x, y, score, fisher, need)
     return -grad * chain, metric * chain[:, :, None] * chain[:, None, :]
@@ -212,7 +214,7 @@ def crlb(model, p) -> np.ndarray:
     localisation software reports at its fit; Smith et al., Nat. Methods 7 (2010)); NaN where
     the information is singular."""
     lam, x, y = _expected_and_factors(model, p)
-    fisher = model.camera._fisher_information(np.maximum(lam, METRIC_FLOOR))
+    fisher = model.camera.fisher_information_unchecked(np.maximum(lam, METRIC_FLOOR))
     _, information = _reduce(model, p, x, y, np.zeros_like(lam), fisher)
     inverse, ok = inverses(information)
     out = np.full((len(p), 6), np.nan)
@@ -239,7 +241,7 @@ def gradient(model, counts, p, x=None, y=None):
     """Gradient of ``-log L`` in the parameters ``x0 y0 s_x s_y N b``: (n, 6). ``x``, ``y``:
     the spot's 1-D factors at ``p`` where known (``_expected_and_factors``)."""
     lam, x, y = _expected_and_factors(model, p, x, y)
-    return -_reduce(model, p, x, y, model.camera._score(counts, lam))[0]
+    return -_reduce(model, p, x, y, model.camera.score_unchecked(counts, lam))[0]
 
 
 def observed_information(model, counts, p):
@@ -247,10 +249,10 @@ def observed_information(model, counts, p):
     curvature in the expected count times ``J J'``, minus its score times the expected
     count's second derivatives (from the spot's 1-D factors and their curvatures,
     ``psf.gaussian.axis_curvature``; analytic). The law's score and curvature come from
-    ``camera._score_and_curvature``: in closed form where the camera has it (the EMCCD table
-    tier's interpolant), else the curvature a central difference of the score."""
+    ``camera.score_and_curvature_unchecked``: in closed form where the camera has it (the
+    EMCCD table tier's interpolant), else the curvature a central difference of the score."""
     lam, x, y = _expected_and_factors(model, p)
-    score, curvature = model.camera._score_and_curvature(counts, lam)
+    score, curvature = model.camera.score_and_curvature_unchecked(counts, lam)
     xc = axis_curvature(p[:, 0], p[:, 2], model.roi, model.pixel_size, model.pixel_model)
     yc = axis_curvature(p[:, 1], p[:, 3], model.roi, model.pixel_size, model.pixel_model)
     hessian = np.empty((len(p), 6, 6))

@@ -115,7 +115,7 @@ def test_score_is_the_derivative_of_the_interpolant(params):
     )
     score = cam.score(counts, lam)
     assert np.all(np.abs(score - differences) * np.sqrt(lam) < 1e-6)
-    log_p, both = cam._log_likelihood_and_score(counts, lam)
+    log_p, both = cam.log_likelihood_and_score_unchecked(counts, lam)
     assert np.array_equal(log_p, cam.log_likelihood(counts, lam))
     assert np.array_equal(both, score)
 
@@ -131,7 +131,7 @@ def test_score_off_the_grids_is_differences_of_the_tier():
     off = params["offset"]
     lam = np.array([0.0, 1e-7, 5.0, 2e5])
     counts = np.array([off + 3.0, off + 10.0, off + 200.0 * g, off + 2e5 * g])
-    assert np.array_equal(cam.score(counts, lam), Camera._score(cam, counts, lam))
+    assert np.array_equal(cam.score(counts, lam), Camera.score_unchecked(cam, counts, lam))
 
 
 @pytest.mark.parametrize("params", REALISTIC, ids=lambda p: f"G{p['gain']:g}-s{p['readout_sd']:g}")
@@ -160,7 +160,7 @@ def test_curvature_is_the_second_derivative_of_the_interpolant(params):
 
 
 def test_the_observed_information_takes_the_curvature_where_lam_is_at_least_one():
-    # EMCCD._score_and_curvature: the interpolant's where lam >= 1 (within 1e-6 of the base
+    # EMCCD.score_and_curvature_unchecked: the interpolant's where lam >= 1 (within 1e-6 of the base
     # class's central differences of the score there, whose step 1e-4 lam gives ~1e-8), the
     # base class's secant below (b = 0: the law's tangent curvature at lam -> 0 is unbounded)
     from bayespsf.cameras import Camera
@@ -170,8 +170,8 @@ def test_the_observed_information_takes_the_curvature_where_lam_is_at_least_one(
     rng = np.random.default_rng(7)
     lam = np.concatenate([10 ** rng.uniform(0, 4, 2000), 10 ** rng.uniform(-8, -0.01, 200)])
     counts = cam.sample(lam, rng)
-    score, curvature = cam._score_and_curvature(counts, lam)
-    base_score, base_curvature = Camera._score_and_curvature(cam, counts, lam)
+    score, curvature = cam.score_and_curvature_unchecked(counts, lam)
+    base_score, base_curvature = Camera.score_and_curvature_unchecked(cam, counts, lam)
     low = lam < 1
     np.testing.assert_array_equal(curvature[low], base_curvature[low])
     np.testing.assert_allclose(score, base_score, rtol=1e-12, atol=1e-12)

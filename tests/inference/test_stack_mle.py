@@ -78,8 +78,8 @@ def test_crlb_columns_are_the_bound_at_the_fit():
 @pytest.mark.parametrize("name", ["emccd-typical", "ideal", "scmos-typical"])
 def test_one_pass_evaluation_equals_the_separate_ones(name):
     # the iteration evaluates -log L, gradient and metric together at each trial
-    # (camera._log_likelihood_and_score); the numbers are those of the separate functions, and
-    # the gradient and metric are NaN (not formed) where -log L is not finite
+    # (camera.log_likelihood_and_score_unchecked); the numbers are those of the separate
+    # functions, and the gradient and metric are NaN (not formed) where -log L is not finite
 
     scene = load_scene(name)
     model = Model.from_scene(scene)
