@@ -144,8 +144,8 @@ class Posterior:
     def method(self) -> str:
         """What made the draws: ``"laplace"``, ``"importance"`` or ``"mcmc"``.
 
-        ``info["method"]``; for files written before ``method="auto"`` existed,
-        ``"importance"`` where ``info`` has ``khat``.
+        ``info["method"]``; for files whose ``info`` has no ``method``, ``"importance"``
+        where it has ``khat``, else ``"mcmc"``.
         """
         info = self.info
         if info.get("method") in ("laplace", "importance", "mcmc"):
