@@ -21,8 +21,7 @@ from bayespsf._validate import finite_array, real_array, saturation_plateau, sus
 from bayespsf.cameras import EMCCD, SCMOS, Camera, Photon
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
-from bayespsf.scene import Scene
-from bayespsf.scene import units as photon_units
+from bayespsf.scene import Scene, units
 
 DEFAULT_TIER = {"emccd": "table", "scmos": "exact"}
 MIN_ROI = 5  # six parameters need the spot and a border of background pixels
@@ -169,10 +168,8 @@ class Model:
         ]
         self.clock_induced_charge = float(clock_induced_charge)
         self.saturation = float(saturation)
-        self.quantum_efficiency, self.photon_unit = photon_units.check(
-            quantum_efficiency, photon_unit
-        )
-        self.photoelectrons_per_photon = photon_units.photoelectrons_per_photon(
+        self.quantum_efficiency, self.photon_unit = units.check(quantum_efficiency, photon_unit)
+        self.photoelectrons_per_photon = units.photoelectrons_per_photon(
             self.quantum_efficiency, self.photon_unit
         )
         self._prior_terms = PriorTerms(self.prior)
@@ -240,7 +237,7 @@ class Model:
     @property
     def photon_unit_label(self) -> str:
         """The unit of N and b in words (``bayespsf.scene.units.label``)."""
-        return photon_units.label(self.quantum_efficiency, self.photon_unit)
+        return units.label(self.quantum_efficiency, self.photon_unit)
 
     def expected(self, params: ArrayLike) -> np.ndarray:
         """Expected photoelectrons per pixel ``(..., roi, roi)`` of ``params`` ``(..., 6)``

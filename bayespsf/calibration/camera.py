@@ -62,7 +62,7 @@ from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.project import project
 from bayespsf.movie.psf_width import estimate_psf_sd
 from bayespsf.movie.select import Rules
-from bayespsf.scene import units as photon_units
+from bayespsf.scene import units
 
 EXCESS = {"emccd": 2.0, "scmos": 1.0}  # the excess-noise factor of each kind
 
@@ -246,7 +246,7 @@ def calibrate_camera(
             "fit gives the background of Eq. photonConv (--fit, --roi)"
         )
     if quantum_efficiency is not None:
-        photon_units.check(quantum_efficiency, "incident")
+        units.check(quantum_efficiency, "incident")
     if readout_sd is not None and not (np.isfinite(readout_sd) and readout_sd >= 0):
         raise BayespsfInputError(
             f"readout_sd must be a number >= 0 (electrons; --readout-sd), got {readout_sd!r}"

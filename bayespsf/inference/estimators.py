@@ -23,7 +23,7 @@ from scipy import optimize
 from bayespsf._runtime import one_blas_thread
 from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import solver as stack_mle
+from bayespsf.inference import solver
 from bayespsf.inference.backends import check_backend
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES, pixel_centres
@@ -165,34 +165,34 @@ def covariance(fits: pd.DataFrame) -> np.ndarray:
 # ----------------------------------------------------------------------- maximum likelihood
 def _scipy_maximise(model, stack, starts):
     """One ROI at a time by scipy's L-BFGS-B (the reference path of ``fit_mle``), in the
-    coordinates and box of ``stack_mle``, preconditioned by the expected information at the
+    coordinates and box of ``solver``, preconditioned by the expected information at the
     start so that a unit step is about one standard deviation in every coordinate."""
     a = model.pixel_size
-    low, high = stack_mle.box(model.roi)
+    low, high = solver.box(model.roi)
     n = len(stack)
     params, logl = np.empty((n, 6)), np.empty(n)
     converged, message = np.zeros(n, dtype=bool), np.empty(n, dtype=object)
     for i, (image, p0) in enumerate(zip(stack, starts, strict=True)):
-        _, metric = stack_mle._gradient_and_metric(model, image[None], p0[None])
+        _, metric = solver._gradient_and_metric(model, image[None], p0[None])
         scale = np.sqrt(np.clip(np.diagonal(metric[0]), 1e-8, 1e12))
 
         def objective(v, img=image, sc=scale):
-            p = stack_mle.from_internal(v / sc, a)[None]
-            value = stack_mle._objective(model, img[None], p)[0]
+            p = solver.from_internal(v / sc, a)[None]
+            value = solver._objective(model, img[None], p)[0]
             if not np.isfinite(value):
                 return 1e300, np.zeros(6)
-            grad = stack_mle.gradient(model, img[None], p)[0] * stack_mle._chain(p, a)[0]
+            grad = solver.gradient(model, img[None], p)[0] * solver._chain(p, a)[0]
             return value, grad / sc
 
         res = optimize.minimize(
             objective,
-            np.clip(stack_mle.to_internal(p0, a), low, high) * scale,
+            np.clip(solver.to_internal(p0, a), low, high) * scale,
             jac=True,
             method="L-BFGS-B",
             bounds=list(zip(low * scale, high * scale, strict=True)),
             options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-8},
         )
-        params[i] = stack_mle.from_internal(res.x / scale, a)
+        params[i] = solver.from_internal(res.x / scale, a)
         logl[i] = -res.fun
         # a line search that stops at machine precision on a flat optimum is not a failure
         converged[i] = bool(res.success or np.all(np.abs(res.jac) < 1e-3))
@@ -370,10 +370,10 @@ def fit_screened(
         params, logl = found["params"], found["log_likelihood"]
         ok, message = found["converged"], found["message"]
     else:
-        maximise = stack_mle.maximise if engine == "stack" else _scipy_maximise
+        maximise = solver.maximise if engine == "stack" else _scipy_maximise
         params, logl, ok, message = maximise(model, fitted, starts[fit])
-    low, high = stack_mle.box(model.roi)
-    u = stack_mle.to_internal(params, model.pixel_size)
+    low, high = solver.box(model.roi)
+    u = solver.to_internal(params, model.pixel_size)
     # b's bound 0 is physical; any other coordinate on its bound is a failed search
     on_bound = np.any((np.abs(u - low) < 1e-9)[:, :5] | (np.abs(u - high) < 1e-9)[:, :5], axis=1)
     limit = model.roi * model.pixel_size
@@ -390,7 +390,7 @@ def fit_screened(
             bound[ok] = (
                 found["crlb"][ok]
                 if backend == "jax"
-                else _in_blocks(lambda p: stack_mle.crlb(model, p), params[ok], roi=model.roi)
+                else _in_blocks(lambda p: solver.crlb(model, p), params[ok], roi=model.roi)
             )
     cov = np.full((len(fit), 6, 6), np.nan)
     if laplace and ok.any():
@@ -440,8 +440,8 @@ def _mle_table(model, problems, fit, params, logl, bound, cov, ok, message) -> p
 
 
 def _in_blocks(function, *arrays, roi: int):
-    """``function`` over blocks of ``stack_mle.block_rois(roi)`` ROIs (bounded memory)."""
-    n, step = len(arrays[0]), stack_mle.block_rois(roi)
+    """``function`` over blocks of ``solver.block_rois(roi)`` ROIs (bounded memory)."""
+    n, step = len(arrays[0]), solver.block_rois(roi)
     parts = [function(*(a[first : first + step] for a in arrays)) for first in range(0, n, step)]
     return np.concatenate(parts) if parts else np.empty((0, 6))
 
@@ -449,9 +449,9 @@ def _in_blocks(function, *arrays, roi: int):
 def _laplace(model, stack, params):
     """Inverse observed information per ROI and whether it is positive definite."""
     info = _in_blocks(
-        lambda c, p: stack_mle.observed_information(model, c, p), stack, params, roi=model.roi
+        lambda c, p: solver.observed_information(model, c, p), stack, params, roi=model.roi
     )
-    inverse, definite = stack_mle.inverses(info)
+    inverse, definite = solver.inverses(info)
     definite &= np.all(np.isfinite(inverse), axis=(1, 2))
     if definite.any():
         definite[definite] = np.all(np.linalg.eigvalsh(inverse[definite]) > 0, axis=1)

@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike
 from bayespsf._runtime import one_blas_thread
 from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import diagnostics as diagnosis
+from bayespsf.inference import diagnostics
 from bayespsf.inference.batched import as_posterior, cheap_posteriors, laplace_in_z, random_streams
 from bayespsf.inference.estimators import fit_mle, start_values
 from bayespsf.inference.gof import pearson_fit
@@ -357,7 +357,7 @@ def sample_posterior(
         if stable and enough:
             stopped = "converged"
             break
-        why = diagnosis.stalled(history, sampler.iteration, tau.max(), stuck, walkers)
+        why = diagnostics.stalled(history, sampler.iteration, tau.max(), stuck, walkers)
         if why is not None:
             stopped = "stalled: " + why
             break
@@ -371,7 +371,7 @@ def sample_posterior(
     converged = stopped == "converged"
     report = {}
     if not (converged and mle_ok):
-        cause = "" if fit is None else diagnosis.explain(fit, model)
+        cause = "" if fit is None else diagnostics.explain(fit, model)
         head = f"not converged ({stopped})" if not converged else "the chain met its targets"
         report["diagnosis"] = head + (f"; {cause}" if cause else "")
     thin = max(1, int(0.5 * np.nanmin(tau))) if np.any(np.isfinite(tau)) else 1

@@ -10,7 +10,7 @@ score against the four ``B`` and the information against the ten products ``B_k 
 the ``A`` factors. The Laplace's Hessian (``hessian_sums``) is taken the same way: the law's
 curvature against the ten products, the score against six x factors. ``solver`` calls these;
 their test references are the full Jacobian's contraction and central differences of the
-gradient (``tests/inference/test_stack_mle_factors.py``).
+gradient (``tests/inference/test_solver_factors.py``).
 """
 
 from __future__ import annotations

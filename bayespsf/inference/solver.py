@@ -26,7 +26,7 @@ the expected counts, ``J' score`` and ``J' diag(F) J`` from them a pixel row at 
 The box, the flags and the Laplace SDs are those of ``bayespsf.fit_mle``'s one-ROI scipy path
 (the same search box, the same observed information: ``observed_information``, analytic in the
 spot's factors and the camera law's score and curvature), so the two paths give the same
-numbers to the optimisers' tolerance (``tests/inference/test_stack_mle.py``).
+numbers to the optimisers' tolerance (``tests/inference/test_solver.py``).
 """
 
 from __future__ import annotations

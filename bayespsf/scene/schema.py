@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from bayespsf.scene import units as photon_units
+from bayespsf.scene import units
 from bayespsf.scene.key import Key, SceneError, when_is
 from bayespsf.scene.optional import AXIAL, MOVIE
 
@@ -255,7 +255,7 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         ),
         Key(
             "photon_unit",
-            photon_units.UNITS,
+            units.UNITS,
             "incident",
             "",
             "unit of N and b in the prior, the model, the truth table and every result: "

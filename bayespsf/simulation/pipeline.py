@@ -32,8 +32,7 @@ from bayespsf._runtime import refuse_beyond_memory
 from bayespsf.errors import BayespsfInputError
 from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.psf.defocus import Defocus
-from bayespsf.scene import Scene
-from bayespsf.scene import units as photon_units
+from bayespsf.scene import Scene, units
 from bayespsf.simulation import camera_effects as cx
 from bayespsf.simulation import effects as fx
 
@@ -148,7 +147,7 @@ def axial_effects(scene: Scene) -> list[fx.Effect]:
 def scene_photon_label(scene: Scene) -> str:
     """The unit of the scene's N and b in words (``bayespsf.scene.units.label``)."""
     cam = scene.camera
-    return photon_units.label(cam["quantum_efficiency"], cam["photon_unit"])
+    return units.label(cam["quantum_efficiency"], cam["photon_unit"])
 
 
 def truth_photon_factor(scene: Scene) -> float:

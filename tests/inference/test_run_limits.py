@@ -7,7 +7,7 @@ import pytest
 import bayespsf
 from bayespsf import load_scene
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import diagnostics as diagnosis
+from bayespsf.inference import diagnostics
 from bayespsf.model import Model
 
 
@@ -53,34 +53,34 @@ def test_one_step_is_a_run_not_a_crash(typical):
 def test_a_growing_autocorrelation_time_is_a_stall():
     # tau proportional to the chain's length: stalled; tau levelling off: not (yet) stalled
     growing = [(n, 0.05 * n) for n in (250, 500, 1000, 2000)]
-    assert "tau grew" in diagnosis.stalled(growing, 4000, 200.0, 0, 32)
+    assert "tau grew" in diagnostics.stalled(growing, 4000, 200.0, 0, 32)
     levelling = [(n, t) for n, t in zip((250, 500, 1000, 2000), (15, 18, 20, 21), strict=True)]
-    assert diagnosis.stalled(levelling, 4000, 21.5, 0, 32) is None
-    assert diagnosis.stalled(growing, 2000, 100.0, 0, 32) is None  # too short to judge
-    assert "no walker moves" in diagnosis.stalled([], 1000, np.nan, 32, 32)
+    assert diagnostics.stalled(levelling, 4000, 21.5, 0, 32) is None
+    assert diagnostics.stalled(growing, 2000, 100.0, 0, 32) is None  # too short to judge
+    assert "no walker moves" in diagnostics.stalled([], 1000, np.nan, 32, 32)
 
 
 def test_explanations_name_the_cause(typical):
     _, counts, model = typical
     fit = bayespsf.fit_mle(counts, model).iloc[0]
-    assert diagnosis.explain(fit, model) == ""
+    assert diagnostics.explain(fit, model) == ""
     narrow = Model(
         15, 100.0, model.camera, prior={"N": {"kind": "log-uniform", "low": 1e6, "high": 1e7}}
     )
-    assert "prior excludes the data: the maximum-likelihood N" in diagnosis.explain(fit, narrow)
+    assert "prior excludes the data: the maximum-likelihood N" in diagnostics.explain(fit, narrow)
     failed = fit.copy()
     failed["converged"], failed["message"] = False, "ABNORMAL"
-    assert "fit failed (ABNORMAL)" in diagnosis.explain(failed, model)
+    assert "fit failed (ABNORMAL)" in diagnostics.explain(failed, model)
     loose = fit.copy()
     loose["sd_s_x"] = fit["s_x"]
-    assert "not identified" in diagnosis.explain(loose, model)
+    assert "not identified" in diagnostics.explain(loose, model)
 
 
 def test_a_prior_that_excludes_the_data_stops_early_with_a_diagnosis(typical, monkeypatch):
     # the tester's case: a prior on N orders of magnitude from the data ran for hours; the
     # stall rule is judged from 400 steps here (4000 by default) to keep the test short
     _, counts, model = typical
-    monkeypatch.setattr(diagnosis, "STALL_MIN_STEPS", 400)
+    monkeypatch.setattr(diagnostics, "STALL_MIN_STEPS", 400)
     prior = {"N": {"kind": "log-uniform", "low": 1e6, "high": 1e7}}
     narrow = Model(15, 100.0, model.camera, prior=prior)
     post = bayespsf.sample_posterior(counts, narrow, seed=0)

@@ -1,6 +1,6 @@
 """How the stack engine gets to its optimum: the start's windowed moments, and near the optimum
 the metric kept and updated by the secant instead of the camera's information computed again.
-The optimum itself is held to the scipy path in test_stack_mle.py; here, that the cheaper
+The optimum itself is held to the scipy path in test_solver.py; here, that the cheaper
 steps are taken, and that they are right."""
 
 import numpy as np
@@ -94,7 +94,7 @@ def test_the_fit_takes_fewer_evaluations_to_the_same_optimum(monkeypatch):
     # evaluations per ROI (each one PSF and camera pass over a ROI), counted, not timed: the
     # clipped start with Fisher scoring to the end took 9.7 per emccd-typical ROI at N = 1 000;
     # the windowed start with the secant steps takes 6.7 (and one Fisher metric pass at the
-    # end, not counted). The optimum is held to the scipy path in test_stack_mle.py
+    # end, not counted). The optimum is held to the scipy path in test_solver.py
     scene = load_scene("emccd-typical")
     model = Model.from_scene(scene)
     counts, _ = simulate(scene, 300, seed=5)

@@ -1,7 +1,7 @@
-"""The older surfaces under hostile inputs: sizes that cannot fit in memory, the
-largest ROI the scene schema allows, result files with a damaged attribute, and a goodness of
-fit in every posterior (two overlapping molecules gave a confident single-spot posterior with
-nothing that said the model does not fit)."""
+"""Hostile inputs: sizes that cannot fit in memory, the largest ROI the scene schema allows,
+result files with a damaged attribute, and a goodness of fit in every posterior (without it,
+two overlapping molecules give a confident single-spot posterior with nothing that says the
+model does not fit)."""
 
 import json
 import os
