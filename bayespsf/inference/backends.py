@@ -93,6 +93,20 @@ def start_jax() -> None:
         jax.config.update("jax_compilation_cache_dir", str(folder / "jax"))
 
 
+def jax_modules():
+    """``jax`` and ``jax.numpy``, imported on first use (the backend's modules import JAX
+    only when a JAX program runs, so that the core install never needs it).
+
+    Returns
+    -------
+    jax, jax.numpy : module
+    """
+    import jax
+    import jax.numpy as jnp
+
+    return jax, jnp
+
+
 def release_programs() -> None:
     """Release the JAX backend's compiled programs, JAX's own caches of them, and the camera
     tables it keeps on the device.
@@ -141,6 +155,7 @@ __all__ = [
     "check_backend",
     "device_name",
     "jax_imported",
+    "jax_modules",
     "release_programs",
     "start_jax",
 ]

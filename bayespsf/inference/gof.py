@@ -103,7 +103,7 @@ def pearson_fit(model: Model, counts: np.ndarray, theta: np.ndarray, at: str) ->
     than the model allows) is near uniform where the statistic's spread is the chi-square's.
     Measured on 200 ROIs of 15 x 15 pixels and 1000 photons (fraction at ``chi2_p <= 0.1``):
     photon counting at 0.2, 2 and 20 background photons per pixel 0.105, 0.095, 0.080;
-    ``emccd-typical`` (10 photons) 0.100 (``tests/inference/test_hostile_inputs_older.py``
+    ``emccd-typical`` (10 photons) 0.100 (``tests/inference/test_hostile_inputs.py``
     holds two of these within 4 SE). Its calibration limit is the per-pixel law's excess
     kurtosis, which widens the statistic's spread beyond the chi-square's: an EM register's is
     about ``6 / lam``, so on ``emccd-typical`` at 1 background photon per pixel 21% of 1000
@@ -115,13 +115,32 @@ def pearson_fit(model: Model, counts: np.ndarray, theta: np.ndarray, at: str) ->
     whose posteriors converged; a hot pixel; a spot that is not the model's Gaussian), and the
     posterior, however narrow, is that of the wrong model.
     """
-    t = pearson(model, counts, theta)
-    dof = model.roi * model.roi - len(PARAMETER_NAMES)
-    p = stats.chi2.sf(t, dof)
+    columns = pearson_columns(model, pearson(model, counts, theta), at)
     return [
-        {"chi2": float(ti), "chi2_dof": int(dof), "chi2_p": float(pi), "chi2_at": at}
-        for ti, pi in zip(t, p, strict=True)
+        {"chi2": float(t), "chi2_dof": columns["chi2_dof"], "chi2_p": float(p), "chi2_at": at}
+        for t, p in zip(columns["chi2"], columns["chi2_p"], strict=True)
     ]
+
+
+def pearson_columns(model: Model, chi2: np.ndarray, at: str) -> dict:
+    """``pearson_fit``'s columns for a whole stack from Pearson's statistic per ROI.
+
+    Parameters
+    ----------
+    model : Model
+        Gives the ROI's pixels.
+    chi2 : ndarray, shape (n,)
+        Pearson's statistic per ROI (``pearson``, or the JAX backend's).
+    at : str
+        Where it was taken (``"mle"`` or ``"posterior mean"``).
+
+    Returns
+    -------
+    dict
+        ``chi2`` (n,), ``chi2_dof`` (int: pixels - 6), ``chi2_p`` (n,) and ``chi2_at``.
+    """
+    dof = model.roi * model.roi - len(PARAMETER_NAMES)
+    return {"chi2": chi2, "chi2_dof": int(dof), "chi2_p": stats.chi2.sf(chi2, dof), "chi2_at": at}
 
 
 def bootstrap_check(
@@ -292,5 +311,6 @@ __all__ = [
     "check_discrepancy",
     "flag_excess_p",
     "pearson",
+    "pearson_columns",
     "pearson_fit",
 ]

@@ -32,7 +32,7 @@ from functools import partial
 import numpy as np
 
 from bayespsf.inference import solver
-from bayespsf.inference.backends import start_jax
+from bayespsf.inference.backends import jax_modules, start_jax
 from bayespsf.inference.estimators import start_values
 from bayespsf.inference.jax_model import JaxModel
 
@@ -74,16 +74,9 @@ def bucket(n: int, largest: int) -> int:
     return int(min(largest, max(MIN_BUCKET, 2 ** max(0, (n - 1).bit_length()))))
 
 
-def _jax():
-    import jax
-    import jax.numpy as jnp
-
-    return jax, jnp
-
-
 def to_internal(p, a):
     """``x0 y0 s_x s_y N b`` (..., 6) to ``u`` (``solver.to_internal`` in JAX)."""
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     return jnp.stack(
         [p[..., 0] / a, p[..., 1] / a, jnp.log(p[..., 2] / a), jnp.log(p[..., 3] / a),
          jnp.log(p[..., 4]), p[..., 5]],
@@ -93,7 +86,7 @@ def to_internal(p, a):
 
 def from_internal(u, a):
     """``u`` (..., 6) to ``x0 y0 s_x s_y N b`` (``solver.from_internal`` in JAX)."""
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     return jnp.stack(
         [u[..., 0] * a, u[..., 1] * a, a * jnp.exp(u[..., 2]), a * jnp.exp(u[..., 3]),
          jnp.exp(u[..., 4]), u[..., 5]],
@@ -107,7 +100,7 @@ def _evaluate(jm: JaxModel, counts, u):
     pass with six tangents per ROI) times the camera law's per-pixel score (``d log p / d
     lam``, one forward tangent over the chunk's pixels as one array, so that the law's rare
     costly branches run only where needed), as the NumPy engine forms them."""
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     a = jm.pixel_size
 
     def spot(v):
@@ -134,7 +127,7 @@ def _evaluate(jm: JaxModel, counts, u):
 
 def _freeze(u, grad, metric, low, high):
     """``solver.freeze_bounds`` for one ROI."""
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     out = ((u <= low) & (grad > 0)) | ((u >= high) & (grad < 0))
     keep = ~out
     grad = jnp.where(out, 0.0, grad)
@@ -146,7 +139,7 @@ def _freeze(u, grad, metric, low, high):
 def _compiled(roi: int):
     """The jitted chunk programs for ``roi`` x ``roi`` ROIs (one compiled program per ROI size
     and model structure; JAX caches the traces per static model fields)."""
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     low_np, high_np = solver.box(roi)
 
     def active(s):
@@ -294,7 +287,7 @@ def _fit(fit: dict, jm, counts, u0, size: int):
     """Fit a chunk of ``size`` ROIs from ``u0``, gathering the lanes still active into ever
     smaller chunks (``bucket`` sizes) once most have finished; each lane's arithmetic is the
     same in any chunk."""
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     state = fit["advance"](jm, counts, fit["start"](u0), shrink=size > MIN_BUCKET)
     sub, sub_counts = state, counts
     rows = np.arange(size)  # the chunk's row of each of ``sub``'s lanes (the rest: padding)
@@ -340,7 +333,7 @@ def maximise(model, counts: np.ndarray, starts: np.ndarray, laplace: bool, crlb:
         ``u`` (n, 6) the fit in the search coordinates, and with ``laplace`` ``cov``
         (n, 6, 6) and ``definite`` (n,), with ``crlb`` ``crlb`` (n, 6).
     """
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     start_jax()
     jm = JaxModel.from_model(model)
     roi = model.roi

@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 
 from bayespsf.inference import jax_fused
+from bayespsf.inference.backends import jax_modules
 from bayespsf.inference.batched import PILOT
 from bayespsf.inference.importance import CHAINS
 from bayespsf.inference.psis import psis
@@ -25,13 +26,6 @@ from bayespsf.inference.summary import QUANTILES, RANK_DRAWS
 from bayespsf.model import LOG_PARAMETERS
 
 DOF = 5.0  # the Student-t proposal's degrees of freedom (``IndependenceMove``'s)
-
-
-def _jax():
-    import jax
-    import jax.numpy as jnp
-
-    return jax, jnp
 
 
 def log_posterior(jm, counts, z, fallback, exact: bool = False):
@@ -60,7 +54,7 @@ def log_posterior(jm, counts, z, fallback, exact: bool = False):
     usable : jax.Array of bool, shape (n,)
         Per ROI, whether ``log_posterior`` may be used (always with ``exact``).
     """
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     logs = jnp.asarray(LOG_PARAMETERS)
     p = z.at[..., logs].set(jnp.exp(z[..., logs]))
     prior = jm.log_prior(p) + z[..., logs].sum(axis=-1)
@@ -77,7 +71,7 @@ def log_posterior(jm, counts, z, fallback, exact: bool = False):
 def _resample(key, log_w, n_keep, size: int):
     """Systematic resampling of ``n_keep`` indices (in a random order) into a ``size`` array;
     entries from ``n_keep`` on are -1."""
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     k_offset, k_order = jax.random.split(key)
     w = jnp.exp(log_w)
     j = jnp.arange(size)
@@ -91,7 +85,7 @@ def _resample(key, log_w, n_keep, size: int):
 def _summary(key, draws, valid, truth):
     """Mean, SD (ddof 1), ``QUANTILES`` (NumPy's linear interpolation) and the SBC rank over
     ``RANK_DRAWS`` random valid draws, of one ROI's draws (size, 6) where ``valid``."""
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     n = jnp.sum(valid)
     x = jnp.where(valid[:, None], draws, 0.0)
     mean = x.sum(axis=0) / n
@@ -110,7 +104,7 @@ def _summary(key, draws, valid, truth):
 def _gaussian_draws(centre, chol, key, fold: int, size: int):
     """``size`` draws of each ROI's Laplace Gaussian (key folded with ``fold``) and their log
     density up to a constant."""
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     u = jax.vmap(lambda k: jax.random.normal(jax.random.fold_in(k, fold), (size, 6)))(key)
     return centre[:, None, :] + jnp.einsum("nkj,nij->nki", u, chol), -0.5 * jnp.sum(u * u, -1)
 
@@ -127,7 +121,7 @@ def pilot(jm, counts, centre, chol, key, fallback, *, exact: bool):
     log_ratio : jax.Array, shape (n, PILOT)
         Log posterior minus log proposal density per draw (continued by ``gaussian``).
     """
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     z, log_g = _gaussian_draws(centre, chol, key, 1, PILOT)
     scored, usable = log_posterior(jm, counts, z, fallback, exact)
     ratio = scored - log_g
@@ -140,7 +134,7 @@ def pilot(jm, counts, centre, chol, key, fallback, *, exact: bool):
 
 def laplace(jm, centre, chol, key, truth, *, wanted: int):
     """The Laplace's draws inside the prior's support and their summary, for one ROI."""
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     u = jax.random.normal(jax.random.fold_in(key, 2), (2 * wanted, 6))
     z = centre + u @ chol.T
     logs = jnp.asarray(LOG_PARAMETERS)
@@ -156,7 +150,7 @@ def laplace(jm, centre, chol, key, truth, *, wanted: int):
 def _weighted(z, log_ratio, k_resample, k_rank, truth):
     """One ROI's draws from their log ratios: the summary of its resampled draws, k-hat,
     ESS, the number kept and the draws (index -1: not kept)."""
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     size = z.shape[0]
     log_w, khat = psis(log_ratio, xp=jnp)
     w = jnp.exp(log_w)
@@ -180,7 +174,7 @@ def gaussian(jm, counts, centre, chol, key, fallback, truth, pilot_ratio, *, siz
         ``usable``, then per ROI the summary (mean, SD, quantiles, ranks), k-hat, ESS, the
         number of draws kept and the draws (index -1: not kept).
     """
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     z_pilot, _ = _gaussian_draws(centre, chol, key, 1, PILOT)
     z, log_g = _gaussian_draws(centre, chol, key, 4, size)
     scored, usable = log_posterior(jm, counts, z, fallback, exact)
@@ -194,7 +188,7 @@ def gaussian(jm, counts, centre, chol, key, fallback, truth, pilot_ratio, *, siz
 def _student_t(centre, chol, key, round_, *, size: int):
     """One ROI's ``size`` Student-t draws of an importance round, their log density and the
     keys of the round's resampling and ranks."""
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     key = jax.random.fold_in(key, 10 + round_)
     k_radius, k_normal, k_resample, k_rank = jax.random.split(key, 4)
     radius = jnp.sqrt(DOF / (2.0 * jax.random.gamma(k_radius, DOF / 2.0, (size,))))
@@ -211,7 +205,7 @@ def importance(jm, counts, centre, chol, key, fallback, truth, round_, *, size, 
     tuple
         As ``gaussian``'s.
     """
-    jax, _ = _jax()
+    jax, _ = jax_modules()
     proposal = functools.partial(_student_t, size=size)
     z, log_g, k_resample, k_rank = jax.vmap(proposal, in_axes=(0, 0, 0, None))(
         centre, chol, key, round_
@@ -224,7 +218,7 @@ def pearson(jm, counts, theta, law):
     """Pearson's statistic of one ROI at ``theta`` (``bayespsf.inference.gof.pearson``) for a
     camera whose count variance is affine in ``lam``: ``law = (offset, photons_per_adu, v0,
     v1)``, variance ``v0 + v1 lam``."""
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     offset, per_adu, v0, v1 = law[0], law[1], law[2], law[3]
     lam = jm.expected(theta)
     square = (counts - (offset + lam / per_adu)) ** 2

@@ -44,7 +44,7 @@ import functools
 import numpy as np
 
 from bayespsf.inference import jax_programs
-from bayespsf.inference.backends import start_jax
+from bayespsf.inference.backends import jax_modules, start_jax
 from bayespsf.inference.batched import (
     GAUSSIAN_MARGIN,
     GAUSSIAN_WEIGHT_SD,
@@ -63,13 +63,6 @@ MAX_ROUNDS = 5  # importance rounds per ROI before the chain: the last 16x the f
 DRAW_PIXELS = {"cpu": 2**23, "gpu": 2**26}  # draws x pixels per device call
 ROUND_STEP = 2 ** (1 / 8)  # the Gaussian round's sizes: MIN_BATCH / 2 times its powers
 KEY_ARGUMENT = {"pilot": 4, "laplace": 3, "gaussian": 4, "importance": 4}  # programs' keys
-
-
-def _jax():
-    import jax
-    import jax.numpy as jnp
-
-    return jax, jnp
 
 
 def seed_words(seeds) -> np.ndarray:
@@ -105,7 +98,7 @@ def keys(words) -> object:
     jax.Array
         Keys, shape (n,).
     """
-    jax, jnp = _jax()
+    jax, jnp = jax_modules()
     words = jnp.asarray(words)
 
     def one(lo, hi):
@@ -134,7 +127,7 @@ def pearson(model, counts: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """
     from bayespsf.inference import gof
 
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     per_adu, offset = model.camera.photons_per_adu()
     v0 = float(model.camera.variance(0.0))
     v1 = float(model.camera.variance(1.0)) - v0
@@ -158,7 +151,7 @@ def _program(kind: str, keep: bool = True, **static):
     """The jitted program ``kind`` of ``jax_programs`` over a chunk of ROIs, for the static
     arguments ``static``; without ``keep`` the draws (the last output of ``laplace``,
     ``gaussian`` and ``importance``) are not returned, so the device never writes them out."""
-    jax, _ = _jax()
+    jax, _ = jax_modules()
     function = functools.partial(getattr(jax_programs, kind), **static)
     axes = {"laplace": (None, 0, 0, 0, 0), "pearson": (None, 0, 0, None)}.get(kind)
     if axes is not None:  # one ROI's program: mapped over the chunk
@@ -288,7 +281,7 @@ def posteriors(stack, model, fits, seeds, settings, truths=None, keep_draws: boo
         (n, 6; -1 where none), and with ``keep_draws`` ``samples``: a list of (k, 6) arrays
         (None where none was made).
     """
-    jax, _ = _jax()
+    jax, _ = jax_modules()
     start_jax()
     jm = JaxModel.from_model(model)
     n = len(stack)
@@ -435,7 +428,7 @@ class _Run:
 
     def student_t(self, left: np.ndarray) -> None:
         """Student-t rounds for the ROIs ``todo[left]`` (module docstring)."""
-        _, jnp = _jax()
+        _, jnp = jax_modules()
         size = first_batch(self.settings.ess)
         limit = int(MAX_DRAWS_PER_ESS * self.settings.ess)
         pending = np.flatnonzero(left)

@@ -45,6 +45,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
+from bayespsf.io.z_calibration import plain_values
 
 PICASSO_COLUMNS = ("frame", "x", "y", "photons", "sx", "sy", "bg", "lpx", "lpy")
 PICASSO_Z_COLUMNS = ("z", "lpz")  # picasso's columns of a 3D localisation (nm)
@@ -137,7 +138,7 @@ def write_picasso(locs: pd.DataFrame, path: str | os.PathLike, info: dict) -> tu
         dataset = f.create_dataset("locs", data=_structured(filled))
         dataset.attrs["fill_value"] = FILL_VALUE
     sidecar = path.with_suffix(".yaml")
-    sidecar.write_text(yaml.safe_dump_all([_plain(info)], sort_keys=False))
+    sidecar.write_text(yaml.safe_dump_all([plain_values(info)], sort_keys=False))
     return path, sidecar
 
 
@@ -159,17 +160,6 @@ def _filled(locs: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
             out[name] = np.where(bad, FILL_VALUE, data)
             columns.append(name)
     return out, columns
-
-
-def _plain(value):
-    """``value`` with numpy scalars as Python numbers (YAML's safe dumper takes only those)."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def thunderstorm_table(locs: pd.DataFrame, pixel_size: float) -> pd.DataFrame:

@@ -46,12 +46,24 @@ FORMAT = "bayespsf z calibration 1"
 STEP_COLUMNS = ("z", "frames", "s_x", "s_x_sd", "s_y", "s_y_sd")
 
 
-def _plain(value):
-    """Numbers and containers as TOML can write them (no NaN: TOML has nan, numpy has NaN)."""
+def plain_values(value):
+    """``value`` with NumPy scalars and arrays as Python numbers and lists, and dict keys as
+    strings, recursively: what TOML, YAML's safe dumper and JSON write.
+
+    Parameters
+    ----------
+    value : object
+        A dict, list, tuple, array, NumPy scalar or anything else (returned as it is).
+
+    Returns
+    -------
+    object
+        The same content in plain Python types.
+    """
     if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
+        return {str(k): plain_values(v) for k, v in value.items()}
     if isinstance(value, list | tuple | np.ndarray):
-        return [_plain(v) for v in value]
+        return [plain_values(v) for v in value]
     if isinstance(value, np.generic):
         return value.item()
     return value
@@ -66,19 +78,19 @@ def calibration_dict(calibration: DefocusCalibration) -> dict:
         "curve": calibration.curve,
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "bayespsf": __version__,
-        "source": _plain(calibration.source),
+        "source": plain_values(calibration.source),
     }
     for axis in ("x", "y"):
         row = calibration.fits.loc[axis]
         out[axis] = {t: float(row[t]) for t in TERMS}
         out[axis].update(
-            covariance=_plain(calibration.covariance[axis]),
+            covariance=plain_values(calibration.covariance[axis]),
             chi2=float(row["chi2"]),
             dof=int(row["dof"]),
             p=float(row["p"]),
         )
     steps = calibration.steps
-    out["steps"] = {c: _plain(steps[c].to_numpy()) for c in STEP_COLUMNS if c in steps}
+    out["steps"] = {c: plain_values(steps[c].to_numpy()) for c in STEP_COLUMNS if c in steps}
     return out
 
 
@@ -201,4 +213,10 @@ def read_z_calibration(path: str | os.PathLike) -> DefocusCalibration:
     )
 
 
-__all__ = ["FORMAT", "calibration_dict", "read_z_calibration", "write_z_calibration"]
+__all__ = [
+    "FORMAT",
+    "calibration_dict",
+    "plain_values",
+    "read_z_calibration",
+    "write_z_calibration",
+]

@@ -76,9 +76,8 @@ def device_posteriors(indices, stack, model, seeds, truths, settings, scene, sto
 
 
 def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
-    from scipy import stats
-
     from bayespsf.inference import fit_screened
+    from bayespsf.inference.gof import pearson_columns
     from bayespsf.inference.jax_sampling import pearson, posteriors
 
     started = time.perf_counter()
@@ -100,8 +99,7 @@ def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
     every = rows.size == len(stack)  # then no copy of the stack
     theta = fits[list(PARAMETER_NAMES)].to_numpy(float)
     chi2 = pearson(model, stack if every else stack[rows], theta if every else theta[rows])
-    dof = model.roi * model.roi - 6
-    gof = {"chi2": chi2, "chi2_dof": dof, "chi2_p": stats.chi2.sf(chi2, dof), "chi2_at": "mle"}
+    gof = pearson_columns(model, chi2, "mle")
     table = _table(indices[rows], seeds[rows], out, rows, seconds, truths, gof)
     if check:
         for key in ("gof_p", "gof_discrepancy", "gof_replicates"):

@@ -23,10 +23,13 @@ SCHEDULER_TIMEOUT = 10.0  # seconds to reach a Dask scheduler before the address
 
 
 def _parallelism(runner) -> int:
-    """The number of tasks ``runner`` runs at once (1 in this process)."""
+    """The number of tasks ``runner`` runs at once (1 in this process). Neither
+    ``concurrent.futures``' pools nor Dask's ``ClientExecutor`` expose it publicly, so their
+    private ``_max_workers`` and ``_client`` are read where present, and the machine's core
+    count stands in where not: it sizes the chunks, never the results."""
     if runner is None:
         return 1
-    client = getattr(runner, "client", None) or getattr(runner, "_client", None)  # Dask's
+    client = getattr(runner, "client", None) or getattr(runner, "_client", None)
     if client is not None and hasattr(client, "scheduler_info"):
         return max(1, len(client.scheduler_info().get("workers", {})))
     return int(getattr(runner, "_max_workers", None) or os.cpu_count() or 1)
