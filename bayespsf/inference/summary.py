@@ -307,7 +307,10 @@ def concat_tables(tables) -> pd.DataFrame:
     tables = list(tables)
     if len({table["seed"].dtype for table in tables if "seed" in table}) > 1:
         tables = [t.astype({"seed": np.uint64}) if "seed" in t else t for t in tables]
-    return pd.concat(tables, ignore_index=True, sort=False)
+    out = pd.concat(tables, ignore_index=True, sort=False)
+    # tables whose columns differ concatenate into a frame of many blocks, to which adding a
+    # column is slow and warns (pandas' PerformanceWarning); a copy consolidates them
+    return out.copy() if len(tables) > 1 else out
 
 
 __all__ = [
