@@ -1,7 +1,7 @@
 """Detection on uneven backgrounds: does the stated false-positive rate per image hold, and are
 the molecules found, when the background varies across the field as in every TIRF image?
 
-Four fields, each a movie of immobile molecules on an EMCCD (paper-movie's camera: gain 200,
+Five fields, each a movie of immobile molecules on an EMCCD (paper-movie's camera: gain 200,
 readout 50 e-, offset 100 ADU, 12 e- per ADU, whole 16-bit ADU) detected as ``bayespsf
 detect`` does (``detect_movie`` on the mean projection with the camera: the threshold from the
 camera law's tail at each pixel's local background):
@@ -10,6 +10,10 @@ camera law's tail at each pixel's local background):
 * ramp: 4 to 10 photons per pixel across the columns (2.5 x);
 * gaussian: an illumination profile of SD 133 pixels, 10 photons at the centre falling to 4
   in the corners of 256 x 256 pixels;
+* narrow beam: a profile of SD 60 pixels (a quarter of the field), 25 photons over a floor of
+  3 at its peak, off centre (at 40% of the rows and 60% of the columns): it bends within the
+  background's 75-pixel window, where a quadratic surface is up to 0.21 photons off (the
+  quartic 0.01);
 * fixed pattern: 7 photons per pixel on the same EMCCD whose offset differs from pixel to
   pixel (100 ADU, SD 3 ADU between pixels: 0.18 photons, a variance of about a quarter of
   the mean projection's noise variance at 100 frames), while the detector is given the
@@ -48,7 +52,7 @@ from bayespsf import psf
 from bayespsf.cameras import EMCCD
 from bayespsf.movie import detect_movie, read_movie
 
-FIELDS = ("flat", "ramp", "gaussian", "fixed pattern")
+FIELDS = ("flat", "ramp", "gaussian", "narrow beam", "fixed pattern")
 RATES = (0.01, 1.0, 10.0)
 A, S0 = 79.0, 120.0  # pixel size and PSF SD (nm), paper-movie's
 CAMERA = EMCCD(200.0, 50.0, 100.0, 12.0)
@@ -64,6 +68,9 @@ def background(field: str, shape: tuple[int, int]) -> np.ndarray:
     if field == "gaussian":  # 10 at the centre, 4 at 127.5 * sqrt(2) (256 x 256's corners)
         r2 = (rows - (shape[0] - 1) / 2) ** 2 + (cols - (shape[1] - 1) / 2) ** 2
         return 10.0 * np.exp(np.log(0.4) * r2 / (2 * 127.5**2))
+    if field == "narrow beam":  # SD a quarter of the field, peak off centre
+        r2 = (rows - 0.4 * shape[0]) ** 2 + (cols - 0.6 * shape[1]) ** 2
+        return 3.0 + 25.0 * np.exp(-r2 / (2 * (shape[0] / 4) ** 2))
     return np.full(shape, 7.0)
 
 

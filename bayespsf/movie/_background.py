@@ -1,26 +1,27 @@
 """The local background and noise under each pixel of a projection or frame, estimated from the
 image with the spots left out, and the fixed-pattern noise beyond a camera law.
 
-Background. At each pixel, a quadratic surface ``b(u, v) = β₀ + β₁ u + β₂ v + β₃ u² + β₄ u v +
-β₅ v²`` is fitted by least squares to the pixels of a ``size`` × ``size`` window around it,
+Background. At each pixel, a quartic surface ``b(u, v) = Σ β_ab u^a v^b`` (``a + b <= 4``, 15
+terms) is fitted by least squares to the pixels of a ``size`` × ``size`` window around it,
 leaving out the spots: local polynomial regression (Cleveland & Devlin, J. Am. Stat. Assoc. 83
 (1988) 596) with a box kernel, computed as a normalized convolution (Knutsson & Westin, Proc.
 IEEE CVPR 1993, 515): the masked image and the mask are summed against the window's monomials
-and each window's 6 × 6 normal equations are solved. The fit is unbiased for any background
-that is quadratic over the window (flat, a ramp, the peak or flank of an illumination
-profile), at the image's edges too: a window is cut by the image's edge (pixels beyond it are
-missing), never reflected, so the surface follows a ramp to the last column. A local mean is
-biased by the background's curvature and, reflected at an edge, by its slope: on a 256 × 256
-field, 0.43 photons at the edges of a ramp from 4 to 10 photons across it, and 0.26 at the
-peak of a Gaussian illumination of 10 photons falling to 4 in the corners, both several SDs of
-the matched filter's score on a mean projection of 100 frames. The quadratic's error there,
-without noise, is at most 0.011 photons (0.007 in the central 50 × 50 pixels).
+and each window's 15 × 15 normal equations are solved. The fit is unbiased for any background
+that is a quartic over the window and follows a ramp or an illumination profile to the
+image's edges: a window is cut by the image's edge (pixels beyond it are missing), never
+reflected. Why a quartic: a mean projection averages the noise away, so a bias of a tenth of
+a photon is several SDs of the matched filter's score. Without noise, on 128 × 128 pixels and
+a 63-pixel window, a Gaussian illumination of 25 photons over 3 is fitted to within 0.021
+photons by the quartic and 0.35 by a quadratic at a profile SD of 45 pixels, and to within
+0.15 and 1.3 at 30 pixels; on 256 × 256 and a 75-pixel window (a ramp from 4 to 10 photons
+across, or a profile of SD 133 pixels) both are within 0.011. A local mean is biased by the
+curvature and, reflected at an edge, by the slope: 0.43 photons at the edges of that ramp.
 
 The price is a little of a faint spot: one that is not left out (below the threshold) is
 partly absorbed by the fit, by about ``(Σ g)² H / ||g||²`` of its score, ``H`` the fit's
-leverage at the pixel: 1.8 % in the middle of a field and 2.3 % near an edge at 75 pixels and
-a spot of 1.5 pixels SD (0.5 % for a local mean). Spots above the threshold are left out and
-lose nothing.
+leverage at the pixel (a few percent at a 63-pixel window; 0.5 % for a local mean), and the
+fit's own noise, about twice the quadratic's in variance. Spots above the threshold are left
+out and lose nothing.
 
 The spots left out: first none; then, twice, the pixels beyond ``PIXEL_CLIP`` noise SDs of the
 previous fit (a spot's bright pixels, which would bend the first fits); then, twice, those
@@ -30,10 +31,11 @@ above the threshold, and within the template's reach (4 SDs) of a local maximum 
 The fits are solved on a grid of anchor pixels ``size // 8`` apart in rows and columns (every
 pixel for a window under 16 pixels) and evaluated at each pixel from its nearest
 anchor's surface: the background is smooth on the window's scale, and the sums become sparse
-matrix products. Where the kept pixels leave the quadratic's value poorly determined (its
-variance at the anchor over 4 times the full window's: most of the window left out, or all
-on one side) or the window spans under twice the template, the fit is a constant (the masked
-local mean); a window with under a tenth of its pixels kept keeps the previous estimate.
+matrix products. Where the kept pixels leave the quartic's value poorly determined (its
+variance at the anchor over 4 times the full window's: much of the window left out, or all on
+one side) the quadratic is fitted, and where that is poorly determined too, or the window
+spans under twice the template, a constant (the masked local mean); a window with under a
+tenth of its pixels kept keeps the previous estimate.
 
 Noise. Without a camera law, each pixel's noise variance is estimated from the differences of
 adjacent kept pixels within the same window (``local_noise_variance``), as
@@ -44,6 +46,7 @@ share (``fixed_pattern_variance``) is added to it.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 
 import numpy as np
@@ -51,9 +54,12 @@ from scipy import ndimage, sparse
 
 from bayespsf.movie._noise import CLIP, KEPT_VARIANCE, MASK_SCORE, checked_map, matched_filter
 
-# the quadratic's monomials u^a v^b as (a, b): a in rows, b in columns
-_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
-_WELL_DETERMINED = 4.0  # the most variance of the quadratic's value at an anchor, over the
+DEGREE = 4  # the surface's degree
+# its monomials u^a v^b as (a, b), a in rows and b in columns, by total degree: the first 6
+# are the quadratic's, the first the constant's
+_TERMS = tuple((t - b, b) for t in range(DEGREE + 1) for b in range(t + 1))
+_QUADRATIC = 6
+_WELL_DETERMINED = 4.0  # the most variance of a surface's value at an anchor, over the
 # unmasked window's, for it to be fitted
 PIXEL_CLIP = 3.0  # first passes: pixels beyond PIXEL_CLIP noise SDs of the fit are left out
 _KEPT_SHARE = 0.1  # the least share of a window's pixels kept for any fit
@@ -110,7 +116,7 @@ def background_and_noise(image, spot, size: int, level: float, estimate, backgro
     keep = None
     if background is None:
         back, keep = estimate_background(image, spot, size, level, estimate)
-        back_source = f"local quadratic ({size} px)"
+        back_source = f"local quartic ({size} px)"
     else:
         back, back_source = checked_map("background", background, image.shape), "given"
     if noise is None:
@@ -200,39 +206,46 @@ def local_noise_variance(image, keep, size: int, start: float) -> np.ndarray:
 
 
 class _Window:
-    """The local quadratic fits of an image's shape (see the module docstring): each axis's
+    """The local polynomial fits of an image's shape (see the module docstring): each axis's
     anchors (``size // 8`` apart, and its last pixel), the monomials ``u**k`` of their windows
     as sparse matrices (anchors × pixels; ``u`` the offset from the anchor over the window's
     half-side, 0 off the window), each pixel's anchor and offset, and the unmasked windows'
-    pixel counts and variances of the fitted value."""
+    pixel counts and variances of the fitted value (quartic and quadratic)."""
 
     def __init__(self, shape: tuple[int, int], size: int, reach: int):
-        self.axes = [_axis(n, size) for n in shape]
-        full = self._moments(np.ones(shape), 4)
-        self.count = full[0, 0]
-        spans = [int(powers[0].sum(axis=1).min()) for powers, _, _ in self.axes]
-        self.quadratic = min(spans) >= 2 * reach  # else a constant: too narrow a window
-        self.variance = _centre_variance(_normal_matrix(full)) if self.quadratic else None
+        parts = _window_parts(tuple(shape), size, reach)
+        self.axes, self.full, self.curved, self.variance = parts
+        self.count = self.full[0, 0]
 
     def fit(self, image: np.ndarray, keep: np.ndarray, previous) -> np.ndarray:
-        """The quadratics of the ``keep`` pixels at every pixel; ``previous`` (or the mean of
+        """The surfaces of the ``keep`` pixels at every pixel; ``previous`` (or the mean of
         the kept pixels where None) where a window keeps under ``_KEPT_SHARE`` of its pixels."""
         weight = keep.astype(np.float64)
-        masked = self._moments(weight, 4 if self.quadratic else 0)
-        data = self._moments(weight * image, 2 if self.quadratic else 0)
+        if keep.all():  # the first fit: the unmasked windows' sums, computed once per shape
+            masked = self.full
+        else:
+            masked = self._moments(weight, 2 * DEGREE if self.curved else 0)
+        data = self._moments(weight * image, DEGREE if self.curved else 0)
         count = masked[0, 0]
         coef = np.zeros((*count.shape, len(_TERMS)))
         with np.errstate(divide="ignore", invalid="ignore"):
             coef[..., 0] = data[0, 0] / count
-        if self.quadratic:  # where the quadratic's value is well determined
+        if self.curved:  # the quartic where its value is well determined, else the quadratic
             gram = _normal_matrix(masked)
-            solve = _centre_variance(gram) <= _WELL_DETERMINED * self.variance
-            rhs = np.stack([data[a, b] for a, b in _TERMS], axis=-1)[solve]
-            coef[solve] = np.linalg.solve(gram[solve], rhs[..., None])[..., 0]
+            rhs = np.stack([data[a, b] for a, b in _TERMS], axis=-1)
+            todo = np.ones(count.shape, dtype=bool)
+            for terms, full in zip((len(_TERMS), _QUADRATIC), self.variance, strict=True):
+                found, variance = _solve(gram[todo][:, :terms, :terms], rhs[todo][:, :terms])
+                solve = np.zeros_like(todo)
+                solve[todo] = variance <= _WELL_DETERMINED * full[todo]
+                coef[solve, :terms] = found[solve[todo]]
+                todo &= ~solve
+                if not todo.any():
+                    break
         coef[count < _KEPT_SHARE * self.count] = np.nan
         (_, row_anchor, u), (_, col_anchor, v) = self.axes
         back = np.zeros(image.shape)
-        for k, (a, b) in enumerate(_TERMS if self.quadratic else _TERMS[:1]):
+        for k, (a, b) in enumerate(_TERMS if self.curved else _TERMS[:1]):
             term = np.take(np.take(coef[..., k], row_anchor, axis=0), col_anchor, axis=1)
             term *= u[:, None] ** a
             term *= v[None, :] ** b
@@ -245,13 +258,37 @@ class _Window:
         """``m[a, b]``: the sums of ``values u^a v^b`` over each anchor's window for ``a + b
         <= degree`` (else 0), shape ``(degree + 1, degree + 1, row anchors, column
         anchors)``."""
-        (rows, _, _), (cols, _, _) = self.axes
+        return self._moments_of(self.axes, values, degree)
+
+    @staticmethod
+    def _moments_of(axes, values: np.ndarray, degree: int) -> np.ndarray:
+        """``_moments`` over the windows of ``axes``."""
+        (rows, _, _), (cols, _, _) = axes
         out = np.zeros((degree + 1, degree + 1, rows[0].shape[0], cols[0].shape[0]))
         for a in range(degree + 1):
             left = (rows[a] @ values).T  # (columns, row anchors)
             for b in range(degree + 1 - a):
                 out[a, b] = (cols[b] @ left).T
         return out
+
+
+@functools.lru_cache(maxsize=8)
+def _window_parts(shape: tuple[int, int], size: int, reach: int):
+    """``_Window``'s fixed parts for an image shape, window and template reach (one per
+    shape: every frame of a movie shares them): the axes, the unmasked windows' moments,
+    whether the window is wide enough for a curved surface, and the quartic's and the
+    quadratic's variances at the anchors."""
+    axes = [_axis(n, size) for n in shape]
+    full = _Window._moments_of(axes, np.ones(shape), 2 * DEGREE)
+    spans = [int(powers[0].sum(axis=1).min()) for powers, _, _ in axes]
+    curved = min(spans) >= 2 * reach  # else a constant: too narrow a window
+    gram = _normal_matrix(full)
+    variance = (
+        [_centre_variance(gram), _centre_variance(gram[..., :_QUADRATIC, :_QUADRATIC])]
+        if curved
+        else None
+    )
+    return axes, full, curved, variance
 
 
 def _axis(length: int, size: int):
@@ -265,24 +302,39 @@ def _axis(length: int, size: int):
     rows = np.broadcast_to(np.arange(anchors.size)[:, None], where.shape)[inside]
     u = np.broadcast_to(offsets / half, where.shape)[inside]
     shape = (anchors.size, length)
-    powers = [sparse.csr_array((u**k, (rows, where[inside])), shape=shape) for k in range(5)]
+    powers = [
+        sparse.csr_array((u**k, (rows, where[inside])), shape=shape) for k in range(2 * DEGREE + 1)
+    ]
     anchor = np.abs(np.arange(length)[:, None] - anchors[None, :]).argmin(axis=1)
     return powers, anchor, (np.arange(length) - anchors[anchor]) / half
 
 
 def _centre_variance(gram: np.ndarray) -> np.ndarray:
-    """``(gram⁻¹)₀₀``: the variance of the fitted value at the anchor over the pixels' (a
-    singular ``gram``, kept from a ridge of 1e-12 of its trace, gives a huge one; inf for no
-    pixel)."""
-    scale = np.trace(gram, axis1=-2, axis2=-1)[..., None, None]
-    ridge = 1e-12 * scale * np.eye(gram.shape[-1]) + (scale == 0) * np.eye(gram.shape[-1])
-    out = np.linalg.inv(gram + ridge)[..., 0, 0]
-    return np.where(scale[..., 0, 0] > 0, out, np.inf)
+    """``(gram⁻¹)₀₀``: the variance of the fitted value at the anchor over the pixels'
+    (``_solve``'s)."""
+    flat = gram.reshape(-1, *gram.shape[-2:])
+    return _solve(flat, np.zeros(flat.shape[:-1]))[1].reshape(gram.shape[:-2])
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares coefficients ``gram⁻¹ rhs`` (n, k) and ``(gram⁻¹)₀₀`` (n,), the
+    variance of the fitted value at the anchor over the pixels', from one batched solve with
+    ``rhs`` and the first unit vector as right-hand sides. A singular ``gram``, kept from a
+    ridge of 1e-12 of its trace, gives a huge variance; no pixel, an infinite one."""
+    n, k = gram.shape[:2]
+    scale = np.einsum("nii->n", gram)
+    regular = gram.copy()
+    regular[:, np.arange(k), np.arange(k)] += (1e-12 * scale + (scale == 0))[:, None]
+    sides = np.zeros((n, k, 2))
+    sides[..., 0], sides[:, 0, 1] = rhs, 1.0
+    out = np.linalg.solve(regular, sides)
+    return out[..., 0], np.where(scale > 0, out[:, 0, 1], np.inf)
+
+
+_PAIRS = np.array([[(a + c, b + d) for c, d in _TERMS] for a, b in _TERMS])  # (15, 15, 2)
 
 
 def _normal_matrix(moments: np.ndarray) -> np.ndarray:
-    """The quadratic's normal matrix at each anchor, ``(..., 6, 6)``."""
-    return np.stack(
-        [np.stack([moments[a + c, b + d] for c, d in _TERMS], axis=-1) for a, b in _TERMS],
-        axis=-2,
-    )
+    """The surface's normal matrix at each anchor, ``(..., 15, 15)`` (its leading 6 × 6 block
+    the quadratic's)."""
+    return np.moveaxis(moments[_PAIRS[..., 0], _PAIRS[..., 1]], (0, 1), (-2, -1))

@@ -26,13 +26,13 @@ false_positives / n)``, the central-limit approximation, which skewed counts (EM
 photons per pixel, single frames) exceed in the far tail: one 4096 × 4096 EMCCD frame at 3
 photons per pixel gave 9 false candidates against a stated 0.01 (docs/movies.md).
 
-The background. ``b`` is local: at each pixel, a least-squares quadratic surface of the pixels
+The background. ``b`` is local: at each pixel, a least-squares quartic surface of the pixels
 around it away from the spots (``_background``), which follows a ramp or an illumination
-profile to the image's edge, so that the threshold is set against the background and the
-camera law at each pixel's own level; without a camera the noise variance is estimated pixel
-by pixel over the same window. With a camera, the variance the background pixels show beyond
-the law (a per-pixel offset pattern, which a projection keeps whole) is added to the law as a
-Gaussian term (``_background.fixed_pattern_variance``).
+profile (a beam narrower than the window too) to the image's edge, so that the threshold is set
+against the background and the camera law at each pixel's own level; without a camera the noise
+variance is estimated pixel by pixel over the same window. With a camera, the variance the
+background pixels show beyond the law (a per-pixel offset pattern, which a projection keeps
+whole) is added to the law as a Gaussian term (``_background.fixed_pattern_variance``).
 
 Neighbours. Every candidate is a source of light, its amplitude ``N̂`` spread as the spot
 (``geometry.window_light``). One is ``rejected: neighbour`` when another puts more than one SD
@@ -138,7 +138,7 @@ def detect(
         camera law); by default estimated from the image pixel by pixel, from the differences
         of adjacent pixels away from spots over a window of three ROI sides.
     background : float or array_like (h, w), optional
-        Background in photons per pixel; by default the least-squares quadratic surface of the
+        Background in photons per pixel; by default the least-squares quartic surface of the
         pixels away from spots over a window of three ROI sides around each pixel.
     false_positives : float, default 0.01
         Expected number of background pixels above the threshold per image (> 0, below the
