@@ -83,3 +83,39 @@ def _outside(spec: dict, value: float) -> str:
     if kind == "half-normal" and value > 5 * spec["scale"]:
         return f"lies beyond 5 scales of its half-normal prior (scale {spec['scale']:g})"
     return ""
+
+
+def no_density(counts: np.ndarray, model, params: np.ndarray) -> str:
+    """Why a ROI's likelihood is zero at ``params``, naming the pixels its tier gives no
+    density; ``""`` where every pixel has one.
+
+    Parameters
+    ----------
+    counts : ndarray, shape (roi, roi)
+        The ROI in ADU (validated).
+    model : Model
+        The model fitted.
+    params : ndarray, shape (6,)
+        ``x0 y0 s_x s_y N b``, finite.
+
+    Returns
+    -------
+    str
+        The pixels (row, column, ADU; the first five) and the fix, or ``""``.
+    """
+    per_pixel = model.camera.log_likelihood_unchecked(counts, model.expected(params))
+    bad = np.argwhere(~np.isfinite(per_pixel))
+    if not bad.size:
+        return ""
+    where = ", ".join(f"({r}, {c}) = {counts[r, c]:.6g} ADU" for r, c in bad[:5])
+    tier = getattr(model.camera, "likelihood", "")
+    fix = (
+        "check the camera's offset, gain and readout"
+        if tier == "exact"
+        else "use a tier with full support (e.g. 'exact')"
+    )
+    return (
+        f"the {tier!r} likelihood gives zero density to {len(bad)} pixel(s) of this ROI at "
+        f"every parameter value tried (row, column: {where}); they lie outside the law's "
+        f"support: {fix}"
+    )

@@ -18,12 +18,11 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
-from scipy import optimize
 
 from bayespsf._runtime import one_blas_thread
 from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import solver
+from bayespsf.inference import diagnostics, solver
 from bayespsf.inference.backends import check_backend
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES, pixel_centres
@@ -163,43 +162,6 @@ def covariance(fits: pd.DataFrame) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------- maximum likelihood
-def _scipy_maximise(model, stack, starts):
-    """One ROI at a time by scipy's L-BFGS-B (the reference path of ``fit_mle``), in the
-    coordinates and box of ``solver``, preconditioned by the expected information at the
-    start so that a unit step is about one standard deviation in every coordinate."""
-    a = model.pixel_size
-    low, high = solver.box(model.roi)
-    n = len(stack)
-    params, logl = np.empty((n, 6)), np.empty(n)
-    converged, message = np.zeros(n, dtype=bool), np.empty(n, dtype=object)
-    for i, (image, p0) in enumerate(zip(stack, starts, strict=True)):
-        _, metric = solver._gradient_and_metric(model, image[None], p0[None])
-        scale = np.sqrt(np.clip(np.diagonal(metric[0]), 1e-8, 1e12))
-
-        def objective(v, img=image, sc=scale):
-            p = solver.from_internal(v / sc, a)[None]
-            value = solver._objective(model, img[None], p)[0]
-            if not np.isfinite(value):
-                return 1e300, np.zeros(6)
-            grad = solver.gradient(model, img[None], p)[0] * solver._chain(p, a)[0]
-            return value, grad / sc
-
-        res = optimize.minimize(
-            objective,
-            np.clip(solver.to_internal(p0, a), low, high) * scale,
-            jac=True,
-            method="L-BFGS-B",
-            bounds=list(zip(low * scale, high * scale, strict=True)),
-            options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-8},
-        )
-        params[i] = solver.from_internal(res.x / scale, a)
-        logl[i] = -res.fun
-        # a line search that stops at machine precision on a flat optimum is not a failure
-        converged[i] = bool(res.success or np.all(np.abs(res.jac) < 1e-3))
-        message[i] = str(res.message)
-    return params, logl, converged, message
-
-
 ENGINES = ("stack", "scipy")
 
 
@@ -220,9 +182,9 @@ def fit_mle(
         ROIs in ADU.
     model : Model
         Geometry, camera law and photon unit.
-    start : array_like, shape (..., 6), optional
-        Starting ``x0 y0 s_x s_y N b`` per ROI (nm, photons, photons per pixel); default
-        ``start_values`` of the counts in photons.
+    start : array_like, shape (n, 6), optional
+        Starting ``x0 y0 s_x s_y N b`` per ROI (nm, photons, photons per pixel; widths and N
+        > 0, b >= 0); default ``start_values`` of the counts in photons.
     laplace : bool
         Add the Laplace SDs and correlations.
     engine : {"stack", "scipy"}
@@ -270,8 +232,10 @@ def fit_mle(
     (``covariance(fits)`` rebuilds the ``(n, 6, 6)`` matrices; NaN where not converged).
     ``crlb_<p>`` columns hold the Cramér-Rao bound at the fit (the inverse expected
     information, the plug-in error bar other fitters report; ``solver.crlb``). Not
-    converged: the optimiser failed, a width ran away beyond the ROI, or the Hessian is not
-    positive definite (SDs then NaN). ROIs the model cannot analyse are ``refused`` rows
+    converged: the optimiser failed, a width ran away beyond the ROI, the Hessian is not
+    positive definite, or the centre is not identified at the fit (its Cramér-Rao bound or
+    Laplace SD undefined or beyond the ROI: a spot collapsed far below a pixel's width); SDs
+    then NaN. ROIs the model cannot analyse are ``refused`` rows
     (module docstring); the other ROIs are fitted.
 
     Examples
@@ -350,28 +314,22 @@ def fit_screened(
             f"problems must be one reason (str) or None per ROI ({len(stack)}), as "
             f"Model.roi_problems gives them; got {len(problems)} entries"
         )
-    if start is not None:
-        starts = finite_array("start", start).reshape(-1, 6)
-        if len(starts) != len(stack):
-            raise BayespsfInputError(
-                f"start must have one row per ROI ({len(stack)}), got {len(starts)}"
-            )
-    elif backend != "jax":  # the JAX backend computes them on its device
-        starts = start_values(model.to_photons(stack), model)
-    else:
-        starts = None
+    starts = None if start is None else _checked_starts(start, len(stack))
     fit = np.flatnonzero(np.equal(np.array(problems, dtype=object), None))
     fitted = stack if len(fit) == len(stack) else stack[fit]  # no copy where every ROI fits
+    if starts is not None:
+        starts = starts[fit]
+    elif backend != "jax":  # the JAX backend computes them on its device
+        starts = start_values(model.to_photons(fitted), model)
     if backend == "jax":
         from bayespsf.inference import jax_mle
 
-        given = None if starts is None else starts[fit]
-        found = jax_mle.maximise(model, fitted, given, laplace, crlb)
+        found = jax_mle.maximise(model, fitted, starts, laplace, crlb)
         params, logl = found["params"], found["log_likelihood"]
         ok, message = found["converged"], found["message"]
     else:
-        maximise = solver.maximise if engine == "stack" else _scipy_maximise
-        params, logl, ok, message = maximise(model, fitted, starts[fit])
+        maximise = solver.maximise if engine == "stack" else solver.maximise_scipy
+        params, logl, ok, message = maximise(model, fitted, starts)
     low, high = solver.box(model.roi)
     u = solver.to_internal(params, model.pixel_size)
     # b's bound 0 is physical; any other coordinate on its bound is a failed search
@@ -383,6 +341,8 @@ def fit_screened(
     message[on_bound] = "ended on a bound of the search box"
     message[runaway] = "a width ran away beyond the ROI"
     message[~finite] = "non-finite estimate"
+    for i in np.flatnonzero(~finite & np.all(np.isfinite(params), axis=1)):
+        message[i] = diagnostics.no_density(fitted[i], model, params[i]) or message[i]
     ok &= finite & ~runaway & ~on_bound
     bound = np.full((len(fit), 6), np.nan)
     if crlb and ok.any():
@@ -402,9 +362,37 @@ def fit_screened(
         message[bad] = "observed information not positive definite"
         ok[bad] = False
         cov[bad] = np.nan
+    with np.errstate(invalid="ignore"):  # NaN SDs and bounds compare False
+        spread = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)[:, :2]))
+        lost = (spread > limit) | (bound[:, :2] > limit) | (crlb & ~np.isfinite(bound[:, :2]))
+    for i in np.flatnonzero(ok & lost.any(axis=1)):
+        message[i] = (
+            f"the centre is not identified at the fit: its Cramér-Rao bound or Laplace SD is "
+            f"undefined or beyond the ROI's {limit:g} nm (s_x = {params[i, 2]:.3g}, s_y = "
+            f"{params[i, 3]:.3g} nm: a spot much narrower than a pixel leaves its centre free "
+            "within one)"
+        )
+        ok[i], cov[i] = False, np.nan
     return _mle_table(
         model, problems, fit, params, logl, bound, cov if laplace else None, ok, message
     )
+
+
+def _checked_starts(start, n: int) -> np.ndarray:
+    """``fit_mle``'s ``start``: one row ``x0 y0 s_x s_y N b`` per ROI, finite, with widths and
+    N > 0 and b >= 0 (the search's coordinates take their logs)."""
+    starts = finite_array("start", start)
+    if starts.ndim not in (1, 2) or starts.shape[-1] != 6 or starts.size != 6 * n:
+        raise BayespsfInputError(
+            f"start must have one row x0 y0 s_x s_y N b per ROI, shape ({n}, 6); got {starts.shape}"
+        )
+    starts = starts.reshape(n, 6)
+    for k, name in ((2, "s_x"), (3, "s_y"), (4, "N")):
+        if np.any(starts[:, k] <= 0):
+            raise BayespsfInputError(f"start's {name} must be > 0 in every row")
+    if np.any(starts[:, 5] < 0):
+        raise BayespsfInputError("start's b must be >= 0 in every row")
+    return starts
 
 
 def _mle_table(model, problems, fit, params, logl, bound, cov, ok, message) -> pd.DataFrame:

@@ -45,6 +45,7 @@ _MESSAGES = (
 DEVICE_PIXELS = {"cpu": 2**20, "gpu": 2**24}  # pixels per device call (one chunk of ROIs)
 HESSIAN_PIXELS = 2**19  # pixels per Laplace/CRLB call (its arrays: ~4 kB per pixel)
 MIN_BUCKET = 64  # the smallest chunk: smaller stacks are padded to it (one compiled shape)
+TINY = 1e-300  # photons: the Laplace secant's lower end at lam = 0 (the law's slope there)
 COMPACT = 8  # a fit's active lanes move to a smaller chunk once at most 1/COMPACT are active
 
 
@@ -247,6 +248,14 @@ def _compiled(roi: int):
                 return jnp.sum(jm.pixel_log_likelihood(c, values))
 
             score, curvature = jax.jvp(jax.grad(law), (lam,), (jnp.ones_like(lam),))
+            # below one photon, the camera's rule (``Camera.score_and_curvature_unchecked``):
+            # a difference of the score over 1e-4 photons, a secant from just above 0 where
+            # that would go below it; the table's interpolant amplifies its own error there
+            # by 1 / lam^2, and the readout-alone branch at lam == 0 has not the law's slope
+            step = 1e-4 * jnp.maximum(lam, 1.0)
+            low, high = jnp.maximum(lam - step, TINY), lam + step
+            secant = (jax.grad(law)(high) - jax.grad(law)(low)) / (high - low)
+            curvature = jnp.where(lam < 1.0, secant, curvature)
             jac = jax.jacfwd(jm.expected)(q).reshape(-1, 6)
             fixed = jax.lax.stop_gradient(score)
             second = jax.hessian(lambda v: jnp.sum(fixed * jm.expected(v)))(q)

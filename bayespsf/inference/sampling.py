@@ -39,6 +39,7 @@ from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import diagnostics
 from bayespsf.inference.batched import as_posterior, cheap_posteriors, laplace_in_z, random_streams
+from bayespsf.inference.diagnostics import no_density
 from bayespsf.inference.estimators import fit_mle, start_values
 from bayespsf.inference.gof import pearson_fit
 from bayespsf.inference.importance import IndependenceMove
@@ -107,17 +108,9 @@ def _start(counts, model, walkers, rng, fits=None):
 
 def _explain_no_support(counts, model, centre) -> None:
     """Name the pixels the likelihood tier gives zero density, if that is why no walker fits."""
-    lam = model.expected(centre)
-    per_pixel = model.camera.log_likelihood_unchecked(counts, lam)
-    bad = np.argwhere(~np.isfinite(per_pixel))
-    if bad.size:
-        where = ", ".join(f"({r}, {c}) = {counts[r, c]:.6g} ADU" for r, c in bad[:5])
-        tier = getattr(model.camera, "likelihood", "")
-        raise BayespsfInputError(
-            f"the {tier!r} likelihood gives zero density to {len(bad)} pixel(s) of this ROI at "
-            f"every parameter value tried (row, column: {where}); they lie outside the tier's "
-            "support: use a tier with full support (e.g. 'exact')"
-        )
+    reason = no_density(counts, model, centre)
+    if reason:
+        raise BayespsfInputError(reason)
 
 
 def integrated_time(chain, c: float = 5.0) -> np.ndarray:

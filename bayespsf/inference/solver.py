@@ -24,14 +24,16 @@ factors (``psf.gaussian.axis_factors``), and compiled loops (``inference.separab
 the expected counts, ``J' score`` and ``J' diag(F) J`` from them a pixel row at a time.
 
 The box, the flags and the Laplace SDs are those of ``bayespsf.fit_mle``'s one-ROI scipy path
-(the same search box, the same observed information: ``observed_information``, analytic in the
-spot's factors and the camera law's score and curvature), so the two paths give the same
-numbers to the optimisers' tolerance (``tests/inference/test_solver.py``).
+(``maximise_scipy``: the same search box, the same observed information:
+``observed_information``, analytic in the spot's factors and the camera law's score and
+curvature), so the two paths give the same numbers to the optimisers' tolerance
+(``tests/inference/test_solver.py``).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy import optimize
 
 from bayespsf.inference.separable import expected_counts, hessian_sums, jacobian_sums
 from bayespsf.psf.gaussian import axis_curvature, axis_factor, axis_factors
@@ -373,6 +375,46 @@ def _maximise_block(model, counts, starts, held):
     converged = done & ~failed & np.isfinite(f)
     message[~np.isfinite(f)] = "non-finite estimate"
     return p, -f, converged, message
+
+
+ZERO_DENSITY = 1e300  # the scipy path's -log L where the likelihood is 0 (L-BFGS-B needs a number)
+
+
+def maximise_scipy(model, stack, starts):
+    """One ROI at a time by scipy's L-BFGS-B (the reference path of ``fit_mle``), in the
+    coordinates and box of ``maximise``, preconditioned by the expected information at the
+    start so that a unit step is about one standard deviation in every coordinate."""
+    a = model.pixel_size
+    low, high = box(model.roi)
+    n = len(stack)
+    params, logl = np.empty((n, 6)), np.empty(n)
+    converged, message = np.zeros(n, dtype=bool), np.empty(n, dtype=object)
+    for i, (image, p0) in enumerate(zip(stack, starts, strict=True)):
+        _, metric = _gradient_and_metric(model, image[None], p0[None])
+        scale = np.sqrt(np.clip(np.diagonal(metric[0]), 1e-8, 1e12))
+
+        def objective(v, img=image, sc=scale):
+            p = from_internal(v / sc, a)[None]
+            value = _objective(model, img[None], p)[0]
+            if not np.isfinite(value):
+                return ZERO_DENSITY, np.zeros(6)
+            grad = gradient(model, img[None], p)[0] * _chain(p, a)[0]
+            return value, grad / sc
+
+        res = optimize.minimize(
+            objective,
+            np.clip(to_internal(p0, a), low, high) * scale,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=list(zip(low * scale, high * scale, strict=True)),
+            options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-8},
+        )
+        params[i] = from_internal(res.x / scale, a)
+        logl[i] = -res.fun if res.fun < ZERO_DENSITY else -np.inf  # nowhere a density
+        # a line search that stops at machine precision on a flat optimum is not a failure
+        converged[i] = bool(res.success or np.all(np.abs(res.jac) < 1e-3))
+        message[i] = str(res.message)
+    return params, logl, converged, message
 
 
 def secant(metric, step, change, xp=np):

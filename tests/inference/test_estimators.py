@@ -205,8 +205,26 @@ def test_a_screened_stack_is_fitted_as_fit_mle_fits_it(monkeypatch):
         fit_screened(counts, model, problems, engine="newton")
     with pytest.raises(ValueError, match=r"stack must have shape \(n, roi, roi\)"):
         fit_screened(counts[0], model)
-    with pytest.raises(ValueError, match="start must have one row per ROI"):
+    with pytest.raises(ValueError, match="start must have one row x0 y0 s_x s_y N b per ROI"):
         fit_screened(counts, model, problems, start=np.ones((2, 6)))
+    with pytest.raises(ValueError, match="start must have one row"):  # 5 columns, not 6
+        fit_screened(counts, model, problems, start=np.ones((6 * len(counts) // 5, 5)))
+    good = np.tile([0.0, 0.0, 120.0, 120.0, 1000.0, 10.0], (len(counts), 1))
+    for column, value, name in ((2, -1.0, "s_x"), (4, 0.0, "N"), (5, -10.0, "b")):
+        bad = good.copy()
+        bad[1, column] = value
+        with pytest.raises(ValueError, match=f"start's {name} must be"):
+            fit_screened(counts, model, problems, start=bad)
+
+
+def test_an_infinite_pixel_is_refused_without_a_warning_from_the_start_values():
+    # the start values were computed for every ROI, the refused ones too, and an infinite
+    # pixel's moments warned (an error in this suite) before the ROI was refused
+    scene = load_scene("emccd-typical")
+    counts, _ = simulate(scene, 3, seed=1)
+    counts[0, 0, 0] = np.inf
+    fits = fit_mle(counts, Model.from_scene(scene))
+    assert fits["status"].tolist() == ["refused", "converged", "converged"]
 
 
 def test_a_bad_roi_is_a_row_not_an_exception_for_the_stack():
@@ -235,3 +253,41 @@ def test_fit_tables_print_concatenate_and_save(tmp_path):
     both.to_csv(tmp_path / "fits.csv", index=False)
     back = pd.read_csv(tmp_path / "fits.csv")
     np.testing.assert_allclose(covariance(back), covariance(both), rtol=1e-12)
+
+
+@pytest.mark.parametrize("engine", ["stack", "scipy"])
+def test_a_roi_outside_the_tiers_support_says_which_pixels_and_is_not_converged(engine):
+    # sCMOS 'huang' has no density where y + s^2 < 0 (y: counts in electrons above the
+    # offset, s^2 = var / gain^2 = 1 here); pixels 1 readout SD below the offset fall there. The
+    # scipy path reported such a ROI converged at a sentinel -log L of 1e300
+    from bayespsf.cameras import SCMOS
+
+    model = Model(15, 108.0, SCMOS(2.0, 100.0, 4.0, likelihood="huang"))
+    rng = np.random.default_rng(1)
+    truth = np.array([[0.0, 0.0, 130.0, 130.0, 1000.0, 2.0]])
+    counts = 100 + 2.0 * rng.poisson(model.expected(truth)) + rng.normal(0, 2.0, (1, 15, 15))
+    assert np.any((counts - 100) / 2.0 + 1.0 < 0)
+    fit = fit_mle(counts, model, engine=engine).iloc[0]
+    assert fit["status"] == "not converged" and fit["log_likelihood"] == -np.inf
+    assert "the 'huang' likelihood gives zero density to" in fit["message"]
+    assert "(row, column: (" in fit["message"] and "use a tier with full support" in fit["message"]
+
+
+@pytest.mark.parametrize("laplace", [True, False])
+def test_a_fit_whose_centre_is_not_identified_is_not_converged(laplace):
+    # a spot of s0 = 30 nm on 100 nm pixels: some fits collapse to widths of 0.1 pixel, where
+    # the centre can move within a pixel at no cost. Those rows were "converged" with a NaN
+    # Cramér-Rao bound and Laplace SDs of x0 of 2-7e5 nm, where a chain's posterior SD is ~3 nm
+    scene = load_scene("emccd-typical").replace(emitter={"s0x": 30.0, "s0y": 30.0})
+    counts, _ = simulate(scene, 30, seed=5)
+    model = Model.from_scene(scene)
+    fits = fit_mle(counts, model, laplace=laplace)
+    side = model.roi * model.pixel_size
+    done = fits[fits["status"] == "converged"]
+    assert np.isfinite(done[["crlb_x0", "crlb_y0"]]).all().all()
+    assert (done[["crlb_x0", "crlb_y0"]] < side).all().all()
+    if laplace:
+        assert (done[["sd_x0", "sd_y0"]] < side).all().all()
+    lost = fits["message"].str.startswith("the centre is not identified at the fit")
+    assert lost.sum() >= 3 and (fits.loc[lost, "status"] == "not converged").all()
+    assert (fits.loc[lost, ["s_x", "s_y"]].min(axis=1) < 0.2 * model.pixel_size).all()

@@ -96,6 +96,22 @@ def test_the_laplace_by_the_chain_rule_is_jaxs_hessian(scene, tier):
     np.testing.assert_allclose(got / scale, want / scale, atol=1e-8)
 
 
+def test_without_background_the_laplace_is_the_numpy_engines():
+    # at b = 0 most pixels expect under a photon, where the table's interpolant's second
+    # derivative by lam carries its own error times 1 / lam^2 (curvatures of +-2 500 against
+    # ~0.1): both engines take a difference of the score there, and agree. With the
+    # interpolant's, the JAX engine called 16 of these 30 ROIs' information not positive
+    # definite. Their SDs agree within 6e-5 relative (b's, on its bound); held to 1e-3.
+    scene = load_scene("emccd-typical").replace(
+        emitter={"photons": 100.0}, background={"kind": "none"}
+    )
+    counts, _ = simulate(scene, 30, seed=5)
+    model = Model.from_scene(scene)
+    a, b = fit_mle(counts, model), fit_mle(counts, model, backend="jax")
+    assert a["converged"].all() and b["converged"].all()
+    np.testing.assert_allclose(b[[f"sd_{p}" for p in P]], a[[f"sd_{p}" for p in P]], rtol=1e-3)
+
+
 def test_the_poisson_tier_converges_as_on_the_numpy_engine():
     # the EMCCD's poisson tier scores counts as Poisson photons: the fit's metric is that
     # law's information, 1/lam, not the camera's (half of it, with which the steps overshot
@@ -105,7 +121,8 @@ def test_the_poisson_tier_converges_as_on_the_numpy_engine():
     counts, _ = simulate(scene, 40, seed=4)
     model = Model.from_scene(scene, likelihood="poisson")
     a, b = fit_mle(counts, model), fit_mle(counts, model, backend="jax")
-    scored = a["message"] != "non-finite estimate"  # a count below the offset: -inf
+    scored = np.isfinite(a["log_likelihood"])  # a count below the offset: -inf, named
+    assert a.loc[~scored, "message"].str.contains("'poisson' likelihood gives zero density").all()
     assert scored.sum() >= 30 and (b["message"] == a["message"]).all()
     assert a.loc[scored, "converged"].all() and b.loc[scored, "converged"].all()
     np.testing.assert_allclose(b.loc[scored, P], a.loc[scored, P], rtol=1e-6)

@@ -140,7 +140,7 @@ def test_the_poisson_tier_converges_on_emccd_counts():
     counts, _ = simulate(scene, 60, seed=4)
     model = Model.from_scene(scene, likelihood="poisson")
     fits = fit_mle(counts, model)
-    scored = fits["message"] != "non-finite estimate"  # a count below the offset: -inf
+    scored = np.isfinite(fits["log_likelihood"])  # a count below the offset: -inf
     assert scored.sum() >= 45
     assert fits.loc[scored, "converged"].all(), fits["message"].value_counts()
     scipy = fit_mle(counts[scored.to_numpy()], model, engine="scipy")
