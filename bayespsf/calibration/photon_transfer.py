@@ -76,15 +76,8 @@ def pixel_cumulants(
         )
     shift = None
     sums = None
-    for start, part in zip(range(0, len(span), block), blocks(movie, span, block), strict=True):
-        data = np.asarray(part, dtype=np.float64)
-        bad = ~np.isfinite(data)
-        if bad.any():
-            frame = span[start + int(np.flatnonzero(bad.any(axis=(1, 2)))[0])]
-            raise BayespsfInputError(
-                f"frame {frame} has NaN or infinite counts; the cumulants need finite ones "
-                "(a camera gives finite counts: is the movie a processed image?)"
-            )
+    for part in blocks(movie, span, block):
+        data = np.asarray(part, dtype=np.float64)  # finite: ``Movie.frames`` refuses NaN
         if shift is None:
             shift = data[0].copy()
             sums = np.zeros((4, *shift.shape))

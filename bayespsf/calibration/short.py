@@ -30,7 +30,6 @@ from bayespsf.calibration.spatial import (
     block_sums,
     spatial_photon_transfer,
 )
-from bayespsf.errors import BayespsfInputError
 from bayespsf.io.camera_file import camera_file_text
 from bayespsf.movie import detect
 from bayespsf.movie.extract import open_movie
@@ -245,12 +244,7 @@ def calibrate_short(
         cannot measure (``--readout-sd`` or ``--dark`` fixes it).
     """
     movie = open_movie(movie)
-    frames = np.asarray(movie[0 : len(movie)], dtype=np.float64)
-    if not np.isfinite(frames).all():
-        raise BayespsfInputError(
-            "the movie has NaN or infinite counts; the calibration needs finite ones (a camera "
-            "gives finite counts: is the movie a processed image?)"
-        )
+    frames = np.asarray(movie[0 : len(movie)], dtype=np.float64)  # finite (``Movie.frames``)
     keep, spots = background_mask(frames.mean(axis=0), s0, pixel_size)
     first = None
     if dark is not None:

@@ -203,6 +203,12 @@ def frame_span(movie: Movie, frames) -> range:
         return range(movie.n_frames)
     if not isinstance(frames, slice | range):
         raise BayespsfInputError(f"frames must be None, a slice or a range, got {frames!r}")
+    ends = (frames.start, frames.stop) if isinstance(frames, slice) else ()
+    if any(end is not None and not 0 <= end <= movie.n_frames for end in ends):
+        raise BayespsfInputError(  # a slice would be clipped to the movie without a word
+            f"frames {frames!r} reach beyond the movie's {movie.n_frames} frames (0 to "
+            f"{movie.n_frames - 1}; no negative index)"
+        )
     span = range(movie.n_frames)[frames] if isinstance(frames, slice) else frames
     if span.step != 1 or span.start < 0 or span.stop > movie.n_frames or len(span) == 0:
         raise BayespsfInputError(

@@ -188,7 +188,11 @@ class Movie:
         self, start: int = 0, stop: int | None = None, *, rows: slice | None = None
     ) -> np.ndarray:
         """Frames ``start`` to ``stop`` (excluded; Python slice rules) as an array ``(k, h, w)``
-        in the file's data type; ``rows`` (a slice) reads only those rows of each frame."""
+        in the file's data type; ``rows`` (a slice) reads only those rows of each frame.
+
+        A floating-point movie's NaN or infinite pixel raises ``BayespsfInputError`` naming
+        the frame and pixel: camera counts are finite, and every analysis reads through here.
+        """
         span = range(self.n_frames)[start:stop]
         rows = slice(None) if rows is None else rows
         parts = []
@@ -198,7 +202,17 @@ class Movie:
                 parts.append(reader.read(int(low - offset), int(high - offset), rows))
         if not parts:
             return np.empty((0, len(range(self.shape[1])[rows]), self.shape[2]), self.dtype)
-        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+        data = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        if np.issubdtype(data.dtype, np.inexact) and not np.isfinite(data).all():
+            k, r, c = np.argwhere(~np.isfinite(data))[0]
+            first = range(self.shape[1])[rows][r]
+            bad = int(np.count_nonzero(~np.isfinite(data[k])))
+            raise BayespsfInputError(
+                f"{self.path}: frame {span.start + k} has {bad} NaN or infinite pixel(s), the "
+                f"first at row {first}, column {c} ({data[k, r, c]}); camera counts are finite: "
+                "replace them (with the camera's offset, say) or crop them out"
+            )
+        return data
 
     def frame(self, i: int) -> np.ndarray:
         """Frame ``i``, from 0 to ``n_frames - 1``, as an array ``(h, w)``.

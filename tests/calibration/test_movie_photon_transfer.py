@@ -107,7 +107,10 @@ def test_inputs_that_cannot_work_are_named(tmp_path):
     noisy = np.random.default_rng(0).gamma(3.0, 10.0, size=(30, 20, 20))
     noisy[7, 3, 3] = np.nan
     np.save(tmp_path / "nan.npy", noisy)
-    with pytest.raises(BayespsfInputError, match="frame 7 has NaN or infinite counts"):
+    with pytest.raises(
+        BayespsfInputError,
+        match=r"frame 7 has 1 NaN or infinite pixel\(s\), the first at row 3, column 3",
+    ):
         pixel_cumulants(tmp_path / "nan.npy", block=4)
     noisy[7, 3, 3] = 30.0
     np.save(tmp_path / "skewed.npy", -noisy)  # negatively skewed: no amplified photons

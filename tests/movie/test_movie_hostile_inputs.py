@@ -303,3 +303,25 @@ def test_a_movie_without_a_pixel_size_names_every_way_to_state_it(tmp_path):
     fixes = r"state it \(nm\): pixel_size= .*--pixel-size .*\[geometry\] pixel_size"
     with pytest.raises(BayespsfInputError, match=r"metadata has none; " + fixes):
         detect_movie(movie, psf_sd=S, camera=CAMERA)
+
+
+def test_a_nan_or_infinite_pixel_in_a_movie_is_named_by_frame_and_pixel(tmp_path):
+    # a float movie's Inf went through the mean projection as inf - inf (a RuntimeWarning,
+    # an error in this suite) and then "image must be finite", with no frame or pixel named
+    counts = np.random.default_rng(0).poisson(5.0, (6, 32, 32)).astype(np.float32) + 100
+    counts[4, 7, 9] = np.inf
+    np.save(tmp_path / "m.npy", counts)
+    where = r"m.npy: frame 4 has 1 NaN or infinite pixel\(s\), the first at row 7, column 9"
+    with pytest.raises(BayespsfInputError, match=where):
+        detect_movie(tmp_path / "m.npy", psf_sd=S, pixel_size=A, camera=CAMERA)
+    with pytest.raises(BayespsfInputError, match=where):
+        detect_frames(tmp_path / "m.npy", psf_sd=S, pixel_size=A, camera=CAMERA)
+    assert np.isfinite(read_movie(tmp_path / "m.npy").frames(0, 4)).all()  # the others read
+
+
+def test_frames_beyond_the_movie_are_refused_not_clipped(tmp_path):
+    counts = np.random.default_rng(0).poisson(5.0, (10, 32, 32)).astype(np.uint16) + 100
+    np.save(tmp_path / "m.npy", counts)
+    for frames in (slice(5, 30), slice(12, None), slice(-3, None)):
+        with pytest.raises(BayespsfInputError, match="reach beyond the movie's 10 frames"):
+            detect_movie(tmp_path / "m.npy", psf_sd=S, pixel_size=A, camera=CAMERA, frames=frames)
