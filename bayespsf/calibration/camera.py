@@ -60,7 +60,7 @@ from bayespsf.model import MIN_ROI, Model
 from bayespsf.movie.extract import check_sizes, open_movie
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.project import project
-from bayespsf.movie.psf_width import estimate_psf_sd
+from bayespsf.movie.psf_width import PsfWidth, estimate_psf_sd
 from bayespsf.movie.select import Rules
 from bayespsf.scene import units
 
@@ -174,7 +174,7 @@ def calibrate_camera(
     dark=None,
     *,
     kind: str,
-    s0: float | None = None,
+    s0: float | PsfWidth | None = None,
     pixel_size: float | None = None,
     e_per_adu: float = 1.0,
     roi: int = 25,
@@ -200,9 +200,11 @@ def calibrate_camera(
         Dark frames of the same camera and frame shape; None to calibrate from the movie alone.
     kind : {"emccd", "scmos"}
         The camera's kind (its excess-noise factor: 2 or 1).
-    s0 : float or None, optional
-        The spot's SD (nm), for detection; default estimated from the movie's spots by least
-        squares on its projection (``bayespsf.movie.estimate_psf_sd`` without a camera).
+    s0 : float, PsfWidth or None, optional
+        The spot's SD (nm), for detection, or a ``PsfWidth`` (``bayespsf.movie.psf_width``:
+        one already estimated is reported as estimated); default estimated from the movie's
+        spots by least squares on its projection (``bayespsf.movie.estimate_psf_sd`` without
+        a camera).
     pixel_size : float or None, optional
         Pixel size (nm); default the movie's metadata.
     e_per_adu : float, optional
@@ -274,6 +276,8 @@ def calibrate_camera(
             "or pixel_size= from Python"
         )
     s0_source = "given"
+    if isinstance(s0, PsfWidth):
+        s0, s0_source = s0.sd, s0.source
     if s0 is None:  # the spot's SD: estimated where not stated (no camera yet)
         s0, s0_source = estimate_psf_sd(movie, pixel_size=pixel_size, fit=fit).sd, "estimated"
     excess = EXCESS[kind]

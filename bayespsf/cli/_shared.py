@@ -40,12 +40,19 @@ def geometry(args) -> tuple[int | None, int | None]:
     """``--roi`` and ``--fit``, checked: for ``detect`` and ``analyze`` a side not given is
     None (it follows the spot's SD: ``bayespsf.movie.geometry_for_psf``); ``calibrate`` and
     ``calibrate-z`` take the paper's 25 and 15 pixels."""
-    from bayespsf.movie.extract import check_sizes
+    from bayespsf.model import MIN_ROI
 
     roi, fit = args.roi, args.fit
     if args.command not in ("detect", "analyze"):
         roi, fit = (25 if roi is None else roi), (15 if fit is None else fit)
-    check_sizes(roi, fit, missing_ok=True)
+    for flag, side in (("--roi", roi), ("--fit", fit)):
+        if side is not None and (side < MIN_ROI or side % 2 == 0):
+            raise CommandError(
+                f"{flag} must be an odd number of pixels >= {MIN_ROI} (a central pixel holds "
+                f"the molecule, and the fit needs a border of background around it), got {side}"
+            )
+    if roi is not None and fit is not None and fit > roi:
+        raise CommandError(f"--fit ({fit}) must be at most --roi ({roi})")
     return roi, fit
 
 
@@ -60,7 +67,13 @@ def movie_model(args):
     table = read_camera_file(args.camera)
     if args.fit is None:  # the camera file's ROI, where it states one, is the fitted window
         args.fit = table.get("geometry", {}).get("roi")
-    _, fit = geometry(args)
+    roi, fit = geometry(args)
+    for flag, side in (("--roi", roi), ("--fit", fit)):
+        if side is not None and side > min(movie.shape[1:]):
+            raise CommandError(
+                f"{flag} {side} is larger than {args.movie}'s frames ({movie.shape[1]} x "
+                f"{movie.shape[2]} pixels)"
+            )
     stated = table.get("geometry", {}).get("pixel_size")
     if args.pixel_size is not None and stated is not None and stated != args.pixel_size:
         raise CommandError(

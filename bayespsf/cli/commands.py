@@ -9,6 +9,7 @@ only when it runs, so that ``bayespsf --help`` loads no NumPy.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -363,8 +364,12 @@ def _calibrate(args) -> int:
     from bayespsf.movie.psf_width import resolve_psf_sd  # the spot's SD, stated or estimated
 
     out = Path(args.out)
-    if out.is_dir():
-        raise CommandError(f"--out {out} is a folder; give the camera file's name")
+    if out.is_dir() or args.out.endswith(("/", os.sep)):
+        raise CommandError(
+            f"--out {args.out} is a folder; give the camera file's name ({out / 'camera.toml'})"
+        )
+    if out.exists() and not args.force:
+        raise CommandError(f"--out {out} exists: give another name, or --force to replace it")
     output_folder(str(out.parent))
     roi, fit = geometry(args)
     width = resolve_psf_sd(args.movie, None, args.psf_sd, pixel_size=args.pixel_size, fit=fit)
@@ -373,7 +378,7 @@ def _calibrate(args) -> int:
         args.movie,
         args.dark,
         kind=args.kind,
-        s0=width.sd,
+        s0=width,
         pixel_size=args.pixel_size,
         e_per_adu=args.e_per_adu,
         roi=roi,
@@ -419,7 +424,10 @@ def main(argv: list[str] | None = None) -> int:
         ``bayespsf.errors.BayespsfInputError``) ends the command with one line
         ``bayespsf: ...`` (``SystemExit``, exit status 1).
     """
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # the subcommand's usage and a close flag, not the top level's usage
+        _refuse_unknown(parser.subcommands[args.command], unknown)
     args.argv = None if argv is None else list(argv)[1:]
     try:
         return COMMANDS[args.command](args)
@@ -428,6 +436,24 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("bayespsf: interrupted", file=sys.stderr)
         return 130
+
+
+def _refuse_unknown(subparser, unknown: list[str]) -> None:
+    """End with the subcommand's usage, naming the arguments it does not take and, for a
+    flag, the nearest of its own (``--pixel_size``: ``--pixel-size``)."""
+    import difflib
+    import re
+
+    flags = sorted(set(re.findall(r"--[a-z][a-z0-9-]*", subparser.format_help())))
+    hints = []
+    for word in unknown:
+        if word.startswith("-"):
+            close = difflib.get_close_matches(word.split("=")[0], flags, n=1, cutoff=0.6)
+            if close:
+                hints.append(f"{word}: did you mean {close[0]}?")
+    subparser.error(
+        f"unrecognized arguments: {' '.join(unknown)}" + ("; " + "; ".join(hints) if hints else "")
+    )
 
 
 __all__ = ["CommandError", "build_parser", "main"]

@@ -37,7 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
     Returns
     -------
     argparse.ArgumentParser
-        The parser; its result names the subcommand in ``command``.
+        The parser; its result names the subcommand in ``command``, and its
+        ``subcommands`` attribute maps each subcommand's name to its parser.
     """
     parser = argparse.ArgumentParser(
         prog="bayespsf",
@@ -57,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_calibrate,
     ):
         add(commands)
+    parser.subcommands = dict(commands.choices)  # each subcommand's parser, by name
     return parser
 
 
@@ -331,3 +333,4 @@ def _add_calibrate(commands) -> None:
     add_geometry(calibrate)
     add_selection(calibrate)
     add_out(calibrate, "camera.toml", "the camera file to write")
+    add_force(calibrate, "replace the camera file that --out names instead of refusing")

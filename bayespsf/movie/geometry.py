@@ -46,6 +46,7 @@ MIN_FIT = 7  # pixels: the 3 x 3 core and a border of two for b
 MIN_RING = 2  # pixels: the periphery's least width
 MAX_SIDE = 401  # pixels: the largest ROI a scene declares
 APERTURE = 2.5  # SDs: traces' photon aperture, the kept periphery's least size
+MIN_SD_PIXELS = 0.1  # the least spot SD in pixels: below it, a unit mistaken (pixels, µm for nm)
 
 __all__ = [
     "K_FIT",
@@ -65,11 +66,19 @@ __all__ = [
 
 def _ratio(s0, pixel_size) -> float:
     """``s0 / pixel_size`` (pixels) of a checked ``s0`` and pixel size."""
+    where = "--psf-sd on the command line, [emitter] s0x and s0y in a camera file"
     if isinstance(s0, bool) or not isinstance(s0, int | float | np.number):
-        raise BayespsfInputError(f"s0 (the spot's SD, nm) must be a number, got {s0!r}")
+        raise BayespsfInputError(f"s0 (the spot's SD, nm) must be a number ({where}), got {s0!r}")
     if not (np.isfinite(s0) and s0 > 0):
-        raise BayespsfInputError(f"s0 (the spot's SD) must be > 0 nm and finite, got {s0!r}")
+        raise BayespsfInputError(
+            f"s0 (the spot's SD) must be > 0 nm and finite ({where}), got {s0!r}"
+        )
     _, a = psf.check_geometry(1, pixel_size)
+    if s0 / a < MIN_SD_PIXELS:  # no microscope's spot: a width in pixels or µm taken for nm
+        raise BayespsfInputError(
+            f"s0 (the spot's SD) is {s0:g} nm, {s0 / a:.3g} of a {a:g} nm pixel: it is in nm "
+            f"({where}); a spot of {s0:g} pixels is {s0 * a:g} nm"
+        )
     return float(s0) / a
 
 

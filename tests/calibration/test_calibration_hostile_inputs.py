@@ -178,3 +178,20 @@ def test_gain_messages_say_what_would_help(tmp_path, empty):
     )
     with pytest.raises(BayespsfInputError, match=r"fewer than 2 molecules agree within 5 of"):
         _combine(per_molecule, 2.0)
+
+
+def test_a_spot_sd_estimated_before_the_call_is_reported_as_estimated(tmp_path):
+    # the command line estimates the SD, prints it, and hands it on: the advice when no
+    # molecule is found said "nm given" of an SD the user had not given
+    from bayespsf.calibration.camera import calibrate_camera
+    from bayespsf.movie.psf_width import PsfWidth
+
+    rng = np.random.default_rng(0)
+    background = 100 + 2.0 * rng.poisson(5.0, (80, 48, 48)) + rng.normal(0, 3.0, (80, 48, 48))
+    np.save(tmp_path / "flat.npy", np.round(background).astype(np.uint16))
+    for s0, words in (
+        (PsfWidth(130.0, 3.0, 12, "estimated", 130.0), "estimated"),
+        (130.0, "given"),
+    ):
+        with pytest.raises(BayespsfInputError, match=rf"the spot's SD, 130 nm {words}"):
+            calibrate_camera(tmp_path / "flat.npy", kind="scmos", s0=s0, pixel_size=100.0)

@@ -204,8 +204,12 @@ def test_detect_sizes_and_spot_widths_that_cannot_work_are_one_line(tmp_path):
     camera.write_text("[geometry]\npixel_size = 100.0\n[camera]\nkind = 'photon'\n")
     base = ["detect", str(tmp_path / "movie.npy"), "--camera", str(camera)]
     for extra, words in (
-        (["--fit", "14"], "fit must be odd"),
+        (["--fit", "14"], "--fit must be an odd number of pixels >= 5"),
+        (["--fit", "3"], r"--fit must be an odd number of pixels >= 5 .*, got 3"),
+        (["--roi", "71"], r"--roi 71 is larger than .*movie.npy's frames \(64 x 64 pixels\)"),
         (["--psf-sd", "1e6"], r"s0 \(1e\+06 nm\) is 1e\+04 pixels of 100 nm"),
+        (["--psf-sd", "1.3"], r"is 1.3 nm, 0.013 of a 100 nm pixel: it is in nm \(--psf-sd"),
+        (["--psf-sd", "-130"], r"must be > 0 nm and finite \(--psf-sd on the command line"),
     ):
         with pytest.raises(SystemExit, match=words):
             cli.main([*base, "--psf-sd", "120", *extra])
@@ -458,3 +462,31 @@ def test_a_one_frame_movie_runs_without_runtime_warnings(tmp_path):
         assert result.returncode == 0, result.stderr
         assert "RuntimeWarning" not in result.stderr, result.stderr
     assert "no z-score SD of s_x (it needs molecules with two or more analysed" in result.stdout
+
+
+def test_calibrate_refuses_a_folder_or_an_existing_file_as_its_out(tmp_path):
+    # "--out outdir/" wrote a file named outdir, and an existing camera file was replaced
+    # without a word; both are refused before any work, and --force replaces a file
+    import numpy as np
+
+    np.save(tmp_path / "movie.npy", np.full((80, 64, 64), 100, np.uint16))
+    base = ["calibrate", str(tmp_path / "movie.npy"), "--psf-sd", "120", "--pixel-size", "100"]
+    with pytest.raises(SystemExit, match=r"--out .*outdir/ is a folder; give the camera file"):
+        cli.main([*base, "--out", f"{tmp_path / 'outdir'}/"])
+    assert not (tmp_path / "outdir").exists()
+    (tmp_path / "cam.toml").write_text("# a camera file of another run\n")
+    with pytest.raises(SystemExit, match=r"cam.toml exists: give another name, or --force"):
+        cli.main([*base, "--out", str(tmp_path / "cam.toml")])
+    assert (tmp_path / "cam.toml").read_text() == "# a camera file of another run\n"
+
+
+def test_an_unknown_flag_gets_the_subcommands_usage_and_the_nearest_flag(capsys):
+    # the top level's usage was printed for a subcommand's misspelt flag
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["detect", "movie.tif", "--camera", "c.toml", "--pixel_size", "100"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: bayespsf detect ")
+    assert (
+        "unrecognized arguments: --pixel_size 100; --pixel_size: did you mean --pixel-size?" in err
+    )
