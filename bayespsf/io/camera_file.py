@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from bayespsf.errors import BayespsfInputError
-from bayespsf.scene import Scene
+from bayespsf.scene import Scene, SceneError
 
 #: What a camera file must state for its kind: the counts' units depend on it.
 CAMERA_KEYS = {
@@ -123,7 +123,10 @@ def camera_scene(
             f"roi = {roi} in {path} or remove that key ({roi_name} then gives it){flag}"
         )
     geometry["roi"] = roi
-    return Scene.from_dict(table)
+    try:
+        return Scene.from_dict(table)
+    except SceneError as exc:  # the file to mend, and that it is read as a scene's tables
+        raise SceneError(f"{path}: {exc} (a camera file holds a scene's tables)") from None
 
 
 def camera_file_text(tables: Mapping[str, Mapping], comments: Sequence[str] = ()) -> str:

@@ -1,6 +1,6 @@
-"""The older surfaces under hostile inputs, input files: a path that is not a regular
-file (a named pipe nobody writes to) is refused by name before it is opened; opening it waited
-forever.
+"""Input files under hostile inputs: a path that is not a regular file (a named pipe nobody
+writes to) is refused by name before it is opened, where opening it would wait forever; a camera
+file's misspelt table or key is named with the file.
 
 Each call runs in a thread with a deadline: should it block in ``open`` (the old behaviour),
 the test opens the pipe's other end, so the reader sees an empty file and the thread ends,
@@ -102,3 +102,18 @@ def test_regular_files_and_links_to_them_are_still_read(tmp_path):
     np.save(tmp_path / "rois.npy", stack)
     (tmp_path / "link.npy").symlink_to(tmp_path / "rois.npy")
     np.testing.assert_array_equal(read_rois(tmp_path / "link.npy"), stack)
+
+
+def test_a_misspelt_camera_file_key_names_the_file(tmp_path):
+    # the scene's message alone named neither the file nor that it was a camera file
+    import pytest
+
+    from bayespsf.errors import BayespsfInputError
+    from bayespsf.io import camera_scene, read_camera_file
+
+    path = tmp_path / "cam.toml"
+    path.write_text(
+        '[geometry]\npixel_size = 100.0\n[emiter]\ns0x = 130.0\n[camera]\nkind = "photon"\n'
+    )
+    with pytest.raises(BayespsfInputError, match=r"cam.toml: unknown scene table or key 'emiter'"):
+        camera_scene(read_camera_file(path), path, 15)
