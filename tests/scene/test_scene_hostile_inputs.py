@@ -1,6 +1,6 @@
-"""The older surfaces under hostile inputs, scenes: an unknown likelihood tier is
-refused at load, naming the key and the tiers of the scene's camera kind (it was accepted, and
-failed, or not, only when a model was built)."""
+"""Scenes under hostile inputs: an unknown likelihood tier is refused at load, naming the key
+and the tiers of the scene's camera kind (not accepted, to fail or not only when a model is
+built)."""
 
 import re
 
