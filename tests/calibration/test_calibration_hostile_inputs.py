@@ -195,3 +195,22 @@ def test_a_spot_sd_estimated_before_the_call_is_reported_as_estimated(tmp_path):
     ):
         with pytest.raises(BayespsfInputError, match=rf"the spot's SD, 130 nm {words}"):
             calibrate_camera(tmp_path / "flat.npy", kind="scmos", s0=s0, pixel_size=100.0)
+
+
+def test_frames_that_hold_light_are_refused_as_dark_frames(tmp_path):
+    # a movie of molecules given as --dark was taken for dark frames: offset 143 ADU and readout
+    # 9.9 where the truth was 100 and 3. Its spots' pixels vary with their photons; the median
+    # variance of the brightest tenth over the dimmest is 1.00-1.02 for dark frames, EMCCD
+    # (the scene's) or sCMOS with per-pixel offsets and readout variances
+    scene = load_scene("paper-movie").replace(
+        movie={"frames": 30, "height": 64, "width": 64, "molecules": 2, "dark_frames": 30}
+    )
+    made = simulate_movie(scene, seed=2, out=tmp_path / "m")
+    with pytest.raises(BayespsfInputError, match="dark frames: they hold light"):
+        dark_calibration(made.files["movie"])
+    assert dark_calibration(made.files["dark"]).offset == pytest.approx(100.0, abs=0.1)
+    rng = np.random.default_rng(3)
+    offsets = rng.normal(100.0, 5.0, (64, 64))
+    sd = np.sqrt(rng.lognormal(np.log(4.0), 0.5, (64, 64)))
+    np.save(tmp_path / "scmos_dark.npy", offsets + sd * rng.standard_normal((30, 64, 64)))
+    assert dark_calibration(tmp_path / "scmos_dark.npy").frames == 30
