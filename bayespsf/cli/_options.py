@@ -53,7 +53,8 @@ PIXEL_SIZE_HELP = (
 def add_movie(
     parser: argparse.ArgumentParser, help: str = MOVIE_HELP, metavar: str | None = None
 ) -> None:
-    """Add the positional ``movie`` argument.
+    """Add the positional ``movie`` argument and ``--channel``, the channel to read of a
+    multi-channel file (default None).
 
     Parameters
     ----------
@@ -65,6 +66,13 @@ def add_movie(
         Its name in the usage line (default ``MOVIE``).
     """
     parser.add_argument("movie", metavar=metavar, help=help)
+    parser.add_argument(
+        "--channel",
+        type=int,
+        default=None,
+        help="the channel of a multi-channel OME or ImageJ file to read, from 0 (required "
+        "when the file has more than one)",
+    )
 
 
 def add_camera(parser, help: str = CAMERA_AS_FOR_DETECT, required: bool = True) -> None:

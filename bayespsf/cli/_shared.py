@@ -63,7 +63,7 @@ def movie_model(args):
     from bayespsf.model import Model
     from bayespsf.movie import read_movie
 
-    movie = read_movie(args.movie)
+    movie = read_movie(args.movie, channel=args.channel)
     table = read_camera_file(args.camera)
     if args.fit is None:  # the camera file's ROI, where it states one, is the fitted window
         args.fit = table.get("geometry", {}).get("roi")

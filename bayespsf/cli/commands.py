@@ -361,6 +361,7 @@ def _calibrate_z(args) -> int:
 def _calibrate(args) -> int:
     """``bayespsf calibrate``: a camera file from a movie (and dark frames, if any)."""
     from bayespsf.calibration.camera import calibrate_camera
+    from bayespsf.movie import read_movie
     from bayespsf.movie.psf_width import resolve_psf_sd  # the spot's SD, stated or estimated
 
     out = Path(args.out)
@@ -372,11 +373,13 @@ def _calibrate(args) -> int:
         raise CommandError(f"--out {out} exists: give another name, or --force to replace it")
     output_folder(str(out.parent))
     roi, fit = geometry(args)
-    width = resolve_psf_sd(args.movie, None, args.psf_sd, pixel_size=args.pixel_size, fit=fit)
+    movie = read_movie(args.movie, channel=args.channel)
+    dark = None if args.dark is None else _dark_frames(args.dark, args.channel)
+    width = resolve_psf_sd(movie, None, args.psf_sd, pixel_size=args.pixel_size, fit=fit)
     print(width.summary() + (" (--psf-sd states it)" if args.psf_sd is None else ""))
     calibration = calibrate_camera(
-        args.movie,
-        args.dark,
+        movie,
+        dark,
         kind=args.kind,
         s0=width,
         pixel_size=args.pixel_size,
@@ -393,6 +396,19 @@ def _calibrate(args) -> int:
     print(calibration.summary())
     print(f"wrote {out}")
     return 0
+
+
+def _dark_frames(path: str, channel: int | None):
+    """The dark frames: the movie's ``--channel`` where the file has several channels, the
+    one channel where it has one."""
+    from bayespsf.movie import read_movie
+
+    try:
+        return read_movie(path)
+    except BayespsfInputError:
+        if channel is None:
+            raise
+        return read_movie(path, channel=channel)
 
 
 COMMANDS = {

@@ -124,7 +124,8 @@ def check_channel(path: Path, channel, count: int, names: list[str]) -> None:
                 for k in range(count)
             )
             raise BayespsfInputError(
-                f"{path}: it has {count} channels ({listed}); pick one with channel=k"
+                f"{path}: it has {count} channels ({listed}); pick one with channel=k "
+                "(--channel k on the command line)"
             )
         return
     if isinstance(channel, bool) or not isinstance(channel, int | np.integer):

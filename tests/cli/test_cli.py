@@ -490,3 +490,20 @@ def test_an_unknown_flag_gets_the_subcommands_usage_and_the_nearest_flag(capsys)
     assert (
         "unrecognized arguments: --pixel_size 100; --pixel_size: did you mean --pixel-size?" in err
     )
+
+
+def test_a_multi_channel_file_is_read_at_the_channel_given(tmp_path, capsys):
+    # the library's answer to a two-channel file named channel=k, which no command took
+    import numpy as np
+    import tifffile
+
+    rng = np.random.default_rng(0)
+    frames = rng.poisson(5.0, (30, 2, 48, 48)).astype(np.uint16)  # TCYX
+    tifffile.imwrite(tmp_path / "two.tif", frames, imagej=True, metadata={"axes": "TCYX"})
+    camera = tmp_path / "camera.toml"
+    camera.write_text("[geometry]\npixel_size = 100.0\n[camera]\nkind = 'photon'\n")
+    base = ["detect", str(tmp_path / "two.tif"), "--camera", str(camera), "--psf-sd", "130"]
+    with pytest.raises(SystemExit, match=r"2 channels \(0, 1\); pick one .*--channel k"):
+        cli.main([*base, "--out", str(tmp_path / "a")])
+    assert cli.main([*base, "--channel", "1", "--rules", "none", "--out", str(tmp_path / "b")]) == 0
+    assert "frames=30, height=48, width=48" in capsys.readouterr().out
