@@ -24,6 +24,7 @@ from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import diagnostics, solver
 from bayespsf.inference.backends import check_backend
+from bayespsf.inference.settings import check_model
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES, pixel_centres
 
@@ -247,12 +248,19 @@ def fit_mle(
     >>> fits[["x0", "sd_x0", "crlb_x0"]].notna().all().all(), fits["status"].tolist()
     (np.True_, ['converged', 'converged'])
     """
-    _check_engine(engine, backend)  # before the screen: a bad option costs no work
+    # before the screen: a bad option costs no work
+    _check_engine(engine, backend, model, laplace=laplace, crlb=crlb)
     stack, problems = _stack(counts, model)
     return fit_screened(stack, model, problems, start, laplace, engine, crlb, backend)
 
 
-def _check_engine(engine: str, backend: str) -> None:
+def _check_engine(engine: str, backend: str, model=None, **flags) -> None:
+    """``fit_mle``'s options: the engine and backend, the model, and ``flags`` (bool)."""
+    if model is not None:
+        check_model(model)
+    for name, value in flags.items():
+        if not isinstance(value, bool | np.bool_):
+            raise BayespsfInputError(f"{name} must be True or False, got {value!r}")
     if engine not in ENGINES:
         raise BayespsfInputError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
     if check_backend(backend) == "jax" and engine != "stack":
@@ -301,7 +309,7 @@ def fit_screened(
     --------
     fit_mle : the same fit of counts not yet judged.
     """
-    _check_engine(engine, backend)
+    _check_engine(engine, backend, model, laplace=laplace, crlb=crlb)
     stack = model.check_shape(stack)
     if stack.ndim != 3:
         raise BayespsfInputError(f"stack must have shape (n, roi, roi), got {stack.shape}")

@@ -48,6 +48,7 @@ from bayespsf.inference.settings import (
     MOVES,
     Settings,
     check_chain_work,
+    check_model,
     check_settings,
     check_walkers_fit,
 )
@@ -277,6 +278,7 @@ def sample_posterior(
     >>> list(post.summary().index)
     ['x0', 'y0', 's_x', 's_y', 'N', 'b']
     """
+    check_model(model)
     c = model.check_counts(counts)
     if c.ndim != 2:
         raise BayespsfInputError(

@@ -80,6 +80,29 @@ def _positive(name: str, value, high: float) -> float:
     return v
 
 
+def check_model(model) -> None:
+    """Refuse anything but a ``bayespsf.Model`` as ``model`` (a clear error, not an
+    ``AttributeError`` from the first use).
+
+    Parameters
+    ----------
+    model : object
+        What was given as the model.
+
+    Raises
+    ------
+    BayespsfInputError
+        If ``model`` is not a ``Model``.
+    """
+    from bayespsf.model import Model
+
+    if not isinstance(model, Model):
+        raise BayespsfInputError(
+            "model must be a bayespsf.Model (Model.from_scene(scene), or Model(roi, "
+            f"pixel_size, camera)); got {type(model).__name__} {model!r:.60}"
+        )
+
+
 def check_settings(
     seed: int = 0,
     walkers: int = 32,
@@ -193,6 +216,7 @@ __all__ = [
     "MOVES",
     "Settings",
     "check_chain_work",
+    "check_model",
     "check_settings",
     "check_walkers_fit",
 ]

@@ -148,7 +148,7 @@ def _row_head(index, seed, info: dict, count: int) -> dict:
         "seed": int(seed),
         "converged": converged,
         "status": "converged" if converged else "not converged",
-        "message": info.get("diagnosis", ""),
+        "message": info.get("diagnosis") or ("" if converged else info.get("why", "")),
         "method": info.get("method", "mcmc"),
         "why": info.get("why", ""),
         "steps": int(info.get("steps", 0)),

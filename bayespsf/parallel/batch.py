@@ -234,10 +234,10 @@ def sample_many(
         ``check`` ``gof_p``, ``gof_discrepancy``, ``gof_replicates``; last ``photon_unit``.
         ``method`` says what made each posterior (``laplace``, ``importance``, ``mcmc``) and
         ``why`` why that method was chosen. ``status`` says what happened to each:
-        ``converged``, ``not converged`` (``message``: the sampler's diagnosis), ``refused``
-        (the model cannot analyse that ROI: ``Model.roi_problems``) or ``failed`` (its
-        sampling raised a named input error); one bad ROI never stops the stack, and its
-        posterior columns are NaN.
+        ``converged``, ``not converged`` (``message``: the sampler's diagnosis, else
+        ``why``), ``refused`` (the model cannot analyse that ROI: ``Model.roi_problems``) or
+        ``failed`` (its sampling raised a named input error); one bad ROI never stops the
+        stack, and its posterior columns are NaN.
 
     Raises
     ------
@@ -282,8 +282,14 @@ def sample_many(
         raise BayespsfInputError(
             f"unknown sampler option(s) {unknown}; sample_many takes {list(SAMPLER_OPTIONS)}"
         )
-    from bayespsf.inference.settings import check_chain_work, check_settings, check_walkers_fit
+    from bayespsf.inference.settings import (
+        check_chain_work,
+        check_model,
+        check_settings,
+        check_walkers_fit,
+    )
 
+    check_model(model)
     check = _check_kind(check)
     check_backend(backend, model)  # an unsupported camera law is named before any work
     options.setdefault("method", "auto")

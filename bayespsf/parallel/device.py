@@ -120,7 +120,7 @@ def _table(molecules, seeds, out, rows, seconds, truths, gof) -> pd.DataFrame:
         "seed": seeds.tolist(),  # Python ints: 64-bit seeds, as the NumPy rows
         "converged": out["converged"][rows],
         "status": np.where(out["converged"][rows], "converged", "not converged"),
-        "message": np.full(n, "", dtype=object),
+        "message": np.where(out["converged"][rows], "", out["why"][rows]).astype(object),
         "method": out["method"][rows],
         "why": out["why"][rows],
         "steps": np.zeros(n, int),

@@ -291,3 +291,21 @@ def test_a_fit_whose_centre_is_not_identified_is_not_converged(laplace):
     lost = fits["message"].str.startswith("the centre is not identified at the fit")
     assert lost.sum() >= 3 and (fits.loc[lost, "status"] == "not converged").all()
     assert (fits.loc[lost, ["s_x", "s_y"]].min(axis=1) < 0.2 * model.pixel_size).all()
+
+
+def test_a_model_that_is_not_a_model_and_a_flag_that_is_not_a_bool_are_named():
+    # a string for the model failed as an AttributeError on its first use; laplace="no" ran
+    # the Laplace (a non-empty string is true)
+    from bayespsf import sample_many, sample_posterior
+
+    scene = load_scene("ideal")
+    counts, _ = simulate(scene, 2, seed=1)
+    for call in (
+        lambda: fit_mle(counts, "model"),
+        lambda: sample_many(counts, "model", workers=1),
+        lambda: sample_posterior(counts[0], "model"),
+    ):
+        with pytest.raises(ValueError, match=r"model must be a bayespsf.Model .*got str 'model'"):
+            call()
+    with pytest.raises(ValueError, match="laplace must be True or False, got 'no'"):
+        fit_mle(counts, Model.from_scene(scene), laplace="no")

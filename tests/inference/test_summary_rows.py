@@ -30,7 +30,7 @@ def reference_row(flat, index, seed, info, truth=None, independent=None):
         "seed": int(seed),
         "converged": converged,
         "status": "converged" if converged else "not converged",
-        "message": info.get("diagnosis", ""),
+        "message": info.get("diagnosis") or ("" if converged else info.get("why", "")),
         "method": info.get("method", "mcmc"),
         "why": info.get("why", ""),
         "steps": int(info.get("steps", 0)),
@@ -206,3 +206,15 @@ def test_tables_concatenated_keep_their_seeds_whole():
     assert joined["seed"].tolist() == [big, small]
     plain = concat_tables([pd.DataFrame({"molecule": [0]}), pd.DataFrame({"molecule": [1]})])
     assert plain["molecule"].tolist() == [0, 1]
+
+
+def test_an_unconverged_row_without_a_diagnosis_says_why_in_its_message():
+    # a Laplace or importance row that did not converge had an empty message (the chain's
+    # rows carry its diagnosis); the reason was only in ``why``
+    from bayespsf.inference.summary import _row_head
+
+    why = "chain: the Laplace covariance is not positive definite"
+    assert _row_head(0, 1, {"converged": False, "why": why}, 0)["message"] == why
+    assert _row_head(0, 1, {"converged": True, "why": why}, 0)["message"] == ""
+    chain = {"converged": False, "why": why, "diagnosis": "tau grows with the chain"}
+    assert _row_head(0, 1, chain, 0)["message"] == "tau grows with the chain"
