@@ -116,3 +116,11 @@ def selection_rules(args):
 def command_line(args) -> str:
     """The command as typed (``bayespsf calibrate ...``), for the provenance of its files."""
     return f"bayespsf {args.command} " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
+
+
+def described_movie(movie, model) -> str:
+    """The movie as the run read it: its repr, with the pixel size the run used where the
+    movie's metadata give none (the camera file's, or ``--pixel-size``)."""
+    if movie.pixel_size is None:
+        return repr(movie).replace("pixel_size=None", f"pixel_size={model.pixel_size:g} nm")
+    return repr(movie)

@@ -16,6 +16,7 @@ from pathlib import Path
 from bayespsf.cli._shared import (
     CommandError,
     command_line,
+    described_movie,
     geometry,
     movie_model,
     one_run,
@@ -241,7 +242,8 @@ def _detect(args) -> int:
         paths = write(found, out, force=args.force, copies=copies, about={"movie": args.movie})
     selected = int(found.molecules["selected"].sum())
     print(f"{found.psf_width.summary()}" + (" (--psf-sd states it)" if s0 is None else ""))
-    print(f"{movie!r}: {len(found.molecules)} candidate molecules, {selected} selected")
+    described = described_movie(movie, model)
+    print(f"{described}: {len(found.molecules)} candidate molecules, {selected} selected")
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
 
@@ -294,7 +296,8 @@ def _analyze(args) -> int:
     )
     print(f"{result.found.psf_width.summary()}" + (" (--psf-sd states it)" if s0 is None else ""))
     print(
-        f"{movie!r}: {int(result.molecules['selected'].sum())} molecules selected, "
+        f"{described_movie(movie, model)}: {int(result.molecules['selected'].sum())} molecules "
+        "selected, "
         f"{len(result.frames)} frames analysed; {spread}"
     )
     print("wrote " + ", ".join(str(p) for p in result.paths.values()))
