@@ -45,14 +45,16 @@ def geometry(args) -> tuple[int | None, int | None]:
     roi, fit = args.roi, args.fit
     if args.command not in ("detect", "analyze"):
         roi, fit = (25 if roi is None else roi), (15 if fit is None else fit)
-    for flag, side in (("--roi", roi), ("--fit", fit)):
+    for flag, side in (("--roi", roi), (getattr(args, "fit_from", "--fit"), fit)):
         if side is not None and (side < MIN_ROI or side % 2 == 0):
             raise CommandError(
                 f"{flag} must be an odd number of pixels >= {MIN_ROI} (a central pixel holds "
                 f"the molecule, and the fit needs a border of background around it), got {side}"
             )
     if roi is not None and fit is not None and fit > roi:
-        raise CommandError(f"--fit ({fit}) must be at most --roi ({roi})")
+        raise CommandError(
+            f"{getattr(args, 'fit_from', '--fit')} ({fit}) must be at most --roi ({roi})"
+        )
     return roi, fit
 
 
@@ -67,8 +69,10 @@ def movie_model(args):
     table = read_camera_file(args.camera)
     if args.fit is None:  # the camera file's ROI, where it states one, is the fitted window
         args.fit = table.get("geometry", {}).get("roi")
+        if args.fit is not None:
+            args.fit_from = f"[geometry] roi in {args.camera}"
     roi, fit = geometry(args)
-    for flag, side in (("--roi", roi), ("--fit", fit)):
+    for flag, side in (("--roi", roi), (getattr(args, "fit_from", "--fit"), fit)):
         if side is not None and side > min(movie.shape[1:]):
             raise CommandError(
                 f"{flag} {side} is larger than {args.movie}'s frames ({movie.shape[1]} x "

@@ -332,7 +332,7 @@ def fit_screened(
     if backend == "jax":
         from bayespsf.inference import jax_mle
 
-        found = jax_mle.maximise(model, fitted, starts, laplace, crlb)
+        found = jax_mle.maximise(model, fitted, starts, laplace, True)  # bound: see below
         params, logl = found["params"], found["log_likelihood"]
         ok, message = found["converged"], found["message"]
     else:
@@ -352,13 +352,18 @@ def fit_screened(
     for i in np.flatnonzero(~finite & np.all(np.isfinite(params), axis=1)):
         message[i] = diagnostics.no_density(fitted[i], model, params[i]) or message[i]
     ok &= finite & ~runaway & ~on_bound
+    # the bound whatever ``crlb``, for the check that the centre is identified (without
+    # ``crlb``, from the camera's step information: cheap for an sCMOS, where the Fisher
+    # information costs five fits)
     bound = np.full((len(fit), 6), np.nan)
-    if crlb and ok.any():
+    if ok.any():
         with np.errstate(invalid="ignore"):  # a negative diagonal (not invertible): NaN
             bound[ok] = (
                 found["crlb"][ok]
                 if backend == "jax"
-                else _in_blocks(lambda p: solver.crlb(model, p), params[ok], roi=model.roi)
+                else _in_blocks(
+                    lambda p: solver.crlb(model, p, step=not crlb), params[ok], roi=model.roi
+                )
             )
     cov = np.full((len(fit), 6, 6), np.nan)
     if laplace and ok.any():
@@ -370,19 +375,29 @@ def fit_screened(
         message[bad] = "observed information not positive definite"
         ok[bad] = False
         cov[bad] = np.nan
-    with np.errstate(invalid="ignore"):  # NaN SDs and bounds compare False
+    with np.errstate(invalid="ignore"):  # NaN SDs compare False
         spread = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)[:, :2]))
-        lost = (spread > limit) | (bound[:, :2] > limit) | (crlb & ~np.isfinite(bound[:, :2]))
+        lost = (spread > limit) | ~(bound[:, :2] <= limit)
     for i in np.flatnonzero(ok & lost.any(axis=1)):
-        message[i] = (
-            f"the centre is not identified at the fit: its Cramér-Rao bound or Laplace SD is "
-            f"undefined or beyond the ROI's {limit:g} nm (s_x = {params[i, 2]:.3g}, s_y = "
-            f"{params[i, 3]:.3g} nm: a spot much narrower than a pixel leaves its centre free "
-            "within one)"
-        )
+        message[i] = _not_identified(params[i], model.pixel_size, limit)
         ok[i], cov[i] = False, np.nan
+    if not crlb:
+        bound[:] = np.nan
     return _mle_table(
         model, problems, fit, params, logl, bound, cov if laplace else None, ok, message
+    )
+
+
+def _not_identified(p: np.ndarray, a: float, limit: float) -> str:
+    """Why a fit's centre is not identified, with the widths' likely reason."""
+    widths = f"s_x = {p[2]:.3g}, s_y = {p[3]:.3g} nm"
+    if min(p[2], p[3]) < 0.2 * a:
+        widths += ": a spot much narrower than a pixel leaves its centre free within one"
+    elif max(p[2], p[3]) > limit / 4:
+        widths += ": a spot a quarter of the ROI wide is barely told from the background"
+    return (
+        "the centre is not identified at the fit: its Cramér-Rao bound or Laplace SD is "
+        f"undefined or beyond the ROI's {limit:g} nm ({widths})"
     )
 
 

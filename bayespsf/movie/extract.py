@@ -204,10 +204,10 @@ def frame_span(movie: Movie, frames) -> range:
     if not isinstance(frames, slice | range):
         raise BayespsfInputError(f"frames must be None, a slice or a range, got {frames!r}")
     ends = (frames.start, frames.stop) if isinstance(frames, slice) else ()
-    if any(end is not None and not 0 <= end <= movie.n_frames for end in ends):
+    if any(end is not None and not -movie.n_frames <= end <= movie.n_frames for end in ends):
         raise BayespsfInputError(  # a slice would be clipped to the movie without a word
             f"frames {frames!r} reach beyond the movie's {movie.n_frames} frames (0 to "
-            f"{movie.n_frames - 1}; no negative index)"
+            f"{movie.n_frames - 1}, or -{movie.n_frames} to -1 from the end)"
         )
     span = range(movie.n_frames)[frames] if isinstance(frames, slice) else frames
     if span.step != 1 or span.start < 0 or span.stop > movie.n_frames or len(span) == 0:

@@ -465,8 +465,8 @@ def test_a_one_frame_movie_runs_without_runtime_warnings(tmp_path):
 
 
 def test_calibrate_refuses_a_folder_or_an_existing_file_as_its_out(tmp_path):
-    # "--out outdir/" wrote a file named outdir, and an existing camera file was replaced
-    # without a word; both are refused before any work, and --force replaces a file
+    # "--out outdir/" would write a file named outdir, and an existing camera file would be
+    # replaced without a word: both are refused before any work (--force replaces a file)
     import numpy as np
 
     np.save(tmp_path / "movie.npy", np.full((80, 64, 64), 100, np.uint16))
@@ -481,7 +481,7 @@ def test_calibrate_refuses_a_folder_or_an_existing_file_as_its_out(tmp_path):
 
 
 def test_an_unknown_flag_gets_the_subcommands_usage_and_the_nearest_flag(capsys):
-    # the top level's usage was printed for a subcommand's misspelt flag
+    # the subcommand's usage, not the top level's, for its misspelt flag
     with pytest.raises(SystemExit) as stop:
         cli.main(["detect", "movie.tif", "--camera", "c.toml", "--pixel_size", "100"])
     assert stop.value.code == 2

@@ -218,8 +218,8 @@ def test_a_screened_stack_is_fitted_as_fit_mle_fits_it(monkeypatch):
 
 
 def test_an_infinite_pixel_is_refused_without_a_warning_from_the_start_values():
-    # the start values were computed for every ROI, the refused ones too, and an infinite
-    # pixel's moments warned (an error in this suite) before the ROI was refused
+    # start values are computed for the fitted ROIs only: an infinite pixel's moments would
+    # warn (an error in this suite) before its ROI is refused
     scene = load_scene("emccd-typical")
     counts, _ = simulate(scene, 3, seed=1)
     counts[0, 0, 0] = np.inf
@@ -276,8 +276,8 @@ def test_a_roi_outside_the_tiers_support_says_which_pixels_and_is_not_converged(
 @pytest.mark.parametrize("laplace", [True, False])
 def test_a_fit_whose_centre_is_not_identified_is_not_converged(laplace):
     # a spot of s0 = 30 nm on 100 nm pixels: some fits collapse to widths of 0.1 pixel, where
-    # the centre can move within a pixel at no cost. Those rows were "converged" with a NaN
-    # Cramér-Rao bound and Laplace SDs of x0 of 2-7e5 nm, where a chain's posterior SD is ~3 nm
+    # the centre can move within a pixel at no cost: a NaN Cramér-Rao bound and Laplace SDs of
+    # x0 of 2-7e5 nm, where a chain's posterior SD is ~3 nm, are no converged fit
     scene = load_scene("emccd-typical").replace(emitter={"s0x": 30.0, "s0y": 30.0})
     counts, _ = simulate(scene, 30, seed=5)
     model = Model.from_scene(scene)
@@ -291,6 +291,10 @@ def test_a_fit_whose_centre_is_not_identified_is_not_converged(laplace):
     lost = fits["message"].str.startswith("the centre is not identified at the fit")
     assert lost.sum() >= 3 and (fits.loc[lost, "status"] == "not converged").all()
     assert (fits.loc[lost, ["s_x", "s_y"]].min(axis=1) < 0.2 * model.pixel_size).all()
+    assert fits.loc[lost, "message"].str.contains("narrower than a pixel").all()
+    # the same verdicts without the bound's columns (the step information's bound decides)
+    bare = fit_mle(counts, model, laplace=laplace, crlb=False)
+    assert (bare["status"] == fits["status"]).all() and bare["crlb_x0"].isna().all()
 
 
 def test_a_model_that_is_not_a_model_and_a_flag_that_is_not_a_bool_are_named():

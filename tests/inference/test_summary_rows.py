@@ -209,8 +209,8 @@ def test_tables_concatenated_keep_their_seeds_whole():
 
 
 def test_an_unconverged_row_without_a_diagnosis_says_why_in_its_message():
-    # a Laplace or importance row that did not converge had an empty message (the chain's
-    # rows carry its diagnosis); the reason was only in ``why``
+    # a Laplace or importance row that did not converge has no chain diagnosis: its message
+    # is its ``why``
     from bayespsf.inference.summary import _row_head
 
     why = "chain: the Laplace covariance is not positive definite"

@@ -105,7 +105,7 @@ def test_regular_files_and_links_to_them_are_still_read(tmp_path):
 
 
 def test_a_misspelt_camera_file_key_names_the_file(tmp_path):
-    # the scene's message alone named neither the file nor that it was a camera file
+    # the scene's message alone names neither the file nor that it is a camera file
     import pytest
 
     from bayespsf.errors import BayespsfInputError

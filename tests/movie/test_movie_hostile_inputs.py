@@ -322,6 +322,11 @@ def test_a_nan_or_infinite_pixel_in_a_movie_is_named_by_frame_and_pixel(tmp_path
 def test_frames_beyond_the_movie_are_refused_not_clipped(tmp_path):
     counts = np.random.default_rng(0).poisson(5.0, (10, 32, 32)).astype(np.uint16) + 100
     np.save(tmp_path / "m.npy", counts)
-    for frames in (slice(5, 30), slice(12, None), slice(-3, None)):
+    for frames in (slice(5, 30), slice(12, None), slice(-13, None)):
         with pytest.raises(BayespsfInputError, match="reach beyond the movie's 10 frames"):
             detect_movie(tmp_path / "m.npy", psf_sd=S, pixel_size=A, camera=CAMERA, frames=frames)
+    # counted from the end, as Python slices are: the last 3 frames
+    found = detect_movie(
+        tmp_path / "m.npy", psf_sd=S, pixel_size=A, camera=CAMERA, frames=slice(-3, None)
+    )
+    assert found.attrs["detection"]["frames"] == [7, 10]

@@ -164,7 +164,7 @@ def test_no_private_attribute_of_another_subpackage():
 
 
 def test_the_attribute_rule_sees_a_private_method_called_across_subpackages():
-    # the rule above, on a line as the solver once had it: a camera's private method
+    # the rule above, on a line that calls a camera's private method from inference
     tree = ast.parse("def f(model, c, lam):\n    return model.camera._score(c, lam)\n")
     found = [(text, name) for _, text, name in _foreign_attributes(tree)]
     assert found == [("model.camera._score", "_score")]
