@@ -26,7 +26,7 @@ how many molecules and frames each rule removed.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -168,6 +168,16 @@ class Rules:
 PAPER_S0 = 120.0  # nm: the in-focus spot SD the paper's width range brackets
 PAPER_WIDTHS = (95.0, 135.0)  # nm: the paper's width range (its condition 5)
 RULES = ("single_step", "no_drift", "snr", "photon_window", "equal_widths", "width_range")
+SETTING_RULES = {  # each setting of ``Rules`` and the rule that uses it
+    "drift_sigmas": "no_drift",
+    "photon_tolerance": "photon_window",
+    "min_valid_frames": "photon_window",
+    "min_snr": "snr",
+    "width_difference_nm": "equal_widths",
+    "width_difference_fraction": "equal_widths",
+    "width_low": "width_range",
+    "width_high": "width_range",
+}
 
 
 def _require(table: pd.DataFrame, columns, name: str) -> None:
@@ -334,7 +344,8 @@ def _row(rule, mol, fr, removed_m, removed_f, skipped=False):
 def report_markdown(report: pd.DataFrame, rules: Rules | None = None) -> str:
     """The selection report as markdown: the rules' settings, then the table in order."""
     rules = (Rules() if rules is None else rules).for_psf(None)
-    settings = ", ".join(f"{k} = {v}" for k, v in asdict(rules).items() if k != "skip")
+    used = [k for k, rule in SETTING_RULES.items() if rule not in rules.skip]  # the rules run
+    settings = ", ".join(f"{k} = {getattr(rules, k)}" for k in used) or "none"
     skipped = f" Skipped: {', '.join(rules.skip)}." if rules.skip else ""
     return (
         "# Selection report\n\n"

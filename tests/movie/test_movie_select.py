@@ -1,13 +1,15 @@
 """The paper's selection rules on tables built to trip each rule once: who is removed, by
 which rule, in which order, and the report's counts."""
 
+from dataclasses import fields
+
 import numpy as np
 import pandas as pd
 import pytest
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.movie import Rules, select
-from bayespsf.movie.select import RULES, report_markdown
+from bayespsf.movie.select import RULES, SETTING_RULES, report_markdown
 
 FRAMES = 120
 
@@ -79,6 +81,13 @@ def test_the_report_counts_molecules_and_frames_per_rule():
     assert report["frames left"].iloc[0] == 700 and report["frames left"].iloc[-1] == 100
     text = report_markdown(report)
     assert "DeSantis" in text and "min_valid_frames = 75" in text and "| snr" in text
+    # a skipped rule's settings are not listed as if they applied (--rules none listed them)
+    skipped = report_markdown(report, Rules(skip=("photon_window",)))
+    assert "min_valid_frames" not in skipped and "photon_tolerance" not in skipped
+    assert "min_snr = 2.5" in skipped and "Skipped: photon_window." in skipped
+    assert "Settings: none. Skipped: " in report_markdown(report, Rules(skip=RULES))
+    assert set(SETTING_RULES) == {f.name for f in fields(Rules)} - {"skip"}
+    assert set(SETTING_RULES.values()) <= set(RULES)
 
 
 def test_rules_are_configurable_and_can_be_skipped():
