@@ -249,12 +249,12 @@ def fit_mle(
     (np.True_, ['converged', 'converged'])
     """
     # before the screen: a bad option costs no work
-    _check_engine(engine, backend, model, laplace=laplace, crlb=crlb)
+    _check_options(engine, backend, model, laplace=laplace, crlb=crlb)
     stack, problems = _stack(counts, model)
     return fit_screened(stack, model, problems, start, laplace, engine, crlb, backend)
 
 
-def _check_engine(engine: str, backend: str, model=None, **flags) -> None:
+def _check_options(engine: str, backend: str, model=None, **flags) -> None:
     """``fit_mle``'s options: the engine and backend, the model, and ``flags`` (bool)."""
     if model is not None:
         check_model(model)
@@ -309,7 +309,7 @@ def fit_screened(
     --------
     fit_mle : the same fit of counts not yet judged.
     """
-    _check_engine(engine, backend, model, laplace=laplace, crlb=crlb)
+    _check_options(engine, backend, model, laplace=laplace, crlb=crlb)
     stack = model.check_shape(stack)
     if stack.ndim != 3:
         raise BayespsfInputError(f"stack must have shape (n, roi, roi), got {stack.shape}")

@@ -224,8 +224,8 @@ class _Window:
         if keep.all():  # the first fit: the unmasked windows' sums, computed once per shape
             masked = self.full
         else:
-            masked = self._moments(weight, 2 * DEGREE if self.curved else 0)
-        data = self._moments(weight * image, DEGREE if self.curved else 0)
+            masked = _moments(self.axes, weight, 2 * DEGREE if self.curved else 0)
+        data = _moments(self.axes, weight * image, DEGREE if self.curved else 0)
         count = masked[0, 0]
         coef = np.zeros((*count.shape, len(_TERMS)))
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -254,22 +254,18 @@ class _Window:
             previous = np.full(image.shape, image[keep].mean() if keep.any() else image.mean())
         return np.where(np.isfinite(back), back, previous)
 
-    def _moments(self, values: np.ndarray, degree: int) -> np.ndarray:
-        """``m[a, b]``: the sums of ``values u^a v^b`` over each anchor's window for ``a + b
-        <= degree`` (else 0), shape ``(degree + 1, degree + 1, row anchors, column
-        anchors)``."""
-        return self._moments_of(self.axes, values, degree)
 
-    @staticmethod
-    def _moments_of(axes, values: np.ndarray, degree: int) -> np.ndarray:
-        """``_moments`` over the windows of ``axes``."""
-        (rows, _, _), (cols, _, _) = axes
-        out = np.zeros((degree + 1, degree + 1, rows[0].shape[0], cols[0].shape[0]))
-        for a in range(degree + 1):
-            left = (rows[a] @ values).T  # (columns, row anchors)
-            for b in range(degree + 1 - a):
-                out[a, b] = (cols[b] @ left).T
-        return out
+def _moments(axes, values: np.ndarray, degree: int) -> np.ndarray:
+    """``m[a, b]``: the sums of ``values u^a v^b`` over each anchor's window of ``axes``
+    (``_axis``'s, rows then columns) for ``a + b <= degree`` (else 0), shape ``(degree + 1,
+    degree + 1, row anchors, column anchors)``."""
+    (rows, _, _), (cols, _, _) = axes
+    out = np.zeros((degree + 1, degree + 1, rows[0].shape[0], cols[0].shape[0]))
+    for a in range(degree + 1):
+        left = (rows[a] @ values).T  # (columns, row anchors)
+        for b in range(degree + 1 - a):
+            out[a, b] = (cols[b] @ left).T
+    return out
 
 
 @functools.lru_cache(maxsize=8)
@@ -279,7 +275,7 @@ def _window_parts(shape: tuple[int, int], size: int, reach: int):
     whether the window is wide enough for a curved surface, and the quartic's and the
     quadratic's variances at the anchors."""
     axes = [_axis(n, size) for n in shape]
-    full = _Window._moments_of(axes, np.ones(shape), 2 * DEGREE)
+    full = _moments(axes, np.ones(shape), 2 * DEGREE)
     spans = [int(powers[0].sum(axis=1).min()) for powers, _, _ in axes]
     curved = min(spans) >= 2 * reach  # else a constant: too narrow a window
     gram = _normal_matrix(full)
