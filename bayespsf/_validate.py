@@ -165,6 +165,16 @@ def saturation_plateau(roi: np.ndarray) -> int:
     its median and its maximum: there, by chance, three pixels share the maximum with a
     probability of order ``PLATEAU_SPREAD**-2`` or less (the counts near the peak are spread
     over hundreds of quanta), while a clipped spot has several.
+
+    Parameters
+    ----------
+    roi : ndarray
+        One ROI's counts (any shape).
+
+    Returns
+    -------
+    int
+        The plateau's pixels, or 0.
     """
     top = roi.max()
     at_top = int(np.count_nonzero(roi == top))

@@ -177,4 +177,51 @@ def width_precision(spread: pd.DataFrame, path) -> Path:
     return path
 
 
-__all__ = ["detections", "gof_pvalues", "residual_images", "traces", "width_precision", "zscores"]
+def report_figures(movie, found, frame_z, spread, gof_p, residuals, out: Path) -> dict[str, Path]:
+    """Every figure of the report, into one folder.
+
+    Parameters
+    ----------
+    movie : Movie
+        For the mean projection.
+    found : FoundMolecules
+        Its molecules and per-frame table.
+    frame_z : pandas.DataFrame
+        The calibration check's per-frame z-scores, one column per parameter.
+    spread : pandas.DataFrame
+        The width spread against N (``width_spread``).
+    gof_p : array_like
+        Goodness-of-fit p-values per ROI.
+    residuals : tuple
+        ``(ids, images)`` of the mean residual images.
+    out : Path
+        The folder.
+
+    Returns
+    -------
+    dict of str to Path
+        The files' paths by name.
+    """
+    from bayespsf.analysis.consistency import PARAMETERS
+    from bayespsf.movie import project
+
+    made = [
+        detections(project(movie, "mean"), found.molecules, out / "detections.png"),
+        traces(found.frames, found.molecules, out / "traces.png"),
+        zscores(frame_z, PARAMETERS, out / "zscores.png"),
+        width_precision(spread, out / "width_precision.png"),
+        gof_pvalues(gof_p, out / "gof_p.png"),
+        residual_images(*residuals, out / "residuals.png"),
+    ]
+    return {path.name: path for path in made}
+
+
+__all__ = [
+    "detections",
+    "gof_pvalues",
+    "report_figures",
+    "residual_images",
+    "traces",
+    "width_precision",
+    "zscores",
+]

@@ -46,7 +46,8 @@ from bayespsf.io.run_record import check_folder, claim_folder, read_copies
 from bayespsf.model import Model
 from bayespsf.movie import FoundMolecules, Movie, Rules, find_molecules, iter_rois
 from bayespsf.movie.extract import open_movie
-from bayespsf.movie.pipeline import SELECTION_FILES, selection_run, write_tables
+from bayespsf.movie.found import SELECTION_FILES, write_tables
+from bayespsf.movie.pipeline import selection_run
 from bayespsf.parallel import joint_posteriors, sample_many
 from bayespsf.psf import PARAMETER_NAMES, DefocusCalibration
 
@@ -474,27 +475,13 @@ def analyze(
     for name, table in tables.items():
         paths[name] = out / name
         table.to_csv(paths[name], index=False)
-    paths.update(_figures(movie, found, frame_z, spread, frames["gof_p"], residuals, out))
+    from bayespsf.analysis.figures import report_figures  # matplotlib only when drawn
+
+    paths.update(report_figures(movie, found, frame_z, spread, frames["gof_p"], residuals, out))
     result = Analysis(found, frames, molecules, overall, spread, windows, paths)
     paths["report.md"] = out / "report.md"
     paths["report.md"].write_text(report_markdown(result, provenance))
     return result
-
-
-def _figures(movie, found, frame_z, spread, gof_p, residuals, out: Path) -> dict[str, Path]:
-    """The report's figures (``bayespsf.analysis.figures``), by file name."""
-    from bayespsf.analysis import figures
-    from bayespsf.movie import project
-
-    made = [
-        figures.detections(project(movie, "mean"), found.molecules, out / "detections.png"),
-        figures.traces(found.frames, found.molecules, out / "traces.png"),
-        figures.zscores(frame_z, PARAMETERS, out / "zscores.png"),
-        figures.width_precision(spread, out / "width_precision.png"),
-        figures.gof_pvalues(gof_p, out / "gof_p.png"),
-        figures.residual_images(*residuals, out / "residuals.png"),
-    ]
-    return {path.name: path for path in made}
 
 
 __all__ = ["ANALYSIS_FILES", "Analysis", "analyze", "valid_rois"]

@@ -101,7 +101,13 @@ class CameraCalibration:
     quantum_efficiency: float | None = None
 
     def camera_table(self) -> dict:
-        """The ``[camera]`` table (the scenes' keys) this calibration gives."""
+        """The ``[camera]`` table (the scenes' keys) this calibration gives.
+
+        Returns
+        -------
+        dict
+            Keys of the scene schema's ``[camera]`` table.
+        """
         return camera_entries(
             self.kind,
             self.gain.adu_per_photon,
@@ -112,7 +118,12 @@ class CameraCalibration:
         )
 
     def summary(self) -> str:
-        """What ``bayespsf calibrate`` prints: the ADU per photon with its error."""
+        """What ``bayespsf calibrate`` prints: the ADU per photon with its error.
+
+        Returns
+        -------
+        str
+        """
         return str(self.gain)
 
     def toml(self, command: str) -> str:

@@ -67,7 +67,12 @@ class DarkCalibration:
     frames: int
 
     def describe(self) -> str:
-        """One line: the offset and readout with their standard errors, and the frames."""
+        """One line: the offset and readout with their standard errors, and the frames.
+
+        Returns
+        -------
+        str
+        """
         return (
             f"offset {self.offset:.6g} +- {self.offset_se:.2g} ADU and readout "
             f"{self.readout_sd:.6g} +- {self.readout_sd_se:.2g} ADU from {self.frames} dark frames"
@@ -75,7 +80,18 @@ class DarkCalibration:
 
     def camera_table(self, e_per_adu: float) -> dict:
         """The ``[camera]`` entries this calibration gives: ``offset`` (ADU) and
-        ``readout_sd`` in electrons (the ADU SD times ``e_per_adu``)."""
+        ``readout_sd`` in electrons (the ADU SD times ``e_per_adu``).
+
+        Parameters
+        ----------
+        e_per_adu : float
+            Electrons per ADU, to give the readout SD in electrons.
+
+        Returns
+        -------
+        dict
+            ``offset`` and ``readout_sd``.
+        """
         if not np.isfinite(e_per_adu) or e_per_adu <= 0:
             raise BayespsfInputError(
                 f"e_per_adu must be a number > 0 (the camera's electrons per ADU; "
@@ -260,7 +276,19 @@ class FlatFieldGain:
     frames: tuple[int, ...]
 
     def camera(self, dark: DarkCalibration, likelihood: str = "exact") -> SCMOS:
-        """The per-pixel ``SCMOS`` of these gains and ``dark``'s offset and variance maps."""
+        """The per-pixel ``SCMOS`` of these gains and ``dark``'s offset and variance maps.
+
+        Parameters
+        ----------
+        dark : DarkCalibration
+            The offset and readout maps.
+        likelihood : str, optional
+            The sCMOS likelihood tier.
+
+        Returns
+        -------
+        SCMOS
+        """
         return SCMOS(self.gain_map, dark.offset_map, dark.variance_map, likelihood=likelihood)
 
 

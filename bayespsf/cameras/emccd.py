@@ -342,7 +342,18 @@ class EMCCD(Camera):
         their formulas. Elsewhere (``high-gain`` with readout, the ``table`` tier off its grids),
         and at ``lam == 0`` with readout, by differences of the tier's own log-likelihood.
         Without readout at ``lam == 0`` the one-sided derivative is ``+inf`` above the
-        offset."""
+        offset.
+
+        Parameters
+        ----------
+        counts, expected : ndarray
+            As ``Camera.log_likelihood_unchecked``.
+
+        Returns
+        -------
+        ndarray
+            ``d log p / d lam`` per photon, the arguments' shape.
+        """
         r = self.readout_in_gain_units
         tier = self.likelihood
         if tier == "table" and r != 0:
@@ -368,7 +379,18 @@ class EMCCD(Camera):
     def log_likelihood_and_score_unchecked(self, counts, expected):
         """The ``table`` tier with readout: log p and its derivative from one compiled pass over
         the table (``_emccd_table.log_and_score_table``), the score by differences of the
-        tier's log-likelihood where it does not interpolate. Other tiers: the two methods."""
+        tier's log-likelihood where it does not interpolate. Other tiers: the two methods.
+
+        Parameters
+        ----------
+        counts, expected : ndarray
+            As ``Camera.log_likelihood_unchecked``.
+
+        Returns
+        -------
+        log_p, score : ndarray
+            Each of the arguments' shape.
+        """
         if self.likelihood != "table" or self.readout_in_gain_units == 0:
             return super().log_likelihood_and_score_unchecked(counts, expected)
         t = self.gain_units(counts)
@@ -382,7 +404,18 @@ class EMCCD(Camera):
     def score_and_curvature_unchecked(self, counts, expected):
         """The ``table`` tier with readout: both from the interpolant in one compiled pass where
         ``lam >= 1``; below (the base class's differences over 1e-4 photons, a secant where the
-        tangent is unbounded) and off the table, the base class's."""
+        tangent is unbounded) and off the table, the base class's.
+
+        Parameters
+        ----------
+        counts, expected : ndarray
+            As ``Camera.log_likelihood_unchecked``.
+
+        Returns
+        -------
+        score, curvature : ndarray
+            ``d log p / d lam`` and ``d^2 log p / d lam^2``, each of the arguments' shape.
+        """
         r = self.readout_in_gain_units
         if self.likelihood != "table" or r == 0:
             return super().score_and_curvature_unchecked(counts, expected)

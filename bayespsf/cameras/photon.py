@@ -70,7 +70,18 @@ class Photon(Camera):
         return rng.poisson(expected).astype(np.float64)
 
     def score_unchecked(self, counts, expected):
-        """``k / lam - 1`` (``-1`` where ``k == 0``): ``poisson_score``."""
+        """``k / lam - 1`` (``-1`` where ``k == 0``): ``poisson_score``.
+
+        Parameters
+        ----------
+        counts, expected : ndarray
+            As ``Camera.log_likelihood_unchecked``.
+
+        Returns
+        -------
+        ndarray
+            ``d log p / d lam`` per photon, the arguments' shape.
+        """
         return poisson_score(counts, expected)
 
     def _variance(self, expected):
@@ -80,7 +91,18 @@ class Photon(Camera):
         return 1.0, 0.0
 
     def fisher_information_unchecked(self, expected):
-        """``1 / lam`` (infinite at ``lam == 0``)."""
+        """``1 / lam`` (infinite at ``lam == 0``).
+
+        Parameters
+        ----------
+        expected : ndarray
+            Expected photoelectrons per pixel.
+
+        Returns
+        -------
+        ndarray
+            Per photon^2, the shape of ``expected``.
+        """
         with np.errstate(divide="ignore"):
             return 1.0 / expected
 

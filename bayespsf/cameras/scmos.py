@@ -305,7 +305,18 @@ class SCMOS(Camera):
     def score_unchecked(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
         """Differences of the log-likelihood (base class) where ``v > 0``; on the lattice of
         readout-free pixels the Poisson score ``n / lam - 1`` (``poisson_score``), where
-        differences would step onto ``lam = 0``, outside the support of any ``n >= 1``."""
+        differences would step onto ``lam = 0``, outside the support of any ``n >= 1``.
+
+        Parameters
+        ----------
+        counts, expected : ndarray
+            As ``Camera.log_likelihood_unchecked``.
+
+        Returns
+        -------
+        ndarray
+            ``d log p / d lam`` per photon, the arguments' shape.
+        """
         score = super().score_unchecked(counts, expected)
         if self._all_readout:
             return score
@@ -347,7 +358,18 @@ class SCMOS(Camera):
         """Huang et al.'s ``1 / (lam + s^2)`` (``s`` the readout SD in photoelectrons), a lower
         bound of the exact information within a few percent beyond a few photoelectrons: the
         exact one costs a quadrature per pixel (~2 ms each), which made every step of the
-        stack MLE on sCMOS ROIs take seconds."""
+        stack MLE on sCMOS ROIs take seconds.
+
+        Parameters
+        ----------
+        expected : ndarray
+            Expected photoelectrons per pixel.
+
+        Returns
+        -------
+        ndarray
+            Per photon^2, the shape of ``expected``.
+        """
         self._check_shape("expected", expected.shape)
         with np.errstate(divide="ignore"):
             return 1.0 / (expected + self._v / self._g**2)

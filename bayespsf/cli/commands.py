@@ -224,7 +224,8 @@ def _fit(args) -> int:
 def _detect(args) -> int:
     """``bayespsf detect``: a movie's molecules, their traces and the paper's selection."""
     from bayespsf.io.run_record import check_folder, read_copies
-    from bayespsf.movie.pipeline import SELECTION_FILES, find_molecules, selection_run, write
+    from bayespsf.movie.found import SELECTION_FILES, write
+    from bayespsf.movie.pipeline import find_molecules, selection_run
 
     out = output_folder(args.out)
     movie, model, s0 = movie_model(args)

@@ -13,8 +13,9 @@ camera's calibration from a movie is in ``bayespsf.calibration``.
 
 from bayespsf.movie.detect import detect, detect_frames, detect_movie
 from bayespsf.movie.extract import RoiStack, cut_rois, iter_rois
+from bayespsf.movie.found import FoundMolecules
 from bayespsf.movie.geometry import geometry_for_psf
-from bayespsf.movie.pipeline import FoundMolecules, find_molecules
+from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.project import project
 from bayespsf.movie.psf_width import PsfWidth, estimate_psf_sd
 from bayespsf.movie.read import Movie, read_movie

@@ -72,7 +72,17 @@ class RoiStack:
 
     def central(self, fit: int | None = None) -> np.ndarray:
         """The central ``fit`` × ``fit`` counts ``(n, fit, fit)`` (a view): what the model
-        fits, with ``(0, 0)`` nm at the centre of its central pixel (the molecule's pixel)."""
+        fits, with ``(0, 0)`` nm at the centre of its central pixel (the molecule's pixel).
+
+        Parameters
+        ----------
+        fit : int, optional
+            The odd side of the centre, at most the cut's; default the stack's ``fit``.
+
+        Returns
+        -------
+        ndarray, shape (n, fit, fit)
+        """
         fit = self.fit if fit is None else fit
         check_sizes(self.roi, fit)
         k = (self.roi - fit) // 2

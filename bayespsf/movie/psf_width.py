@@ -86,12 +86,22 @@ class PsfWidth:
     provisional: float = math.nan
 
     def record(self) -> dict:
-        """The run record's entry: ``psf sd`` (nm), ``source``, ``se`` and ``spots``."""
+        """The run record's entry: ``psf sd`` (nm), ``source``, ``se`` and ``spots``.
+
+        Returns
+        -------
+        dict
+        """
         se = None if math.isnan(self.se) else round(self.se, 3)
         return {"psf sd": round(self.sd, 3), "source": self.source, "se": se, "spots": self.spots}
 
     def summary(self) -> str:
-        """One line: the SD, and its error and spots when estimated."""
+        """One line: the SD, and its error and spots when estimated.
+
+        Returns
+        -------
+        str
+        """
         if self.source == "given":
             return f"spot SD s0 = {self.sd:g} nm, given"
         return f"spot SD s0 = {self.sd:.1f} +- {self.se:.1f} nm, estimated from {self.spots} spots"

@@ -192,6 +192,22 @@ class Movie:
 
         A floating-point movie's NaN or infinite pixel raises ``BayespsfInputError`` naming
         the frame and pixel: camera counts are finite, and every analysis reads through here.
+
+        Parameters
+        ----------
+        start, stop : int, optional
+            The first frame and the one after the last (default: all).
+        rows : slice, optional
+            The rows of each frame to read (default: all).
+
+        Returns
+        -------
+        ndarray, shape (k, h, w)
+
+        Raises
+        ------
+        BayespsfInputError
+            For a NaN or infinite pixel.
         """
         span = range(self.n_frames)[start:stop]
         rows = slice(None) if rows is None else rows
@@ -220,6 +236,14 @@ class Movie:
         A negative index is refused, not counted from the end (``movie[-1]`` indexes as an
         array does): ``FrameIndexError``, a ``BayespsfInputError`` and an ``IndexError``,
         naming the index and the movie's frames.
+
+        Parameters
+        ----------
+        i : int
+
+        Returns
+        -------
+        ndarray, shape (h, w)
         """
         if isinstance(i, bool) or not isinstance(i, int | np.integer):
             raise FrameIndexError(f"frame index must be a whole number, got {i!r}")
@@ -235,7 +259,21 @@ class Movie:
         self, size: int, start: int = 0, stop: int | None = None
     ) -> Iterator[tuple[int, np.ndarray]]:
         """``(first frame, frames)`` for consecutive blocks of ``size`` frames (the last may
-        be shorter) from ``start`` to ``stop``; one block is in memory at a time."""
+        be shorter) from ``start`` to ``stop``; one block is in memory at a time.
+
+        Parameters
+        ----------
+        size : int
+            Frames per block.
+        start, stop : int, optional
+            As ``frames``.
+
+        Yields
+        ------
+        first : int
+            The block's first frame.
+        frames : ndarray, shape (k, h, w)
+        """
         if isinstance(size, bool) or not isinstance(size, int | np.integer) or size < 1:
             raise BayespsfInputError(f"size must be a whole number of frames >= 1, got {size!r}")
         span = range(self.n_frames)[start:stop]
@@ -262,7 +300,17 @@ class Movie:
 
     def to_dask(self, frames_per_chunk: int = 64):
         """A lazy ``dask.array`` of the movie, chunked by ``frames_per_chunk`` frames; frames
-        are read when a chunk is computed."""
+        are read when a chunk is computed.
+
+        Parameters
+        ----------
+        frames_per_chunk : int, optional
+
+        Returns
+        -------
+        dask.array.Array
+            Shape ``(n_frames, h, w)``.
+        """
         import dask.array as da
         from dask.base import tokenize
 

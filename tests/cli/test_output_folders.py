@@ -23,7 +23,7 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.io.run_record import RECORD_NAME, RunConflict, read_run_record
 from bayespsf.model import Model
 from bayespsf.movie import Rules, find_molecules
-from bayespsf.movie.pipeline import SELECTION_FILES, write
+from bayespsf.movie.found import SELECTION_FILES, write
 from bayespsf.parallel.store import Store
 
 CAMERA = """[geometry]
