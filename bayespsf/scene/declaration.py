@@ -460,6 +460,15 @@ def _check_consistency(d: Mapping) -> None:
     if cam["kind"] == "emccd" and cam["gain"] < 1.0:
         raise SceneError(f"camera.gain must be >= 1 for an EMCCD, got {cam['gain']:g}")
     check_likelihood(cam)
+    if cam["kind"] == "scmos" and cam["quantize"] and cam["variance"] == 0:
+        gain, offset = cam["gain"], cam["offset"]
+        if gain != round(gain) or offset != round(offset):  # else rounding keeps the lattice
+            raise SceneError(
+                "camera.quantize = true with camera.variance = 0 rounds the counts off the "
+                f"readout-free sCMOS lattice offset + gain n ({offset:g} + {gain:g} n ADU), where "
+                "the camera law gives them zero likelihood: declare the readout variance "
+                "(camera.variance > 0) or quantize = false"
+            )
     if "axial" in d:
         _check_axial(d)
 

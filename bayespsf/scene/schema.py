@@ -228,7 +228,8 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             bool,
             False,
             "",
-            "round counts to whole ADU (the ADC); false declares continuous counts",
+            "round counts to whole ADU (the ADC); false declares continuous counts. An sCMOS "
+            "without readout (variance 0) is quantized only with whole gain and offset",
             when=when_is("kind", "emccd", "scmos"),
         ),
         Key(

@@ -661,6 +661,28 @@ def test_binomial_background_with_integer_trials_accepted():
     Scene.from_dict({"background": {"kind": "binomial", "mean": 0.25, "sd": math.sqrt(0.1875)}})
 
 
+def test_readout_free_scmos_is_not_quantized_off_its_lattice():
+    # v = 0: the sCMOS law lives on offset + gain n; rounding to whole ADU leaves it (zero
+    # likelihood for every simulated ROI) unless gain and offset are whole numbers of ADU
+    import numpy as np
+
+    from bayespsf import Model, simulate
+
+    base = load_scene("scmos-typical").to_dict()
+    camera = {**base["camera"], "variance": 0.0}
+    _raises({**base, "camera": camera}, r"camera.quantize = true with camera.variance = 0 .*")
+    continuous = Scene.from_dict({**base, "camera": {**camera, "quantize": False}})
+    counts, truth = simulate(continuous, n=3, seed=2)
+    model = Model.from_scene(continuous)
+    assert np.isfinite(model.log_likelihood(counts, truth.to_numpy())).all()
+    rounded = np.round(counts)  # what quantize would record
+    law = model.camera.log_likelihood_unchecked(rounded, model.expected(truth.to_numpy()))
+    assert np.isneginf(law.sum(axis=(-2, -1))).all()
+    whole = Scene.from_dict({**base, "camera": {**camera, "gain": 2.0, "offset": 100.0}})
+    counts, truth = simulate(whole, n=3, seed=2)
+    assert np.isfinite(Model.from_scene(whole).log_likelihood(counts, truth.to_numpy())).all()
+
+
 def test_binomial_background_needs_sd_squared_below_mean():
     _raises(
         {"background": {"kind": "binomial", "mean": 4, "sd": 2}},
