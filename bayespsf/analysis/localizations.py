@@ -39,7 +39,9 @@ def localizations(
     estimate : {"posterior", "mle"}, default "posterior"
         Where picasso's columns come from: the posterior's means and SDs, or the MLE
         (``<p>_mle``) and its Cramér-Rao bound (``crlb_<p>``) as ``lpx``, ``lpy``; then
-        ``posteriors`` needs those columns instead of the posterior's.
+        ``posteriors`` needs those columns instead of the posterior's, and a row whose fit did
+        not converge (``mle_converged`` false) has no position: NaN in picasso's columns,
+        which picasso leaves out, its fit kept in ``<p>_mle``.
 
     Returns
     -------
@@ -94,6 +96,9 @@ def localizations(
             "lpy": (t[spread.format("y0")] / a).to_numpy(np.float32),
         }
     )
+    if estimate == "mle" and "mle_converged" in t:  # no position from a fit that did not end
+        failed = ~t["mle_converged"].to_numpy(bool)
+        locs.loc[failed, [c for c in locs.columns if c != "frame"]] = np.nan
     if "z_mean" in t:  # a z calibration was given (bayespsf.axial): picasso's z and lpz, nm
         locs["z"] = t["z_mean"].to_numpy(np.float32)
         locs["lpz"] = t["z_sd"].to_numpy(np.float32)
@@ -185,6 +190,8 @@ def _why_missing(row: pd.Series, name: str) -> str:
     mle_failed = "mle_converged" in row and not bool(row["mle_converged"])
     if name == "acceptance" and str(row.get("method", "mcmc")) != "mcmc":
         return f"the {row['method']} posterior has no Markov chain"
+    if mle_failed and name in PICASSO_COLUMNS:  # picasso's columns from the MLE (estimate)
+        return "the maximum-likelihood fit did not converge"
     if name in ("z", "lpz") or name.startswith("z_"):
         why = str(row.get("z_why", "") or "").strip()
         return "no z posterior" + (f" ({why})" if why else "")

@@ -126,9 +126,7 @@ def frame_spots(
         their peak pixels.
     """
     movie = open_movie(movie)
-    if fit is None:
-        raise BayespsfInputError("fit must be an odd whole number >= 1, got None")
-    check_sizes(None, fit, missing_ok=True)
+    check_sizes(fit, fit)
     span = frame_span(movie, frames)
     options = dict(psf_sd=psf_sd, camera=model, frames=span, block=block)
     tables = iter_detect_frames(movie, **options, roi=fit, fit=fit, false_positives=false_positives)
@@ -357,6 +355,12 @@ def _report(result: FrameLocalizations, frames: int, posterior: bool, provenance
         f"max {per_frame.max():g}).",
         f"- Maximum-likelihood fits converged: {int(locs['mle_converged'].sum())} of {len(locs)}.",
     ]
+    if not posterior and not locs["mle_converged"].all():
+        lines.append(
+            f"- The {int((~locs['mle_converged'].astype(bool)).sum())} fit(s) that did not "
+            "converge have no position in picasso's columns (NaN: picasso leaves them out); "
+            "their last iterate is kept in `<p>_mle`, and `mle_message` says why."
+        )
     a = "posterior means and SDs" if posterior else "the MLE and its Cramér-Rao bound"
     lines.append(f"- picasso's x, y, photons, sx, sy, bg, lpx, lpy are {a}.")
     if posterior:

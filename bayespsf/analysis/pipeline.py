@@ -151,8 +151,8 @@ def _check_sampler(method: str, ess, seed: int, max_seconds) -> dict:
 
 
 def _estimates(counts, model: Model, lsq: bool = True) -> pd.DataFrame:
-    """The MLE (``<p>_mle``, ``crlb_<p>``) and, with ``lsq``, the paper's least squares
-    (``<p>_lsq``)."""
+    """The MLE (``<p>_mle``, ``crlb_<p>``, ``mle_converged`` and, where it did not converge,
+    why: ``mle_message``) and, with ``lsq``, the paper's least squares (``<p>_lsq``)."""
     mle = fit_mle(counts, model, laplace=False)
     squares = fit_lsq(counts, model) if lsq else None
     out = pd.DataFrame(index=mle.index)
@@ -162,6 +162,7 @@ def _estimates(counts, model: Model, lsq: bool = True) -> pd.DataFrame:
         if squares is not None:
             out[f"{p}_lsq"] = squares[p].where(squares["converged"]).to_numpy()
     out["mle_converged"] = mle["converged"].to_numpy(bool)
+    out["mle_message"] = mle["message"].to_numpy(object)
     return out
 
 

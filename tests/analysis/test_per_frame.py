@@ -144,6 +144,25 @@ def test_localizations_from_the_mle_and_bad_estimate():
     assert locs.loc[0, ["x", "y", "sx", "sy", "lpx", "lpy"]].tolist() == pytest.approx(
         [21.0, 9.0, 120 / 79, 2.0, 0.1, 0.2], rel=1e-6
     )
+    # a fit that did not converge gives no position: picasso leaves the row out, the last
+    # iterate stays in <p>_mle and the missing column says why
+    two = pd.concat([table, table], ignore_index=True).assign(mle_converged=[True, False])
+    locs = localizations(two, 79.0, estimate="mle")
+    assert np.isfinite(locs.loc[0, ["x", "y", "photons", "lpx"]].to_numpy(float)).all()
+    assert locs.loc[1, ["x", "y", "photons", "sx", "sy", "bg", "lpx", "lpy"]].isna().all()
+    assert locs.loc[1, "frame"] == 2 and locs.loc[1, "x0_mle"] == 79
+    assert locs.loc[1, "missing"] == (
+        "x, y, photons, sx, sy, bg, lpx, lpy: the maximum-likelihood fit did not converge"
+    )
+    assert locs.loc[0, "missing"] == ""
+    from bayespsf.analysis.per_frame import FrameLocalizations, _report
+    from bayespsf.movie import PsfWidth
+
+    candidates = pd.DataFrame({"status": ["accepted", "accepted"]})
+    result = FrameLocalizations(candidates, locs, PsfWidth(sd=120.0, source="given"))
+    report = _report(result, 3, posterior=False, provenance={})
+    assert "- Maximum-likelihood fits converged: 1 of 2." in report
+    assert "The 1 fit(s) that did not converge have no position in picasso's columns" in report
     with pytest.raises(BayespsfInputError, match="estimate must be"):
         localizations(table, 79.0, estimate="map")
     with pytest.raises(BayespsfInputError, match="x0_mean"):
