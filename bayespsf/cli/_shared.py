@@ -41,20 +41,13 @@ def geometry(args) -> tuple[int | None, int | None]:
     None (it follows the spot's SD: ``bayespsf.movie.geometry_for_psf``); ``calibrate`` and
     ``calibrate-z`` take the paper's 25 and 15 pixels."""
     from bayespsf.model import MIN_ROI
+    from bayespsf.movie.extract import check_sizes
 
     roi, fit = args.roi, args.fit
     if args.command not in ("detect", "analyze"):
         roi, fit = (25 if roi is None else roi), (15 if fit is None else fit)
-    for flag, side in (("--roi", roi), (getattr(args, "fit_from", "--fit"), fit)):
-        if side is not None and (side < MIN_ROI or side % 2 == 0):
-            raise CommandError(
-                f"{flag} must be an odd number of pixels >= {MIN_ROI} (a central pixel holds "
-                f"the molecule, and the fit needs a border of background around it), got {side}"
-            )
-    if roi is not None and fit is not None and fit > roi:
-        raise CommandError(
-            f"{getattr(args, 'fit_from', '--fit')} ({fit}) must be at most --roi ({roi})"
-        )
+    names = ("--roi", getattr(args, "fit_from", "--fit"))
+    check_sizes(roi, fit, missing_ok=True, names=names, smallest=MIN_ROI)
     return roi, fit
 
 
@@ -120,11 +113,3 @@ def selection_rules(args):
 def command_line(args) -> str:
     """The command as typed (``bayespsf calibrate ...``), for the provenance of its files."""
     return f"bayespsf {args.command} " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
-
-
-def described_movie(movie, model) -> str:
-    """The movie as the run read it: its repr, with the pixel size the run used where the
-    movie's metadata give none (the camera file's, or ``--pixel-size``)."""
-    if movie.pixel_size is None:
-        return repr(movie).replace("pixel_size=None", f"pixel_size={model.pixel_size:g} nm")
-    return repr(movie)

@@ -16,7 +16,6 @@ from pathlib import Path
 from bayespsf.cli._shared import (
     CommandError,
     command_line,
-    described_movie,
     geometry,
     movie_model,
     one_run,
@@ -243,7 +242,7 @@ def _detect(args) -> int:
         paths = write(found, out, force=args.force, copies=copies, about={"movie": args.movie})
     selected = int(found.molecules["selected"].sum())
     print(f"{found.psf_width.summary()}" + (" (--psf-sd states it)" if s0 is None else ""))
-    described = described_movie(movie, model)
+    described = movie.describe(model.pixel_size)
     print(f"{described}: {len(found.molecules)} candidate molecules, {selected} selected")
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
@@ -297,7 +296,7 @@ def _analyze(args) -> int:
     )
     print(f"{result.found.psf_width.summary()}" + (" (--psf-sd states it)" if s0 is None else ""))
     print(
-        f"{described_movie(movie, model)}: {int(result.molecules['selected'].sum())} molecules "
+        f"{movie.describe(model.pixel_size)}: {int(result.molecules['selected'].sum())} molecules "
         "selected, "
         f"{len(result.frames)} frames analysed; {spread}"
     )
@@ -405,11 +404,11 @@ def _calibrate(args) -> int:
 def _dark_frames(path: str, channel: int | None):
     """The dark frames: the movie's ``--channel`` where the file has several channels, the
     one channel where it has one."""
-    from bayespsf.movie import read_movie
+    from bayespsf.movie.read import ChannelsError, read_movie
 
     try:
         return read_movie(path)
-    except BayespsfInputError:
+    except ChannelsError:  # any other problem of the file is its own, reported as such
         if channel is None:
             raise
         return read_movie(path, channel=channel)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bayespsf.cli._shared import CommandError, command_line, described_movie, one_run
+from bayespsf.cli._shared import CommandError, command_line, one_run
 
 #: Options of the projection path that need a trace or a projection, by their flag.
 _TRACE_OPTIONS = {
@@ -44,7 +44,7 @@ def per_frame(args, out: Path, movie, model, s0: float | None, fit: int) -> int:
         result = localize_frames(movie, model, copies={"camera.toml": args.camera}, **options)
     print(result.psf_width.summary() + (" (--psf-sd states it)" if s0 is None else ""))
     frames = result.locs["frame"].nunique()
-    described = described_movie(movie, model)
+    described = movie.describe(model.pixel_size)
     print(f"{described}: {len(result.locs)} localisations in {frames} of {len(movie)} frames")
     print("wrote " + ", ".join(str(p) for p in result.paths.values()))
     return 0

@@ -115,6 +115,10 @@ def _check_end(path: Path, frame: int, end: int, size: int) -> None:
         )
 
 
+class ChannelsError(BayespsfInputError):
+    """A file of several channels read without choosing one (``channel=k``, ``--channel k``)."""
+
+
 def check_channel(path: Path, channel, count: int, names: list[str]) -> None:
     """``channel`` must pick one of ``count`` channels; several channels need one picked."""
     if channel is None:
@@ -123,7 +127,7 @@ def check_channel(path: Path, channel, count: int, names: list[str]) -> None:
                 f"{k} ({names[k]!r})" if k < len(names) and names[k] else str(k)
                 for k in range(count)
             )
-            raise BayespsfInputError(
+            raise ChannelsError(
                 f"{path}: it has {count} channels ({listed}); pick one with channel=k "
                 "(--channel k on the command line)"
             )

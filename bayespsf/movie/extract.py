@@ -151,20 +151,29 @@ def photon_model(camera) -> Model:
     return model
 
 
-def check_sizes(roi, fit, missing_ok: bool = False) -> None:
-    """``roi`` and ``fit`` odd whole numbers with ``fit <= roi``, else an error naming them;
-    with ``missing_ok`` a side that is None is left out (it follows the spot's SD)."""
-    for name, value in (("roi", roi), ("fit", fit)):
+def check_sizes(
+    roi, fit, missing_ok: bool = False, *, names=("roi", "fit"), smallest: int = 1
+) -> None:
+    """``roi`` and ``fit`` odd whole numbers >= ``smallest`` with ``fit <= roi``, else an error
+    naming them by ``names`` (the command line passes its flags, ``--roi`` and ``--fit``, and
+    the model's least side); with ``missing_ok`` a side that is None is left out (it follows
+    the spot's SD)."""
+    for name, value in zip(names, (roi, fit), strict=True):
         if missing_ok and value is None:
             continue
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-            raise BayespsfInputError(f"{name} must be an odd whole number >= 1, got {value!r}")
-        if value % 2 == 0:
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | np.integer)
+            or value < smallest
+            or value % 2 == 0
+        ):
+            border = ", and the fit needs a border of background around it" if smallest > 1 else ""
             raise BayespsfInputError(
-                f"{name} must be odd (a central pixel holds the molecule), got {value}"
+                f"{name} must be an odd number of pixels >= {smallest} (a central pixel holds "
+                f"the molecule{border}), got {value!r}"
             )
     if roi is not None and fit is not None and fit > roi:
-        raise BayespsfInputError(f"fit ({fit}) must be at most roi ({roi})")
+        raise BayespsfInputError(f"{names[1]} ({fit}) must be at most {names[0]} ({roi})")
 
 
 def molecule_pixels(molecules) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -14,6 +14,7 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.io.rois import checked_path, named_read_errors
 from bayespsf.movie._frames import NpyFrames
 from bayespsf.movie._metadata import FileMetadata
+from bayespsf.movie._tiff import ChannelsError as ChannelsError  # raised by read_movie
 from bayespsf.movie._tiff import check_channel, checked_dtype, tiff_frames
 
 _TIFF = (".tif", ".tiff")
@@ -46,8 +47,8 @@ def read_movie(path: str | Path | Sequence[str | Path], *, channel: int | None =
     BayespsfInputError
         Naming the file and the problem: missing, a directory, unknown extension, unreadable,
         damaged or truncated, no images, pages of different shapes (named), frames that are
-        not 2-D, complex or boolean values, no frames, several channels without ``channel``,
-        files of a series that disagree.
+        not 2-D, complex or boolean values, no frames, several channels without ``channel``
+        (``ChannelsError``, its subclass), files of a series that disagree.
 
     See Also
     --------
@@ -171,12 +172,29 @@ class Movie:
         return self.n_frames
 
     def __repr__(self) -> str:
+        return self.describe()
+
+    def describe(self, pixel_size: float | None = None) -> str:
+        """The movie in one line, as its repr, with a pixel size its metadata do not give.
+
+        Parameters
+        ----------
+        pixel_size : float, optional
+            The pixel side in nm that a run uses where the metadata give none (a camera
+            file's); the metadata's own, where they give one, is shown instead.
+
+        Returns
+        -------
+        str
+        """
         name = self.path
         if isinstance(name, tuple):
             name = f"{name[0]} + {len(name) - 1} files"
         size = time = "None"
         if self.pixel_size is not None:
             size = f"{self.pixel_size:.4g} nm ({self.metadata['pixel_size']})"
+        elif pixel_size is not None:
+            size = f"{pixel_size:g} nm"
         if self.exposure is not None:
             time = f"{self.exposure:.4g} s ({self.metadata['exposure']})"
         return (

@@ -507,3 +507,24 @@ def test_a_multi_channel_file_is_read_at_the_channel_given(tmp_path, capsys):
         cli.main([*base, "--out", str(tmp_path / "a")])
     assert cli.main([*base, "--channel", "1", "--rules", "none", "--out", str(tmp_path / "b")]) == 0
     assert "frames=30, height=48, width=48" in capsys.readouterr().out
+
+
+def test_dark_frames_are_read_at_the_channel_only_when_they_have_several(tmp_path):
+    # calibrate's dark file: its own problem is reported, not the channel read's retry
+    import numpy as np
+    import tifffile
+
+    from bayespsf.cli.commands import _dark_frames
+    from bayespsf.errors import BayespsfInputError
+
+    tifffile.imwrite(
+        tmp_path / "complex.tif", np.zeros((3, 8, 8), np.complex64), photometric="minisblack"
+    )
+    with pytest.raises(BayespsfInputError, match="complex values") as error:
+        _dark_frames(str(tmp_path / "complex.tif"), channel=1)
+    assert "channel" not in str(error.value)
+    frames = np.stack([np.full((3, 8, 8), 100, np.uint16), np.full((3, 8, 8), 7, np.uint16)], 1)
+    tifffile.imwrite(tmp_path / "two.tif", frames, imagej=True, metadata={"axes": "TCYX"})
+    assert _dark_frames(str(tmp_path / "two.tif"), channel=1).frames().max() == 7
+    tifffile.imwrite(tmp_path / "one.tif", frames[:, 0], photometric="minisblack")
+    assert _dark_frames(str(tmp_path / "one.tif"), channel=1).frames().max() == 100

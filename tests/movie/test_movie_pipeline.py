@@ -159,7 +159,7 @@ def test_movies_the_rules_cannot_use_are_named(tmp_path):
             roi=41,
             rules=Rules(skip=("photon_window",)),
         )
-    with pytest.raises(BayespsfInputError, match="fit must be odd"):
+    with pytest.raises(BayespsfInputError, match="fit must be an odd number of pixels >= 1"):
         find_molecules(stem.with_suffix(".ome.tif"), model, s0=120.0, fit=14)
     # a frame too small for any ROI: every candidate is an edge rejection, reported as such
     found = find_molecules(

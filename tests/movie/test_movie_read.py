@@ -41,7 +41,8 @@ def test_a_plain_multipage_tiff_is_read_exactly(tmp_path, options):
     _check(movie, DATA)
     assert movie.pixel_size is None and movie.exposure is None
     assert movie.metadata["pixel_size"] is None and movie.metadata["exposure"] is None
-    assert "frames=24" in repr(movie)
+    assert "frames=24" in repr(movie) and "pixel_size=None" in repr(movie)
+    assert "pixel_size=100 nm," in movie.describe(100.0)  # the size a run uses, where none is read
     movie.close()
 
 
@@ -66,6 +67,7 @@ def test_ome_tiff_pixel_size_exposure_and_z_t_frames(tmp_path):
     _check(movie, DATA)  # Z x T flattened in acquisition order
     assert movie.pixel_size == pytest.approx(107.0) and movie.exposure == pytest.approx(0.05)
     assert movie.metadata["pixel_size"] == movie.metadata["exposure"] == "OME"
+    assert "pixel_size=107 nm (OME)" in movie.describe(100.0)  # the file's own size is shown
     assert movie.metadata["exposure_field"] == "TimeIncrement"
     # a plane's ExposureTime is the exposure, preferred to the frame interval
     meta = {

@@ -210,9 +210,9 @@ def test_bad_inputs_are_named(tmp_path):
     near = pd.DataFrame({"molecule": [1, 9], "x": [15.0, 3.2], "y": [15.0, 15.0]})
     with pytest.raises(BayespsfInputError, match=r"leave the 30x30 frame: molecule\(s\) 9 \(x=3.2"):
         cut_rois(path, near, roi=9, fit=5)
-    with pytest.raises(BayespsfInputError, match="roi must be odd"):
+    with pytest.raises(BayespsfInputError, match="roi must be an odd number of pixels >= 1"):
         cut_rois(path, ok, roi=8, fit=5)
-    with pytest.raises(BayespsfInputError, match="fit must be odd"):
+    with pytest.raises(BayespsfInputError, match="fit must be an odd number of pixels >= 1"):
         cut_rois(path, ok, roi=9, fit=4)
     with pytest.raises(BayespsfInputError, match=r"fit \(11\) must be at most roi \(9\)"):
         cut_rois(path, ok, roi=9, fit=11)

@@ -56,7 +56,7 @@ def test_geometry_reproduces_the_paper_and_scales_with_the_spot():
     assert resolve_geometry(None, None, None, 79.0) == (None, None, "from s0")
     with pytest.raises(BayespsfInputError, match=r"fit \(17\) must be at most roi \(13"):
         resolve_geometry(13, 17, 120.0, 79.0)
-    with pytest.raises(BayespsfInputError, match="fit must be odd"):
+    with pytest.raises(BayespsfInputError, match="fit must be an odd number of pixels >= 1"):
         resolve_geometry(None, 14, 120.0, 79.0)
     with pytest.raises(BayespsfInputError, match="s0"):
         geometry_for_psf(0.0, 79.0)
