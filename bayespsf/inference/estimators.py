@@ -111,7 +111,8 @@ _PAIRS = tuple(np.array([pair[k] for pair in CORRELATIONS]) for k in (0, 1))  # 
 
 
 def _frame(rows: list[dict], model: Model) -> pd.DataFrame:
-    df = pd.DataFrame(rows)
+    empty = {**dict.fromkeys(PARAMETER_NAMES, np.float64), "converged": bool, "message": object}
+    df = pd.DataFrame(rows) if rows else pd.DataFrame(columns=list(empty)).astype(empty)
     first = [*PARAMETER_NAMES, "photon_unit"]
     df["photon_unit"] = model.photon_unit_label
     df["status"] = np.where(df["converged"], "converged", "not converged")

@@ -242,6 +242,18 @@ def test_a_bad_roi_is_a_row_not_an_exception_for_the_stack():
         assert fits.loc[[0, 3], list(COLUMNS)].notna().all().all()
 
 
+def test_an_empty_stack_gives_an_empty_table_with_the_columns():
+    # a frame without molecules: both fits give a table of no rows that concatenates with
+    # others (fit_lsq raised KeyError: 'converged')
+    scene = load_scene("emccd-typical")
+    model = Model.from_scene(scene)
+    counts, _ = simulate(scene, 1, seed=1)
+    for fit in (fit_mle, fit_lsq):
+        empty, one = fit(counts[:0], model), fit(counts, model)
+        assert len(empty) == 0 and list(empty.columns) == list(one.columns)
+        assert len(pd.concat([empty, one], ignore_index=True)) == 1
+
+
 def test_fit_tables_print_concatenate_and_save(tmp_path):
     # repr() raised under pandas 2.3 (a NumPy array in attrs) and pd.concat of two results failed
     scene = load_scene("ideal")
