@@ -278,6 +278,12 @@ class FlatFieldGain:
     def camera(self, dark: DarkCalibration, likelihood: str = "exact") -> SCMOS:
         """The per-pixel ``SCMOS`` of these gains and ``dark``'s offset and variance maps.
 
+        Each pixel's variance is that of its own dark frames: for normal readout noise its
+        relative standard error is ``sqrt(2 / (frames - 1))``, 100% from 3 frames, 32% from
+        21 and 10% from 201, and an error in it is an error in the likelihood's pixel weights.
+        Per-pixel maps want hundreds of dark frames or more; the scalar camera
+        (``DarkCalibration.camera_table``) pools the pixels and needs far fewer.
+
         Parameters
         ----------
         dark : DarkCalibration
