@@ -246,6 +246,15 @@ def scene_dicts(draw):
             mean, sd = n * p, math.sqrt(n * p * (1 - p))
             given.update(mean=mean, sd=sd)
             normal.update(mean=mean, sd=sd)
+        if (
+            section == "camera"
+            and normal["kind"] == "scmos"
+            and normal["quantize"]
+            and normal["variance"] == 0
+        ):  # a readout-free sCMOS is quantized only on whole gain and offset: give it readout
+            variance = draw(st.floats(0.01, 1e9))
+            given.update(variance=variance)
+            normal.update(variance=variance)
         if section == "axial":  # a z range inside both curves' domain: A = 0, B >= 0
             for key in ("A_x", "A_y", "B_x", "B_y"):
                 if key in normal:
