@@ -18,7 +18,8 @@ from bayespsf.psf import PARAMETER_NAMES
 INTERVAL = ("q0025", "q0975")  # the central 95% interval's quantile columns
 PLACE_COLUMNS = ("molecule", "frame", "row", "col")  # the ROI centre's movie pixel
 # the columns the reasons for a missing value come from (missing_values)
-_CONTEXT = ("status", "message", "method", "mle_converged", "gof_replicates", "z_why")
+_CONTEXT = ("status", "message", "method", "mle_converged", "mle_status", "mle_message")
+_CONTEXT += ("gof_replicates", "z_why")
 
 
 def localizations(
@@ -190,7 +191,9 @@ def _why_missing(row: pd.Series, name: str) -> str:
     mle_failed = "mle_converged" in row and not bool(row["mle_converged"])
     if name == "acceptance" and str(row.get("method", "mcmc")) != "mcmc":
         return f"the {row['method']} posterior has no Markov chain"
-    if mle_failed and name in PICASSO_COLUMNS:  # picasso's columns from the MLE (estimate)
+    if mle_failed and name in PICASSO_COLUMNS and "x0_mean" not in row:  # from the MLE
+        if row.get("mle_status") == "refused":
+            return f"the ROI was refused ({str(row.get('mle_message', '')).strip()})"
         return "the maximum-likelihood fit did not converge"
     if name in ("z", "lpz") or name.startswith("z_"):
         why = str(row.get("z_why", "") or "").strip()

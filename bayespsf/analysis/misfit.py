@@ -102,16 +102,11 @@ def central(counts: np.ndarray, window: int) -> np.ndarray:
     checked as ``movie.extract.check_sizes`` checks a fit inside a ROI)."""
     roi = counts.shape[-1]
     try:
-        check_sizes(roi, window)
-        small = window < MIN_ROI
+        check_sizes(roi, window, names=("the ROI size", "window"), smallest=MIN_ROI)
     except BayespsfInputError as error:
-        small, detail = True, f" ({error})"
-    else:
-        detail = ""
-    if small:
         raise BayespsfInputError(
-            f"window must be odd, from {MIN_ROI} to the ROI size {roi}; got {window!r}{detail}"
-        )
+            f"window must be odd, from {MIN_ROI} to the ROI size {roi}; got {window!r} ({error})"
+        ) from None
     first = (roi - window) // 2
     return counts[..., first : first + window, first : first + window]
 

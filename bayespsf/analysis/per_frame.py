@@ -126,7 +126,7 @@ def frame_spots(
         their peak pixels.
     """
     movie = open_movie(movie)
-    check_sizes(fit, fit)
+    check_sizes(fit, fit, names=("fit", "fit"))
     span = frame_span(movie, frames)
     options = dict(psf_sd=psf_sd, camera=model, frames=span, block=block)
     tables = iter_detect_frames(movie, **options, roi=fit, fit=fit, false_positives=false_positives)
@@ -202,8 +202,9 @@ def localize_frames(
     FrameLocalizations
         ``candidates``, ``locs`` (photons in the model's photon unit; picasso's ``x``, ``y``,
         ``photons``, ``sx``, ``sy``, ``bg``, ``lpx``, ``lpy`` from the posterior's means and
-        SDs, or from the MLE and its Cramér-Rao bound without ``posterior``; then ``molecule``
-        (the candidate), the MLE ``<p>_mle`` and ``crlb_<p>``, ``mle_converged`` and, with
+        SDs, or from the MLE and its Cramér-Rao bound without ``posterior``, NaN where that
+        fit did not converge; then ``molecule`` (the candidate), the MLE ``<p>_mle`` and
+        ``crlb_<p>``, ``mle_converged``, ``mle_status``, ``mle_message`` and, with
         ``posterior``, ``sample_many``'s summary and the least squares ``<p>_lsq``),
         ``psf_width`` and ``paths``.
 
@@ -356,10 +357,12 @@ def _report(result: FrameLocalizations, frames: int, posterior: bool, provenance
         f"- Maximum-likelihood fits converged: {int(locs['mle_converged'].sum())} of {len(locs)}.",
     ]
     if not posterior and not locs["mle_converged"].all():
+        refused = int((locs["mle_status"] == "refused").sum())
+        failed = int((~locs["mle_converged"].astype(bool)).sum()) - refused
         lines.append(
-            f"- The {int((~locs['mle_converged'].astype(bool)).sum())} fit(s) that did not "
-            "converge have no position in picasso's columns (NaN: picasso leaves them out); "
-            "their last iterate is kept in `<p>_mle`, and `mle_message` says why."
+            f"- Without a position in picasso's columns (NaN: picasso leaves them out; "
+            f"`mle_message` says why): {failed} fit(s) that did not converge (their last iterate "
+            f"is kept in `<p>_mle`) and {refused} window(s) refused before fitting."
         )
     a = "posterior means and SDs" if posterior else "the MLE and its Cramér-Rao bound"
     lines.append(f"- picasso's x, y, photons, sx, sy, bg, lpx, lpy are {a}.")

@@ -151,8 +151,9 @@ def _check_sampler(method: str, ess, seed: int, max_seconds) -> dict:
 
 
 def _estimates(counts, model: Model, lsq: bool = True) -> pd.DataFrame:
-    """The MLE (``<p>_mle``, ``crlb_<p>``, ``mle_converged`` and, where it did not converge,
-    why: ``mle_message``) and, with ``lsq``, the paper's least squares (``<p>_lsq``)."""
+    """The MLE (``<p>_mle``, ``crlb_<p>``, ``mle_converged``, and ``fit_mle``'s ``status`` and
+    ``message`` as ``mle_status`` and ``mle_message``) and, with ``lsq``, the paper's least
+    squares (``<p>_lsq``)."""
     mle = fit_mle(counts, model, laplace=False)
     squares = fit_lsq(counts, model) if lsq else None
     out = pd.DataFrame(index=mle.index)
@@ -162,6 +163,7 @@ def _estimates(counts, model: Model, lsq: bool = True) -> pd.DataFrame:
         if squares is not None:
             out[f"{p}_lsq"] = squares[p].where(squares["converged"]).to_numpy()
     out["mle_converged"] = mle["converged"].to_numpy(bool)
+    out["mle_status"] = mle["status"].to_numpy(object)
     out["mle_message"] = mle["message"].to_numpy(object)
     return out
 
@@ -291,9 +293,10 @@ def analyze(
           ``<p>_tau``, ``<p>_ess``; ``gof_p``, ``gof_discrepancy``, ``gof_replicates``,
           ``photon_unit``); the MLE ``<p>_mle`` with its Cramér-Rao bound ``crlb_<p>`` and
           the paper's least squares ``<p>_lsq`` (NaN where it did not converge),
-          ``mle_converged``; ``selected``; with ``z_calibration`` ``z_mean``, ``z_sd``,
-          ``z_q0025``, ``z_q0975`` (nm), ``z_khat``, ``z_converged``, ``z_why`` (and
-          ``z_above_plane`` on a symmetric curve). x0 and y0 are nm from the ROI's centre.
+          ``mle_converged``, ``mle_status``, ``mle_message``; ``selected``; with
+          ``z_calibration`` ``z_mean``, ``z_sd``, ``z_q0025``, ``z_q0975`` (nm), ``z_khat``,
+          ``z_converged``, ``z_why`` (and ``z_above_plane`` on a symmetric curve). x0 and y0
+          are nm from the ROI's centre.
         - ``molecules``: ``found.molecules``' columns; per parameter ``<p>`` of ``x0 y0 s_x
           s_y`` the check's ``<p>_combined``, ``<p>_combined_se``, ``<p>_p_value``,
           ``<p>_p_two_sided``, ``<p>_z_sd``, ``<p>_coverage``; and the joint posterior's

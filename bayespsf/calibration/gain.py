@@ -196,7 +196,7 @@ def gain_from_molecules(
     (17.2, True)
     """
     check_sizes(roi, fit)
-    check_sizes(fit, centre)
+    check_sizes(fit, centre, names=("fit", "centre"))
     if fit == roi:
         raise BayespsfInputError(
             f"fit ({fit}) must be smaller than roi ({roi}): the periphery gives the background "

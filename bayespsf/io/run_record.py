@@ -2,7 +2,7 @@
 that one folder never holds two runs' files.
 
 A command that writes a folder (``bayespsf detect`` and ``bayespsf analyze``, and the Python
-functions beneath them, ``bayespsf.movie.pipeline.write`` and ``bayespsf.analyze``) states
+functions beneath them, ``bayespsf.movie.found.write`` and ``bayespsf.analyze``) states
 what identifies its run as a dict (the command, a fingerprint of its data, the settings that
 change its results) and the names of the files and folders it writes. Before it writes
 anything, ``check_folder`` compares that dict with the folder's record:

@@ -182,7 +182,7 @@ def estimate_psf_sd(
     (True, True)
     """
     movie = open_movie(movie)
-    check_sizes(fit, fit)
+    check_sizes(fit, fit, names=("fit", "fit"))
     for name, value in (("frames", frames), ("spots", spots)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
             raise BayespsfInputError(f"{name} must be a whole number >= 1, got {value!r}")

@@ -146,24 +146,45 @@ def test_localizations_from_the_mle_and_bad_estimate():
     )
     # a fit that did not converge gives no position: picasso leaves the row out, the last
     # iterate stays in <p>_mle and the missing column says why
-    two = pd.concat([table, table], ignore_index=True).assign(mle_converged=[True, False])
-    locs = localizations(two, 79.0, estimate="mle")
+    # a window refused before fitting likewise, with the refusal as the reason
+    three = pd.concat([table] * 3, ignore_index=True).assign(
+        mle_converged=[True, False, False],
+        mle_status=["converged", "not converged", "refused"],
+        mle_message=["", "iteration limit (200)", "every pixel has the same value (5)"],
+    )
+    three.loc[2, [f"{p}_mle" for p in NAMES] + [f"crlb_{p}" for p in NAMES]] = np.nan
+    locs = localizations(three, 79.0, estimate="mle")
     assert np.isfinite(locs.loc[0, ["x", "y", "photons", "lpx"]].to_numpy(float)).all()
-    assert locs.loc[1, ["x", "y", "photons", "sx", "sy", "bg", "lpx", "lpy"]].isna().all()
-    assert locs.loc[1, "frame"] == 2 and locs.loc[1, "x0_mle"] == 79
+    picasso = ["x", "y", "photons", "sx", "sy", "bg", "lpx", "lpy"]
+    assert locs.loc[[1, 2], picasso].isna().all().all()
+    assert (locs["frame"] == 2).all() and locs.loc[1, "x0_mle"] == 79
     assert locs.loc[1, "missing"] == (
         "x, y, photons, sx, sy, bg, lpx, lpy: the maximum-likelihood fit did not converge"
+    )
+    assert locs.loc[2, "missing"].startswith(
+        "x, y, photons, sx, sy, bg, lpx, lpy: the ROI was refused (every pixel has the same"
     )
     assert locs.loc[0, "missing"] == ""
     from bayespsf.analysis.per_frame import FrameLocalizations, _report
     from bayespsf.movie import PsfWidth
 
-    candidates = pd.DataFrame({"status": ["accepted", "accepted"]})
+    candidates = pd.DataFrame({"status": ["accepted"] * 3})
     result = FrameLocalizations(candidates, locs, PsfWidth(sd=120.0, source="given"))
     report = _report(result, 3, posterior=False, provenance={})
-    assert "- Maximum-likelihood fits converged: 1 of 2." in report
-    assert "The 1 fit(s) that did not converge have no position in picasso's columns" in report
+    assert "- Maximum-likelihood fits converged: 1 of 3." in report
+    assert "1 fit(s) that did not converge" in report
+    assert "and 1 window(s) refused before fitting." in report
     with pytest.raises(BayespsfInputError, match="estimate must be"):
         localizations(table, 79.0, estimate="map")
     with pytest.raises(BayespsfInputError, match="x0_mean"):
         localizations(table, 79.0)
+
+
+def test_a_bad_window_is_named_as_the_fit(movie):
+    # frame_spots checks fit as both sides of one window: the error names fit, not roi
+    from bayespsf.analysis.per_frame import frame_spots
+
+    path, _, model, _ = movie
+    for fit in (4, None, 7.0):
+        with pytest.raises(BayespsfInputError, match=r"^fit must be an odd number of pixels"):
+            next(iter(frame_spots(path, model.for_roi(15), psf_sd=120.0, fit=fit)))

@@ -1,5 +1,5 @@
 """An output folder is one run: `bayespsf detect` and `bayespsf analyze` (and
-`bayespsf.movie.pipeline.write`, `bayespsf.analyze`) record the run a folder holds in
+`bayespsf.movie.found.write`, `bayespsf.analyze`) record the run a folder holds in
 `run.json` and refuse, before writing anything, a folder that holds another run's results;
 `--force` replaces them (the command's files and those the record lists, nothing else); a
 killed run resumes, and never leaves two runs' files in one folder."""

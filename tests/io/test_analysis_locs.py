@@ -154,6 +154,9 @@ def test_a_row_without_some_values_keeps_every_column_for_every_row(posteriors, 
         "*_mle, crlb_*: the maximum-likelihood fit did not converge"
     )
     assert locs.loc[0, "missing"] == "acceptance: the laplace posterior has no Markov chain"
+    # picasso's columns come from the posterior here: an MLE that failed is not their reason
+    odd = rows.loc[[3]].assign(x0_sd=np.nan)
+    assert localizations(odd, A).loc[0, "missing"].startswith("lpx, *_sd: not computed")
     assert "no posterior (refused: counts not above the offset)" in locs.loc[5, "missing"]
     info = {"Width": 64, "Height": 64, "Frames": 8, "Pixelsize": A}
     paths = write_locs(locs, tmp_path, info)
