@@ -467,7 +467,7 @@ def _check_consistency(d: Mapping) -> None:
                 "camera.quantize = true with camera.variance = 0 rounds the counts off the "
                 f"readout-free sCMOS lattice offset + gain n ({offset:g} + {gain:g} n ADU), where "
                 "the camera law gives them zero likelihood: declare the readout variance "
-                "(camera.variance > 0) or quantize = false"
+                "(camera.variance > 0), whole-ADU gain and offset, or quantize = false"
             )
     if "axial" in d:
         _check_axial(d)

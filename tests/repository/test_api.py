@@ -120,6 +120,34 @@ def test_public_methods_carry_numpydoc_sections():
     assert not missing, f"public methods without their numpydoc sections: {', '.join(missing)}"
 
 
+def _parameter_names(doc: str) -> list[str] | None:
+    """The names a numpydoc ``Parameters`` section documents (``a, b : type`` gives both;
+    ``**options`` gives ``options``), or None without one."""
+    found = re.search(r"Parameters\n----------\n(.*?)(\n\n[A-Z][A-Za-z ]+\n-+\n|\Z)", doc, re.S)
+    if found is None:
+        return None
+    heads = [line.split(" : ")[0] for line in found.group(1).split("\n") if line[:1].strip()]
+    return [name.strip().lstrip("*") for head in heads for name in head.split(",")]
+
+
+def test_parameters_sections_name_exactly_the_signature():
+    """A Parameters section names each argument of the signature and nothing else: a renamed
+    or added argument shows up here, not in a user's confusion."""
+    items = [(f"{where}.{name}", obj, inspect.getdoc(obj)) for where, name, obj in _exports()]
+    items += list(_public_methods())
+    wrong = []
+    for name, obj, doc in items:
+        try:
+            signature = inspect.signature(obj.__init__ if inspect.isclass(obj) else obj)
+        except (TypeError, ValueError):
+            continue
+        documented = _parameter_names(doc or "")
+        arguments = {p for p in signature.parameters if p not in ("self", "cls")}
+        if documented is not None and set(documented) != arguments:
+            wrong.append(f"{name}: {sorted(arguments)} documented as {sorted(documented)}")
+    assert not wrong, "\n".join(wrong)
+
+
 def test_api_reference_lists_each_exported_callable_by_stage():
     """docs/api.md lists, function by function, every function and class that a subpackage
     exports, and nothing private."""
