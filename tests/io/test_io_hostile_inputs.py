@@ -67,25 +67,21 @@ def test_a_named_pipe_given_as_rois_is_refused_by_name(tmp_path, name):
     assert message.startswith(f"{fifo} is a named pipe (FIFO), not a regular file: a ROI stack")
 
 
-def test_a_named_pipe_given_as_a_result_file_is_refused_by_name(tmp_path):
-    fifo = tmp_path / "molecule-000000.nc"
+@pytest.mark.parametrize(
+    "name, load, what",
+    [("molecule-000000.nc", Posterior.load, "result"), ("scene.toml", Scene.load, "scene")],
+    ids=["result file", "scene"],
+)
+def test_a_named_pipe_given_as_a_result_file_or_a_scene_is_refused_by_name(
+    tmp_path, name, load, what
+):
+    fifo = tmp_path / name
     os.mkfifo(fifo)
     _refused(
-        outcome_within_deadline(lambda: Posterior.load(fifo), fifo),
+        outcome_within_deadline(lambda: load(fifo), fifo),
         str(fifo),
         "not a regular file",
-        "not a result file",
-    )
-
-
-def test_a_named_pipe_given_as_a_scene_is_refused_by_name(tmp_path):
-    fifo = tmp_path / "scene.toml"
-    os.mkfifo(fifo)
-    _refused(
-        outcome_within_deadline(lambda: Scene.load(fifo), fifo),
-        str(fifo),
-        "not a regular file",
-        "not a scene file",
+        f"not a {what} file",
     )
 
 
