@@ -255,10 +255,9 @@ def fit_mle(
     return fit_screened(stack, model, problems, start, laplace, engine, crlb, backend)
 
 
-def _check_options(engine: str, backend: str, model=None, **flags) -> None:
+def _check_options(engine: str, backend: str, model, **flags) -> None:
     """``fit_mle``'s options: the engine and backend, the model, and ``flags`` (bool)."""
-    if model is not None:
-        check_model(model)
+    check_model(model)
     for name, value in flags.items():
         if not isinstance(value, bool | np.bool_):
             raise BayespsfInputError(f"{name} must be True or False, got {value!r}")

@@ -16,6 +16,7 @@ from bayespsf.movie._frames import NpyFrames
 from bayespsf.movie._metadata import FileMetadata
 from bayespsf.movie._tiff import ChannelsError as ChannelsError  # raised by read_movie
 from bayespsf.movie._tiff import check_channel, checked_dtype, tiff_frames
+from bayespsf.psf import check_geometry
 
 _TIFF = (".tif", ".tiff")
 
@@ -194,7 +195,8 @@ class Movie:
         if self.pixel_size is not None:
             size = f"{self.pixel_size:.4g} nm ({self.metadata['pixel_size']})"
         elif pixel_size is not None:
-            size = f"{pixel_size:g} nm"
+            _, a = check_geometry(1, pixel_size)  # a named error for a size that is not one
+            size = f"{a:g} nm"
         if self.exposure is not None:
             time = f"{self.exposure:.4g} s ({self.metadata['exposure']})"
         return (

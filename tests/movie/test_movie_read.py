@@ -43,6 +43,8 @@ def test_a_plain_multipage_tiff_is_read_exactly(tmp_path, options):
     assert movie.metadata["pixel_size"] is None and movie.metadata["exposure"] is None
     assert "frames=24" in repr(movie) and "pixel_size=None" in repr(movie)
     assert "pixel_size=100 nm," in movie.describe(100.0)  # the size a run uses, where none is read
+    with pytest.raises(BayespsfInputError, match="pixel_size must be a number in nm"):
+        movie.describe("100 nm")
     movie.close()
 
 
