@@ -9,8 +9,8 @@ from bayespsf import psf
 from bayespsf._validate import finite_array, real_array
 from bayespsf.cameras import Camera
 from bayespsf.errors import BayespsfInputError
-from bayespsf.model import prior as prior_law
 from bayespsf.model.camera import camera_from_scene, inference_tier
+from bayespsf.model.prior import PriorTerms, sample_prior
 from bayespsf.model.screen import roi_problems
 from bayespsf.scene import Scene, units
 
@@ -88,7 +88,7 @@ class Model:
         self.photoelectrons_per_photon = units.photoelectrons_per_photon(
             self.quantum_efficiency, self.photon_unit
         )
-        self._prior_terms = prior_law.PriorTerms(self.prior)
+        self._prior_terms = PriorTerms(self.prior)
 
     @classmethod
     def from_scene(
@@ -452,7 +452,7 @@ class Model:
         """
         if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
             raise BayespsfInputError(f"n must be a non-negative integer, got {n!r}")
-        return prior_law.sample_prior(self.prior, int(n), np.random.default_rng(rng))
+        return sample_prior(self.prior, int(n), np.random.default_rng(rng))
 
     def log_posterior(
         self, z: ArrayLike, counts: np.ndarray, which: ArrayLike | None = None
