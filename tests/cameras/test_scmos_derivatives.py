@@ -1,0 +1,101 @@
+"""The sCMOS exact tier's score and curvature by lam, against 30-digit mpmath derivatives.
+
+The camera takes both from the moments of the photoelectron count over its sum
+(``E[n | y] / lam - 1`` and ``E[n (n - 1) | y] / lam^2 - (E[n | y] / lam)^2``); the truth here
+differentiates a brute-force 30-digit sum over every count that matters (``mp.diff``), a route
+that shares no code with ``bayespsf.cameras._scmos_law``.
+"""
+
+from __future__ import annotations
+
+import mpmath as mp
+import numpy as np
+import pytest
+
+from bayespsf.cameras import SCMOS
+
+
+def mp_log_q(y, lam, s):
+    """``log sum_n Pois(n; lam) phi_s(y - n)`` in electrons, 30 digits, over ``n`` within
+    ``40 sqrt(max(lam, y) + 1) + 40 s + 40`` of ``[min(lam, y), max(lam, y)]``."""
+    top = max(lam, y, mp.mpf(0))
+    width = 40 * mp.sqrt(top + 1) + 40 * s + 40
+    lo = max(0, int(mp.floor(min(lam, y) - width)))
+    hi = int(mp.ceil(top + width))
+    terms = [
+        n * mp.log(lam) - lam - mp.loggamma(n + 1) - (y - n) ** 2 / (2 * s * s)
+        for n in range(lo, hi + 1)
+    ]
+    peak = max(terms)
+    return peak + mp.log(mp.fsum(mp.exp(t - peak) for t in terms)) - mp.log(s)
+
+
+# (lam, readout sd in e-, y = (counts - offset) / gain): bulk, tails, sharp and wide readout,
+# a tiny lam whose counts lie far from both the light and the sum's mode
+POINTS = [
+    (3.7, 1.6, 5.2),
+    (3.7, 1.6, -6.0),
+    (250.0, 0.3, 251.5),
+    (250.0, 5.0, 202.0),
+    (1e4, 1.6, 1e4 + 410.0),
+    (0.02, 0.5, 7.0),
+    (1e-40, 0.3, 25.0),
+    (40.0, 20.0, 400.0),
+]
+
+
+@pytest.mark.parametrize(("lam", "s", "y"), POINTS)
+def test_score_and_curvature_match_mpmath(lam, s, y):
+    g, o = 2.17, 100.0
+    cam = SCMOS(g, o, (g * s) ** 2)
+    c = np.array([o + g * y])
+    expected = np.array([lam])
+    score, curvature = cam.score_and_curvature_unchecked(c, expected)
+    with mp.workdps(40):  # central differences of step lam / 1e8 (lam stays positive)
+        y_mp, s_mp, lam_mp = mp.mpf(y), mp.mpf(s), mp.mpf(lam)
+        want_score = mp.diff(lambda v: mp_log_q(y_mp, v, s_mp), lam_mp, h=lam_mp / 10**8)
+        want_curve = mp.diff(lambda v: mp_log_q(y_mp, v, s_mp), lam_mp, 2, h=lam_mp / 10**8)
+    # the moments carry the sum's relative error (~1e-15) times E[n | y] / lam, the scale
+    # of each term of the score; 1e-9 of it is far above that and far below any difference
+    # quotient's error
+    scale = max(1.0, abs(float(want_score)) + 1.0)
+    assert abs(score[0] - float(want_score)) <= 1e-9 * scale, (score[0], want_score)
+    assert abs(curvature[0] - float(want_curve)) <= 1e-9 * scale**2, (curvature[0], want_curve)
+    log_p, score_again = cam.log_likelihood_and_score_unchecked(c, expected)
+    assert score_again[0] == score[0]
+    assert log_p[0] == cam.log_likelihood_unchecked(c, expected)[0]
+
+
+def test_no_light_takes_the_one_sided_difference():
+    """At lam = 0 the law has only a derivative from above: the score is the forward
+    difference over 1e-8 photoelectrons and the curvature the secant of the score over 1e-4,
+    as ``Camera.score_unchecked`` and ``Camera.score_and_curvature_unchecked`` take them."""
+    g, o, s = 2.0, 100.0, 1.2
+    cam = SCMOS(g, o, (g * s) ** 2)
+    c = o + g * np.array([-2.0, 0.3, 1.0, 4.0])
+    zero = np.zeros(c.size)
+    score, curvature = cam.score_and_curvature_unchecked(c, zero)
+    ll = cam.log_likelihood_unchecked
+    forward = (ll(c, zero + 1e-8) - ll(c, zero)) / 1e-8
+    # the camera's log p carries -log g, whose rounding (~2e-16 of |log p|) the difference
+    # divides by 1e-8: 1e-7 absolute
+    np.testing.assert_allclose(score, forward, rtol=0, atol=1e-7)
+    above = cam.score_unchecked(c, zero + 1e-4)
+    np.testing.assert_allclose(curvature, (above - score) / 1e-4, rtol=1e-12)
+    # the derivative from above is phi(y - 1) / phi(y) - 1 in closed form
+    y = (c - o) / g
+    np.testing.assert_allclose(score, np.expm1((2 * y - 1) / (2 * s * s)), rtol=1e-6)
+
+
+def test_readout_free_pixels_keep_the_lattice_score():
+    """A map with readout-free pixels: those take the Poisson score on their lattice, the
+    others the exact tier's, in one call."""
+    g = np.array([[2.0, 2.0]])
+    cam = SCMOS(g, 100.0, np.array([[0.0, 9.0]]))
+    c = np.array([[106.0, 107.3]])
+    lam = np.array([[2.5, 2.5]])
+    log_p, score = cam.log_likelihood_and_score_unchecked(c, lam)
+    assert score[0, 0] == pytest.approx(3.0 / 2.5 - 1.0, rel=1e-14)
+    alone = SCMOS(2.0, 100.0, 9.0)
+    assert score[0, 1] == alone.score_unchecked(c[:, 1:], lam[:, 1:])[0, 0]
+    np.testing.assert_array_equal(log_p, cam.log_likelihood_unchecked(c, lam))
