@@ -309,10 +309,9 @@ class SCMOS(Camera):
 
     def score_unchecked(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
         """The ``exact`` tier where ``v > 0``: ``E[n | counts] / lam - 1`` from the walk of the
-        log-likelihood (``_scmos_law.log_mixture_and_score``); the ``huang`` tier: differences
-        of its log-likelihood (base class). On the lattice of readout-free pixels the Poisson
-        score ``n / lam - 1`` (``poisson_score``), where differences would step onto ``lam =
-        0``, outside the support of any ``n >= 1``.
+        log-likelihood (``_scmos_law.log_mixture_and_score``); the ``huang`` tier: its
+        Poisson's ``(y + s^2) / (lam + s^2) - 1``, NaN outside its support. On the lattice of
+        readout-free pixels the Poisson score ``n / lam - 1`` (``poisson_score``).
 
         Parameters
         ----------
@@ -326,15 +325,7 @@ class SCMOS(Camera):
         """
         if self._likelihood == "exact":
             return self._exact(counts, expected)[1]
-        score = super().score_unchecked(counts, expected)
-        if self._all_readout:
-            return score
-        shape = score.shape
-        _, lam, _, _, y, s = self._electrons(counts, expected)
-        score = score.ravel()  # a fresh array: safe to write into
-        lattice = s == 0
-        score[lattice] = poisson_score(np.round(y[lattice]), lam[lattice])
-        return score.reshape(shape)
+        return self._huang(counts, expected)[0]
 
     def log_likelihood_and_score_unchecked(self, counts, expected):
         """The ``exact`` tier: both from one walk per pixel (``score_unchecked``); the
@@ -355,9 +346,10 @@ class SCMOS(Camera):
         return self._exact(counts, expected)[:2]
 
     def score_and_curvature_unchecked(self, counts, expected):
-        """The ``exact`` tier where ``v > 0``: the score and ``E[n (n - 1) | counts] / lam^2 -
-        (E[n | counts] / lam)^2`` from one walk per pixel; elsewhere the base class's
-        differences of the score.
+        """Where every pixel has readout: the ``exact`` tier's score and ``E[n (n - 1) |
+        counts] / lam^2 - (E[n | counts] / lam)^2`` from one walk per pixel, the ``huang``
+        tier's in closed form (``score_unchecked``; its curvature ``-(y + s^2) / (lam +
+        s^2)^2``). With readout-free pixels, the base class's differences of the score.
 
         Parameters
         ----------
@@ -369,9 +361,27 @@ class SCMOS(Camera):
         score, curvature : ndarray
             ``d log p / d lam`` and ``d^2 log p / d lam^2``, each of the arguments' shape.
         """
-        if self._likelihood != "exact" or not self._all_readout:
+        if not self._all_readout:
             return super().score_and_curvature_unchecked(counts, expected)
+        if self._likelihood == "huang":
+            return self._huang(counts, expected)
         return self._exact(counts, expected, curvature=True)[1:]
+
+    def _huang(self, counts, expected):
+        """The ``huang`` tier's score (the Poisson score on readout-free pixels) and, where
+        every pixel has readout, its curvature ``-(y + s^2) / (lam + s^2)^2``, each of the
+        broadcast shape; NaN outside its support."""
+        shape = np.broadcast_shapes(counts.shape, expected.shape)
+        _, lam, _, _, y, s = self._electrons(counts, expected)
+        shifted, mean = y + s * s, lam + s * s
+        support = shifted >= 0
+        with np.errstate(divide="ignore", invalid="ignore"):  # lam = s = 0: the lattice's
+            score = np.where(support, shifted / mean - 1.0, np.nan)
+            curvature = np.where(support, -shifted / (mean * mean), np.nan)
+        lattice = s == 0
+        if lattice.any():
+            score[lattice] = poisson_score(np.round(y[lattice]), lam[lattice])
+        return score.reshape(shape), curvature.reshape(shape)
 
     def _exact(self, counts, expected, curvature: bool = False):
         """The ``exact`` tier's log p and score (and, where every pixel has readout, the

@@ -99,3 +99,27 @@ def test_readout_free_pixels_keep_the_lattice_score():
     alone = SCMOS(2.0, 100.0, 9.0)
     assert score[0, 1] == alone.score_unchecked(c[:, 1:], lam[:, 1:])[0, 0]
     np.testing.assert_array_equal(log_p, cam.log_likelihood_unchecked(c, lam))
+
+
+@pytest.mark.parametrize(
+    ("lam", "s", "y"), [(3.7, 1.6, 5.2), (250.0, 5.0, 202.0), (0.02, 0.5, -0.2)]
+)
+def test_huang_score_and_curvature_match_mpmath(lam, s, y):
+    """Huang et al.'s tier: ``y + s^2`` as Poisson with mean ``lam + s^2`` (``gammaln``)."""
+    g, o = 2.17, 100.0
+    cam = SCMOS(g, o, (g * s) ** 2, likelihood="huang")
+    c, expected = np.array([o + g * y]), np.array([lam])
+    score, curvature = cam.score_and_curvature_unchecked(c, expected)
+    with mp.workdps(40):
+        k = mp.mpf(y) + mp.mpf(s) ** 2
+
+        def log_p(v):
+            return k * mp.log(v + mp.mpf(s) ** 2) - (v + mp.mpf(s) ** 2) - mp.loggamma(k + 1)
+
+        lam_mp = mp.mpf(lam)
+        want = [float(mp.diff(log_p, lam_mp, order, h=lam_mp / 10**8)) for order in (1, 2)]
+    np.testing.assert_allclose([score[0], curvature[0]], want, rtol=1e-12)
+    assert cam.score_unchecked(c, expected)[0] == score[0]
+    # outside the tier's support (y + s^2 < 0) there is no derivative
+    below = np.array([o - g * (s * s + 1.0)])
+    assert np.isnan(cam.score_and_curvature_unchecked(below, expected)).all()

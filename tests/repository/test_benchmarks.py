@@ -103,6 +103,19 @@ def test_throughput_benchmark_quick():
     assert turns["each round"].str.split().map(len).eq(2).all()
 
 
+def test_scmos_benchmark_quick():
+    # every evaluation of the sCMOS law is timed on the same pixels, with its ratio to the
+    # Poisson baseline; the fit and the posterior are timed against gaussmle in rounds
+    import scmos
+
+    per_pixel, turns = scmos.main(["--quick"])
+    assert per_pixel["evaluation"].iloc[0] == "Poisson log-pmf (the baseline)"
+    assert len(per_pixel) == 8 and np.all(per_pixel["ns per pixel"] > 0)
+    assert per_pixel["time / Poisson"].iloc[0] == 1.0
+    assert turns["scene"].eq("scmos-typical").all() and np.all(turns["rounds"] == 2)
+    assert np.all(turns["lowest"] > 0)
+
+
 def test_gpu_benchmark_quick():
     # both backends on the same ROIs (JAX on the CPU here): the MLE agrees to 1e-6 and the
     # posterior means within Monte Carlo error (0.071 posterior SDs for two runs at ESS 400;
