@@ -41,9 +41,11 @@ readout-free pixel). The floor bounds the cost of the exact Fisher information, 
 quadrature step shrinks with the readout sd.
 
 Fisher information about ``lam`` (independent of gain and offset): ``method="exact"`` integrates
-``q(y) score(y)^2`` with a trapezoid rule in ``y`` (``fisher_exact``, in ``_scmos_law``;
-relative error ~1e-13); ``method="approx"`` is Huang et al.'s ``1 / (lam + s^2)``, a lower bound
-of the exact value, which is itself at most the readout-free ``1 / lam``.
+``q(y) score(y)^2`` with a trapezoid rule in ``y`` (``fisher_exact``, in ``_scmos_fisher``;
+relative error ~1e-13; the pixels of a readout shared by many interpolate the rule in ``log
+lam``, checked within 1e-10 of it: ``_scmos_fisher.fisher_information``); ``method="approx"``
+is Huang et al.'s ``1 / (lam + s^2)``, a lower bound of the exact value, which is itself at
+most the readout-free ``1 / lam``.
 """
 
 from __future__ import annotations
@@ -52,12 +54,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from bayespsf._validate import finite_array, nonnegative_array
-from bayespsf.cameras._scmos_law import (
-    _log_poisson_lattice,
-    fisher_exact,
-    log_mixture,
-    log_mixture_and_score,
-)
+from bayespsf.cameras._scmos_fisher import fisher_information
+from bayespsf.cameras._scmos_law import _log_poisson_lattice, log_mixture, log_mixture_and_score
 from bayespsf.cameras.base import Camera
 from bayespsf.cameras.photon import poisson_log_pmf, poisson_score
 from bayespsf.errors import BayespsfInputError
@@ -232,7 +230,8 @@ class SCMOS(Camera):
             Expected photoelectrons (``>= 0``), shape ``(..., rows, columns)`` matching the maps.
         method : {"exact", "approx"}
             ``"exact"``: ``E[(d log p / d lam)^2]`` of the exact law by quadrature (see
-            ``fisher_exact``; ``1 / lam`` where ``v == 0``). ``"approx"``: Huang et al.'s
+            ``fisher_exact``; the pixels of one readout interpolated in ``log lam`` within
+            1e-10 of it; ``1 / lam`` where ``v == 0``). ``"approx"``: Huang et al.'s
             ``1 / (lam + v / g^2)``, the information of the shifted-Poisson approximation.
 
         Returns
@@ -426,7 +425,7 @@ class SCMOS(Camera):
         lam = lam.ravel()
         out = np.empty(lam.shape)
         readout = s > 0
-        out[readout] = fisher_exact(lam[readout], s[readout])
+        out[readout] = fisher_information(lam[readout], s[readout])
         with np.errstate(divide="ignore"):
             out[~readout] = 1.0 / lam[~readout]
         return out.reshape(expected.shape)

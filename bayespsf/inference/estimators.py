@@ -193,7 +193,7 @@ def fit_mle(
         The optimiser (Notes).
     crlb : bool
         Fill the ``crlb_<p>`` columns (NaN without): the expected information at every fit
-        (for sCMOS, a quadrature per pixel: about 2.5 times the fit itself).
+        (for sCMOS, a quadrature per pixel, interpolated over the pixels of one readout).
     backend : {"numpy", "jax"}
         ``"jax"``: the stack engine in JAX (``bayespsf.inference.jax_mle``) on whatever
         device JAX finds (a GPU where one is installed); Photon and EMCCD cameras.
@@ -353,8 +353,7 @@ def fit_screened(
         message[i] = diagnostics.no_density(fitted[i], model, params[i]) or message[i]
     ok &= finite & ~runaway & ~on_bound
     # the bound whatever ``crlb``, for the check that the centre is identified (without
-    # ``crlb``, from the camera's step information: cheap for an sCMOS, where the Fisher
-    # information costs about 2.5 fits)
+    # ``crlb``, from the camera's step information: no quadrature for an sCMOS)
     bound = np.full((len(fit), 6), np.nan)
     if ok.any():
         with np.errstate(invalid="ignore"):  # a negative diagonal (not invertible): NaN

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from scipy import integrate, special
 
 from bayespsf.cameras import SCMOS, Photon
-from bayespsf.cameras.scmos import fisher_exact
+from bayespsf.cameras._scmos_fisher import fisher_exact
 
 # --------------------------------------------------------------------------------------------
 # independent references
@@ -323,9 +323,9 @@ def test_fisher_quadrature_converged(monkeypatch):
     lam = np.array([0.01, 0.7, 5.0, 40.0, 300.0])
     for s in (0.15, 0.5, 1.2, 4.0):
         base = fisher_exact(lam, s)
-        monkeypatch.setattr("bayespsf.cameras._scmos_law._FISHER_DROP", 60.0)
-        monkeypatch.setattr("bayespsf.cameras._scmos_law._FISHER_POISSON_WIDTH", 14.0)
-        monkeypatch.setattr("bayespsf.cameras._scmos_law._FISHER_READOUT_WIDTH", 14.0)
+        monkeypatch.setattr("bayespsf.cameras._scmos_fisher._FISHER_DROP", 60.0)
+        monkeypatch.setattr("bayespsf.cameras._scmos_fisher._FISHER_POISSON_WIDTH", 14.0)
+        monkeypatch.setattr("bayespsf.cameras._scmos_fisher._FISHER_READOUT_WIDTH", 14.0)
         fine = fisher_exact(lam, s)
         monkeypatch.undo()
         np.testing.assert_allclose(base, fine, rtol=1e-10)

@@ -1,0 +1,73 @@
+"""The sCMOS Fisher information for many pixels: interpolated per readout, checked by the rule.
+
+``fisher_exact`` (the trapezoid rule, tested against scipy quadrature and Monte Carlo in
+``test_scmos.py``) is the truth here; ``fisher_information`` must agree with it to 1e-10 relative
+(its check's tolerance; the rule itself is good to ~1e-13) whichever path each pixel takes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bayespsf.cameras import SCMOS, _scmos_fisher
+from bayespsf.cameras._scmos_fisher import fisher_exact, fisher_information
+
+
+def counted(monkeypatch):
+    """Patch the rule to count the values it computes; returns the running count."""
+    calls = []
+    rule = _scmos_fisher.fisher_exact
+
+    def counting(lam, s):
+        out = rule(lam, s)
+        calls.append(np.size(out))
+        return out
+
+    monkeypatch.setattr(_scmos_fisher, "fisher_exact", counting)
+    return calls
+
+
+@pytest.mark.parametrize("s", [0.3, 1.6, 20.0])
+def test_one_readout_is_interpolated_within_the_check(monkeypatch, s):
+    rng = np.random.default_rng(1)
+    lam = np.exp(rng.uniform(np.log(2.0), np.log(800.0), 5000))
+    want = fisher_exact(lam, s)
+    calls = counted(monkeypatch)
+    got = fisher_information(lam, s)
+    np.testing.assert_allclose(got, want, rtol=1e-10)
+    assert sum(calls) <= 2 * (48 + 47)  # nodes and checks, never the 5 000 pixels
+
+
+def test_a_map_mixes_interpolated_and_single_pixels():
+    """Two readouts shared by many pixels, a few of their own, and pixels without light."""
+    rng = np.random.default_rng(2)
+    lam = np.exp(rng.uniform(np.log(0.5), np.log(300.0), 700))
+    s = np.where(np.arange(700) < 400, 1.2, 2.7)
+    s[::97] = rng.uniform(0.5, 5.0, s[::97].size)  # readouts of one pixel each
+    lam[::50] = 0.0
+    np.testing.assert_allclose(fisher_information(lam, s), fisher_exact(lam, s), rtol=1e-10)
+
+
+def test_a_range_no_interpolant_serves_falls_back_to_the_rule(monkeypatch):
+    """Twelve decades of lam: neither interpolant passes the check, so every pixel takes the
+    rule (and the answer is the rule's)."""
+    lam = np.geomspace(1e-7, 1e5, 400)
+    want = fisher_exact(lam, 0.8)
+    calls = counted(monkeypatch)
+    np.testing.assert_array_equal(fisher_information(lam, 0.8), want)
+    assert sum(calls) >= lam.size
+
+
+def test_camera_uses_it_per_readout():
+    """``SCMOS.fisher_information`` of a stack: the rule's values, readout-free pixels 1/lam."""
+    g = np.full((3, 3), 2.0)
+    variance = np.full((3, 3), 9.0)
+    variance[1, 1] = 0.0
+    camera = SCMOS(g, 100.0, variance)
+    rng = np.random.default_rng(3)
+    lam = rng.uniform(1.0, 200.0, (200, 3, 3))
+    got = camera.fisher_information(lam)
+    readout = np.broadcast_to(variance > 0, lam.shape)
+    np.testing.assert_allclose(got[readout], fisher_exact(lam[readout], 1.5), rtol=1e-10)
+    np.testing.assert_array_equal(got[~readout], 1.0 / lam[~readout])
