@@ -164,7 +164,7 @@ def _walk(y, lam, s, moments):
                 second += term * n * (n - 1.0)
             # the ratios only fall (log-concave): once below 1, the rest is below the
             # geometric series of the last one
-            if ratio < 1.0 and term * ratio / (1.0 - ratio) <= _TAIL_TOL * total:
+            if ratio < 1.0 and term * ratio <= _TAIL_TOL * total * (1.0 - ratio):
                 break
     return log_centre + math.log(total), first / total, second / total
 
