@@ -27,6 +27,7 @@ _WALK_TOL = 1e-17  # the Fisher rule's q: terms beyond its window below this sha
 _NODES = (24, 48)  # Chebyshev nodes, the second where the first misses the check
 _CHECK = 1e-10  # |log I - interpolant| at every check point
 _SHARED = 4  # pixels per node above which a readout's pixels are interpolated
+_SPAN = 4.0 * np.log(10.0)  # ... in bins of four decades of lam
 
 
 def fisher_exact(lam: ArrayLike, s: ArrayLike) -> np.ndarray:
@@ -217,12 +218,14 @@ def _fisher_step(s, drop):
 
 def fisher_information(lam: ArrayLike, s: ArrayLike) -> np.ndarray:
     """``fisher_exact``'s values for many pixels: per readout sd shared by more than
-    ``_SHARED`` times ``_NODES[0]`` pixels, from the Chebyshev interpolant of ``log(I (lam +
-    s^2))`` in ``log lam`` over those pixels' range (a smooth function between 0 and ``log(1 +
-    s^2 / lam)``), from the rule at ``_NODES[0]`` nodes and within ``_CHECK`` of it at the
-    ``_NODES[0] - 1`` points midway between them (in angle), where an interpolant's error
-    peaks; else at ``_NODES[1]`` nodes, checked likewise; else, and for the other pixels, the
-    rule itself. One scalar readout's pixels (a stack of ROIs) cost ~50 evaluations of the rule.
+    ``_SHARED`` times ``_NODES[0]`` pixels within one bin of four decades of ``lam``
+    (``_SPAN``, fixed edges: a stack's few dark pixels do not widen the bright ones' range),
+    from the Chebyshev interpolant of ``log(I (lam + s^2))`` in ``log lam`` over those pixels'
+    range (a smooth function between 0 and ``log(1 + s^2 / lam)``), from the rule at
+    ``_NODES[0]`` nodes and within ``_CHECK`` of it at the ``_NODES[0] - 1`` points midway
+    between them (in angle), where an interpolant's error peaks; else at ``_NODES[1]`` nodes,
+    checked likewise; else, and for the other pixels, the rule itself. One scalar readout's
+    pixels (a stack of ROIs) cost ~50 evaluations of the rule per bin.
 
     Parameters
     ----------
@@ -250,7 +253,12 @@ def fisher_information(lam: ArrayLike, s: ArrayLike) -> np.ndarray:
         where = np.flatnonzero(light)
         groups = [where[inverse == k] for k in np.flatnonzero(counts > least)]
     for pixels in groups:
-        out[pixels] = _interpolated(lam[pixels], float(s[pixels[0]]))
+        # decades of lam in bins of _SPAN (fixed edges), each with its own interpolant
+        bins = np.floor(np.log(lam[pixels]) / _SPAN)
+        for edge in np.unique(bins):
+            part = pixels[bins == edge]
+            if part.size > least:
+                out[part] = _interpolated(lam[part], float(s[part[0]]))
     rest = np.isnan(out)
     out[rest] = fisher_exact(lam[rest], s[rest])
     return out.reshape(shape)

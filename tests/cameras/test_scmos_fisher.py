@@ -49,10 +49,21 @@ def test_a_map_mixes_interpolated_and_single_pixels():
     np.testing.assert_allclose(fisher_information(lam, s), fisher_exact(lam, s), rtol=1e-10)
 
 
-def test_a_range_no_interpolant_serves_falls_back_to_the_rule(monkeypatch):
-    """Twelve decades of lam: neither interpolant passes the check, so every pixel takes the
-    rule (and the answer is the rule's)."""
-    lam = np.geomspace(1e-7, 1e5, 400)
+def test_twelve_decades_take_an_interpolant_per_bin(monkeypatch):
+    """lam over twelve decades (a stack with dark pixels): each four-decade bin has its own
+    interpolant, all within the check; a bin with few pixels takes the rule."""
+    lam = np.concatenate([np.geomspace(1e-7, 1e5, 3000), [3e-9, 5e-9]])
+    want = fisher_exact(lam, 0.8)
+    calls = counted(monkeypatch)
+    np.testing.assert_allclose(fisher_information(lam, 0.8), want, rtol=1e-10)
+    assert sum(calls) < lam.size / 3
+
+
+def test_a_bin_no_interpolant_serves_falls_back_to_the_rule(monkeypatch):
+    """Where no interpolant passes the check over a bin (forced here by a zero tolerance),
+    every pixel of it takes the rule, and the answer is the rule's."""
+    monkeypatch.setattr(_scmos_fisher, "_CHECK", 0.0)
+    lam = np.geomspace(1.0, 1e3, 300)
     want = fisher_exact(lam, 0.8)
     calls = counted(monkeypatch)
     np.testing.assert_array_equal(fisher_information(lam, 0.8), want)
