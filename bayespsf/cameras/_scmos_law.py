@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
+_LOG_2 = np.log(2.0)
 
 # exact likelihood: window walk
 _TAIL_TOL = 1e-17  # stop when the bound on the remaining terms is below this share of the sum
@@ -97,31 +98,33 @@ def _log_poisson_lattice(n, lam, log_lam):
 
 
 @numba.njit(cache=True, nogil=True)
-def _mixture_mode(y, log_lam, s2):
+def _mixture_mode(y, lam, log_lam, s2):
     """Mode over real ``n >= 0`` of ``n log lam - gammaln(n + 1) - (y - n)^2 / (2 s^2)``.
 
     The root of its derivative with ``digamma(n + 1)`` replaced by ``log(n + 1/2)`` (within
     0.12 of it, so the mode moves by less than 0.06): ``g(n) = log lam - log(n + 1/2) + (y - n)
-    / s^2`` is convex and decreasing, so Newton's iterates from a point left of the root rise
-    to it monotonically. The start ``min(y, lam - 1/2)`` is left of it (the root lies between
-    the Poisson's and the readout's modes). The sum only needs the mode to within ~1;
-    iteration stops when a step is below 1e-3.
+    / s^2`` is convex and decreasing, so Newton's iterates, clamped at 0, reach it from any
+    start (after the first step from the right they rise to it monotonically). Where ``g(0) <=
+    0`` the mode is 0. The start is the root of ``g`` with ``log(n + 1/2)`` linear about ``lam``,
+    the precision-weighted mean ``(y / s^2 + 1 - 1 / (2 lam)) / (1 / s^2 + 1 / lam)``: one or two
+    steps from the root where the readout is narrow or the light bright. The sum only needs
+    the mode to within ~1; iteration stops when a step is below 1e-3.
     """
-    m = max(min(y, math.exp(log_lam) - 0.5), 0.0)
-    if log_lam - math.log(m + 0.5) + (y - m) / s2 <= 0.0:
+    if log_lam + _LOG_2 + y / s2 <= 0.0:
+        return 0.0  # the mode is at the boundary
+    m = (y / s2 + 1.0 - 0.5 / lam) / (1.0 / s2 + 1.0 / lam)
+    if not m > 0.0:  # also NaN, where 1 / lam overflows (lam below 1e-308)
         m = 0.0
-        if log_lam - math.log(0.5) + y / s2 <= 0.0:
-            return 0.0  # the mode is at the boundary
     for _ in range(_NEWTON_MAX_ITER):
         slope = log_lam - math.log(m + 0.5) + (y - m) / s2
         step = slope / (1.0 / (m + 0.5) + 1.0 / s2)
-        m += step
-        if step < 1e-3:
+        m = max(m + step, 0.0)
+        if abs(step) < 1e-3:
             break
     return m
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")  # x / 0: inf, not an exception
 def _walk(y, lam, s, moments):
     """``(log q(y), E[n | y], E[n (n - 1) | y])`` for ``lam > 0`` (the two moments only with
     ``moments``; else 0): the window walk of ``log_mixture``'s Notes for one pixel.
@@ -135,7 +138,7 @@ def _walk(y, lam, s, moments):
     """
     log_lam = math.log(lam)
     s2 = s * s
-    nc = float(round(_mixture_mode(y, log_lam, s2)))
+    nc = float(round(_mixture_mode(y, lam, log_lam, s2)))
     d0 = nc - y
     c = 0.5 / s2
     log_centre = _log_poisson(nc, lam, log_lam) - d0 * d0 * c - math.log(s) - _LOG_SQRT_2PI
@@ -169,7 +172,7 @@ def _walk(y, lam, s, moments):
     return log_centre + math.log(total), first / total, second / total
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")  # x / 0: inf, not an exception
 def _log_mixture(y, lam, s, out, score, curvature):
     """``log_mixture`` of flat arrays into ``out``; where ``score`` has their size, also
     ``d log q / d lam = E[n | y] / lam - 1`` and, where ``curvature`` has it,
@@ -190,7 +193,7 @@ def _log_mixture(y, lam, s, out, score, curvature):
             mean = first / lam[k]
             score[k] = mean - 1.0
             if curvature.size > 0:
-                curvature[k] = second / (lam[k] * lam[k]) - mean * mean
+                curvature[k] = second / lam[k] / lam[k] - mean * mean  # lam^2 underflows
 
 
 def log_mixture(y: ArrayLike, lam: ArrayLike, s: ArrayLike) -> np.ndarray:
@@ -263,7 +266,7 @@ def log_mixture_and_score(y: ArrayLike, lam: ArrayLike, s: ArrayLike, curvature:
 def _mixture(y, lam, s, score: bool, curvature: bool):
     y, lam, s = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (y, lam, s)))
     shape = y.shape
-    y, lam, s = (np.ascontiguousarray(a).ravel() for a in (y, lam, s))
+    y, lam, s = (np.array(a, dtype=np.float64).ravel() for a in (y, lam, s))  # writeable
     out = [np.empty(y.size), np.empty(y.size if score else 0)]
     out.append(np.empty(y.size if curvature else 0))
     _log_mixture(y, lam, s, *out)

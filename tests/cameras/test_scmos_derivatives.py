@@ -123,3 +123,18 @@ def test_huang_score_and_curvature_match_mpmath(lam, s, y):
     # outside the tier's support (y + s^2 < 0) there is no derivative
     below = np.array([o - g * (s * s + 1.0)])
     assert np.isnan(cam.score_and_curvature_unchecked(below, expected)).all()
+
+
+def test_light_below_the_smallest_normal_number_is_finite_and_quiet():
+    """lam in the subnormal range (a spot's tail at b = 0): lam^2 underflows to 0 there, which
+    divided the curvature's moment by zero, and a one-element call passed a read-only
+    broadcast to the compiled loop (a FutureWarning); the score approaches the one-sided
+    ``phi(y - 1) / phi(y) - 1`` of lam = 0."""
+    s, y = 0.7, np.array([0.3, 2.0, -1.0])
+    cam = SCMOS(1.0, 0.0, s * s)
+    lam = np.array([1e-310, 1e-320, 1e-300])
+    score, curvature = cam.score_and_curvature_unchecked(y, lam)
+    assert np.all(np.isfinite(score)) and np.all(np.isfinite(curvature))
+    assert score[0] == pytest.approx(np.expm1((2 * y[0] - 1) / (2 * s * s)), rel=1e-9)
+    one = cam.log_likelihood_and_score_unchecked(np.array([2.0]), np.array([3.0]))
+    assert np.all(np.isfinite(one))
