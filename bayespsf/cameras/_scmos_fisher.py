@@ -44,7 +44,8 @@ def fisher_exact(lam: ArrayLike, s: ArrayLike) -> np.ndarray:
     -------
     numpy.ndarray
         Per-element Fisher information (per photoelectron^2), broadcast shape. It does not
-        depend on the gain or offset.
+        depend on the gain or offset. NaN where ``lam`` or ``s`` is outside its domain
+        (unchecked input).
 
     Notes
     -----
@@ -67,10 +68,12 @@ def fisher_exact(lam: ArrayLike, s: ArrayLike) -> np.ndarray:
     shape = lam.shape
     lam, s = lam.ravel(), s.ravel()
     out = np.empty(lam.shape)
-    zero = lam == 0
+    valid = np.isfinite(lam) & (lam >= 0) & np.isfinite(s) & (s > 0)
+    out[~valid] = np.nan  # unchecked input outside the domain
+    zero = valid & (lam == 0)
     with np.errstate(over="ignore"):
         out[zero] = np.expm1(1.0 / (s[zero] * s[zero]))
-    todo = np.flatnonzero(~zero)
+    todo = np.flatnonzero(valid & (lam > 0))
     if todo.size:
         out[todo] = _fisher_trapezoid(lam[todo], s[todo])
     return out.reshape(shape)
@@ -244,7 +247,7 @@ def fisher_information(lam: ArrayLike, s: ArrayLike) -> np.ndarray:
     shape = lam.shape
     lam, s = lam.ravel(), s.ravel()
     out = np.full(lam.shape, np.nan)
-    light = lam > 0
+    light = (lam > 0) & (lam < np.inf) & (s > 0) & (s < np.inf)  # the rest: the rule's NaN or 0
     least = _SHARED * _NODES[0]
     if s.size and s.min() == s.max():  # one readout (a scalar map): no sort
         groups = [np.flatnonzero(light)] if light.sum() > least else []

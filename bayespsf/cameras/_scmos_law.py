@@ -177,10 +177,20 @@ def _log_mixture(y, lam, s, out, score, curvature):
     """``log_mixture`` of flat arrays into ``out``; where ``score`` has their size, also
     ``d log q / d lam = E[n | y] / lam - 1`` and, where ``curvature`` has it,
     ``d^2 log q / d lam^2 = E[n (n - 1) | y] / lam^2 - (E[n | y] / lam)^2``, from the same
-    walk (NaN at ``lam == 0``, where only one side of the derivative exists)."""
+    walk (NaN at ``lam == 0``, where only one side of the derivative exists). NaN for all
+    three where an input is outside the law's domain."""
     moments = score.size > 0
     for k in range(y.size):
-        if not lam[k] > 0.0:  # no light: only n = 0
+        if not (
+            math.isfinite(y[k]) and 0.0 <= lam[k] < math.inf and 0.0 < s[k] < math.inf
+        ):  # unchecked input outside the domain: no value, rather than a walk from nowhere
+            out[k] = np.nan
+            if moments:
+                score[k] = np.nan
+                if curvature.size > 0:
+                    curvature[k] = np.nan
+            continue
+        if lam[k] == 0.0:  # no light: only n = 0
             d = y[k] / s[k]
             out[k] = -0.5 * d * d - math.log(s[k]) - _LOG_SQRT_2PI
             if moments:
@@ -216,15 +226,16 @@ def log_mixture(y: ArrayLike, lam: ArrayLike, s: ArrayLike) -> np.ndarray:
     Notes
     -----
     The summand ``f(n) = log Pois(n; lam) - (y - n)^2 / (2 s^2)`` is log-concave in ``n``. The
-    sum is centred on the integer ``n_c`` nearest the mode (``_mixture_mode``); terms are built
-    outward by the recursion ``log Pois(n + 1) = log Pois(n) + log(lam / (n + 1))`` (no
-    cancellation between large ``gammaln`` values) and summed as ``exp(f(n) - f(n_c))``, so
-    nothing overflows. Each direction stops once ``t_j r_j / (1 - r_j)`` (``t_j`` the last
-    term, ``r_j`` its ratio to the previous one; ratios only shrink, by log-concavity) is below
-    ``1e-17`` of the sum, or after ``12 min(sqrt(n_c + 1), s) + 12`` terms, where the summand
-    has dropped below ``exp(-46)`` of its peak (its curvature is at least ``1/(n + 1) +
-    1/s^2``). One pixel at a time in a compiled loop (``_log_mixture``), each with its own
-    walk.
+    sum is centred on the integer ``n_c`` nearest the mode (``_mixture_mode``); terms
+    ``exp(f(n) - f(n_c))`` are built outward, each the last times its ratio to it (``lam /
+    (n + 1)`` times the Gaussian's ratio: no cancellation between large ``gammaln`` values,
+    and nothing overflows; ``_walk``). Each direction stops once ``t_j r_j / (1 - r_j)``
+    (``t_j`` the last term, ``r_j`` its ratio to the previous one; ratios only shrink, by
+    log-concavity) is below ``1e-17`` of the sum, or after ``12 min(sqrt(n_c + 1), s) + 12``
+    terms, where the summand has dropped below ``exp(-46)`` of its peak (its curvature is at
+    least ``1/(n + 1) + 1/s^2``). One pixel at a time in a compiled loop (``_log_mixture``),
+    each with its own walk. A pixel whose ``y``, ``lam`` or ``s`` is not finite, or whose
+    ``lam < 0`` or ``s <= 0``, gets NaN.
     """
     return _mixture(y, lam, s, False, False)[0]
 
@@ -252,7 +263,7 @@ def log_mixture_and_score(y: ArrayLike, lam: ArrayLike, s: ArrayLike, curvature:
         (``Camera.score_and_curvature_unchecked``'s there).
     """
     out = _mixture(y, lam, s, True, curvature)
-    dark = np.flatnonzero(np.asarray(lam == 0).ravel())
+    dark = np.flatnonzero(np.broadcast_to(np.asarray(lam, dtype=np.float64) == 0, out[0].shape))
     if dark.size:  # lam == 0: one-sided, as Camera.score_unchecked and its curvature
         y0, s0 = (np.broadcast_to(a, out[0].shape).ravel()[dark] for a in (y, s))
         flat = [a.reshape(-1) for a in out]  # views of the outputs

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from bayespsf.cameras import SCMOS
+from bayespsf.cameras._scmos_fisher import fisher_exact
+from bayespsf.cameras._scmos_law import log_mixture_and_score
 
 
 def mp_log_q(y, lam, s):
@@ -138,3 +140,24 @@ def test_light_below_the_smallest_normal_number_is_finite_and_quiet():
     assert score[0] == pytest.approx(np.expm1((2 * y[0] - 1) / (2 * s * s)), rel=1e-9)
     one = cam.log_likelihood_and_score_unchecked(np.array([2.0]), np.array([3.0]))
     assert np.all(np.isfinite(one))
+
+
+def test_broadcast_no_light_and_inputs_outside_the_domain():
+    """lam == 0 broadcast against several counts takes the one-sided difference at each of
+    them (a scalar or list lam was not recognised as dark); unchecked input outside the law's
+    domain (a count, lam or readout not finite, lam < 0, s <= 0) gets NaN, not a walk from a
+    mode of NaN."""
+    y = np.array([0.0, 1.0, 2.0])
+    scalar = log_mixture_and_score(y, 0.0, 1.0, True)
+    full = log_mixture_and_score(y, np.zeros(3), 1.0, True)
+    for a, b in zip(scalar, full, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(np.isfinite(scalar[1]))
+    bad = log_mixture_and_score(
+        np.array([np.nan, np.inf, 1.0, 1.0, 1.0, 1.0]),
+        np.array([1.0, 1.0, np.nan, -1.0, 1.0, 1.0]),
+        np.array([1.0, 1.0, 1.0, 1.0, 0.0, np.nan]),
+        True,
+    )
+    assert all(np.isnan(part).all() for part in bad)
+    assert np.isnan(fisher_exact(np.array([np.nan, -1.0, 2.0]), np.array([1.0, 1.0, 0.0]))).all()
