@@ -126,8 +126,9 @@ def _mixture_mode(y, lam, log_lam, s2):
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")  # x / 0: inf, not an exception
 def _walk(y, lam, s, moments):
-    """``(log q(y), E[n | y], E[n (n - 1) | y])`` for ``lam > 0`` (the two moments only with
-    ``moments``; else 0): the window walk of ``log_mixture``'s Notes for one pixel.
+    """``(log q(y), E[n | y] / lam, E[n (n - 1) | y] / lam^2)`` for ``lam > 0`` (the two
+    moments only with ``moments``; else 0): the window walk of ``log_mixture``'s Notes for one
+    pixel.
 
     A term is the last times its ratio to it, ``lam / n`` times the Gaussian's ratio
     ``exp(-(2 j - 1 +- 2 d0) c)``, which itself shrinks by ``exp(-2 c)`` per term: one ``exp``
@@ -135,6 +136,13 @@ def _walk(y, lam, s, moments):
     lam - log(n_c + 1)| > 700``, ``_RATIO_REACH``: a count far from the light, or light far
     below a photoelectron at a count of many), each ratio is one ``exp`` of its logarithm
     instead.
+
+    The moments are summed already divided by ``lam`` and ``lam^2``: above the centre the
+    term of ``n`` times ``n / lam`` is the previous term times the Gaussian ratio, and times
+    ``n (n - 1) / lam^2`` it is the previous such term times it, so no ``lam^n`` underflows
+    first (with little light, ``E[n (n - 1)]`` lives in terms ``lam^2`` below the sum). The
+    walk stops once each of the three series' tails is below ``_TAIL_TOL`` of its sum, and
+    above the centre not before ``n = 2``.
     """
     log_lam = math.log(lam)
     s2 = s * s
@@ -145,30 +153,60 @@ def _walk(y, lam, s, moments):
     cap = math.ceil(_WINDOW_SCALE * min(math.sqrt(nc + 1.0), s) + _WINDOW_PAD)
     by_ratio = (1.0 + 2.0 * abs(d0)) * c + abs(log_lam - math.log(nc + 1.0)) <= _RATIO_REACH
     shrink = math.exp(-2.0 * c)
-    total, first, second = 1.0, nc, nc * (nc - 1.0)
+    centre_first = nc / lam if moments else 0.0
+    centre_second = centre_first * ((nc - 1.0) / lam) if moments and nc > 1.0 else 0.0
+    total, first, second = 1.0, centre_first, centre_second
     for direction in (1.0, -1.0):
-        term = 1.0
+        up = direction > 0.0
+        term, term_first = 1.0, centre_first  # the last term, and it times n / lam
         gauss = math.exp(-(1.0 + direction * 2.0 * d0) * c) if by_ratio else 0.0
         for j in range(1, cap + 1):
             n = nc + direction * j
             if n < 0.0:
                 break
+            log_gauss = -(2.0 * j - 1.0 + direction * 2.0 * d0) * c
             if by_ratio:
-                ratio = (lam / n if direction > 0.0 else (n + 1.0) / lam) * gauss
+                step = gauss
+                ratio = (lam / n if up else (n + 1.0) / lam) * gauss
                 gauss *= shrink
             else:
-                up = direction > 0.0
+                step = math.exp(log_gauss)  # only where it is finite: not needed otherwise
                 log_poisson = log_lam - math.log(n) if up else math.log(n + 1.0) - log_lam
-                ratio = math.exp(log_poisson - (2.0 * j - 1.0 + direction * 2.0 * d0) * c)
+                ratio = math.exp(log_poisson + log_gauss)
+            if moments and up:  # from the previous terms, without lam^n
+                if by_ratio:
+                    new_first, new_second = term * step, term_first * step
+                else:
+                    new_first = math.exp(math.log(term) + log_gauss) if term > 0.0 else 0.0
+                    new_second = (
+                        math.exp(math.log(term_first) + log_gauss) if term_first > 0.0 else 0.0
+                    )
             term *= ratio
             total += term
             if moments:
-                first += term * n
-                second += term * n * (n - 1.0)
-            # the ratios only fall (log-concave): once below 1, the rest is below the
-            # geometric series of the last one
-            if ratio < 1.0 and term * ratio <= _TAIL_TOL * total * (1.0 - ratio):
-                break
+                if not up:
+                    new_first = term * (n / lam) if term > 0.0 else 0.0
+                    new_second = new_first * ((n - 1.0) / lam) if n > 1.0 else 0.0
+                first += new_first
+                second += new_second
+                term_first = new_first
+            # the ratios only fall (log-concave): once below 1, the rest of each series is
+            # below the geometric series of its last ratio
+            if not (ratio < 1.0 and term * ratio <= _TAIL_TOL * total * (1.0 - ratio)):
+                continue
+            if moments:
+                if up and n < 2.0:
+                    continue
+                grow_first = ratio * (n + 1.0) / n if up else ratio
+                grow_second = ratio * (n + 1.0) / (n - 1.0) if up else ratio
+                if not (
+                    grow_first < 1.0
+                    and grow_second < 1.0
+                    and new_first * grow_first <= _TAIL_TOL * first * (1.0 - grow_first)
+                    and new_second * grow_second <= _TAIL_TOL * second * (1.0 - grow_second)
+                ):
+                    continue
+            break
     return log_centre + math.log(total), first / total, second / total
 
 
@@ -198,12 +236,11 @@ def _log_mixture(y, lam, s, out, score, curvature):
                 if curvature.size > 0:
                     curvature[k] = np.nan
             continue
-        out[k], first, second = _walk(y[k], lam[k], s[k], moments)
+        out[k], mean, pairs = _walk(y[k], lam[k], s[k], moments)
         if moments:
-            mean = first / lam[k]
             score[k] = mean - 1.0
             if curvature.size > 0:
-                curvature[k] = second / lam[k] / lam[k] - mean * mean  # lam^2 underflows
+                curvature[k] = pairs - mean * mean
 
 
 def log_mixture(y: ArrayLike, lam: ArrayLike, s: ArrayLike) -> np.ndarray:

@@ -68,6 +68,36 @@ def test_score_and_curvature_match_mpmath(lam, s, y):
     assert log_p[0] == cam.log_likelihood_unchecked(c, expected)[0]
 
 
+@pytest.mark.parametrize(
+    ("lam", "s", "y"),
+    [
+        (1e-280, 1.0, 20.0),  # light far below a photoelectron: the walk's ratios by recurrence
+        (1e-260, 0.3, 30.0),  # ... and where they would overflow, from their logarithms
+    ],
+)
+def test_score_and_curvature_far_below_a_photoelectron(lam, s, y):
+    """Where a difference quotient in lam is out of reach even for mpmath's ``diff``, the
+    truth is the derivatives' moment form (verified against ``mp.diff`` above) over a 50-digit
+    brute-force sum: ``E[n | y] / lam - 1`` and ``E[n (n - 1) | y] / lam^2 - (E[n | y] /
+    lam)^2``."""
+    cam = SCMOS(1.0, 0.0, s * s)
+    score, curvature = cam.score_and_curvature_unchecked(np.array([y]), np.array([lam]))
+    with mp.workdps(50):
+        y_mp, s_mp, lam_mp = mp.mpf(y), mp.mpf(s), mp.mpf(lam)
+        ns = range(int(y + 60 * s + 60))
+        logs = [
+            n * mp.log(lam_mp) - mp.loggamma(n + 1) - (y_mp - n) ** 2 / (2 * s_mp**2) for n in ns
+        ]
+        peak = max(logs)
+        weights = [mp.exp(v - peak) for v in logs]
+        total = mp.fsum(weights)
+        mean = mp.fsum(w * n for w, n in zip(weights, ns, strict=True)) / total / lam_mp
+        pairs = mp.fsum(w * n * (n - 1) for w, n in zip(weights, ns, strict=True)) / total
+        want_score, want_curve = float(mean - 1), float(pairs / lam_mp**2 - mean**2)
+    assert score[0] == pytest.approx(want_score, rel=1e-12)
+    assert curvature[0] == pytest.approx(want_curve, rel=1e-9)
+
+
 def test_no_light_takes_the_one_sided_difference():
     """At lam = 0 the law has only a derivative from above: the score is the forward
     difference over 1e-8 photoelectrons and the curvature the secant of the score over 1e-4,
