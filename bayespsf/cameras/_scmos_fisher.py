@@ -25,7 +25,7 @@ _FISHER_READOUT_WIDTH = 9.0  # readout padding 9 s: Gaussian drop exp(-40.5)
 _WALK_TOL = 1e-17  # the Fisher rule's q: terms beyond its window below this share are left
 # many pixels of one readout: an interpolant in log lam, checked at the points between its nodes
 _NODES = (24, 48)  # Chebyshev nodes, the second where the first misses the check
-_CHECK = 1e-10  # |log I - interpolant| at every check point
+_CHECK = 1e-10  # |log(I (lam + s^2)) - interpolant|, I's relative error, at every check point
 _SHARED = 4  # pixels per node above which a readout's pixels are interpolated
 _SPAN = 4.0 * np.log(10.0)  # ... in bins of four decades of lam
 
