@@ -312,9 +312,13 @@ def log_mixture_and_score(y: ArrayLike, lam: ArrayLike, s: ArrayLike, curvature:
 
 
 def _mixture(y, lam, s, score: bool, curvature: bool):
-    y, lam, s = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (y, lam, s)))
-    shape = y.shape
-    y, lam, s = (np.array(a, dtype=np.float64).ravel() for a in (y, lam, s))  # writeable
+    arrays = [np.asarray(a, dtype=np.float64) for a in (y, lam, s)]
+    shape = np.broadcast_shapes(*(a.shape for a in arrays))
+    flat = []
+    for a in arrays:  # flat and writeable for the compiled loop, copied only where they are not
+        a = np.ascontiguousarray(np.broadcast_to(a, shape) if a.shape != shape else a)
+        flat.append(a.reshape(-1) if a.flags.writeable else a.reshape(-1).copy())
+    y, lam, s = flat
     out = [np.empty(y.size), np.empty(y.size if score else 0)]
     out.append(np.empty(y.size if curvature else 0))
     _log_mixture(y, lam, s, *out)
