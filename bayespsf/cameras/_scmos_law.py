@@ -164,23 +164,21 @@ def _walk(y, lam, s, moments):
             n = nc + direction * j
             if n < 0.0:
                 break
-            log_gauss = -(2.0 * j - 1.0 + direction * 2.0 * d0) * c
+            # above the centre the moments' terms come from the previous terms, without lam^n
             if by_ratio:
-                step = gauss
+                if moments and up:
+                    new_first, new_second = term * gauss, term_first * gauss
                 ratio = (lam / n if up else (n + 1.0) / lam) * gauss
                 gauss *= shrink
             else:
-                step = math.exp(log_gauss)  # only where it is finite: not needed otherwise
-                log_poisson = log_lam - math.log(n) if up else math.log(n + 1.0) - log_lam
-                ratio = math.exp(log_poisson + log_gauss)
-            if moments and up:  # from the previous terms, without lam^n
-                if by_ratio:
-                    new_first, new_second = term * step, term_first * step
-                else:
+                log_gauss = -(2.0 * j - 1.0 + direction * 2.0 * d0) * c
+                if moments and up:
                     new_first = math.exp(math.log(term) + log_gauss) if term > 0.0 else 0.0
                     new_second = (
                         math.exp(math.log(term_first) + log_gauss) if term_first > 0.0 else 0.0
                     )
+                log_poisson = log_lam - math.log(n) if up else math.log(n + 1.0) - log_lam
+                ratio = math.exp(log_poisson + log_gauss)
             term *= ratio
             total += term
             if moments:
