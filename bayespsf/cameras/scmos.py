@@ -284,25 +284,14 @@ class SCMOS(Camera):
         return c, lam, g, o, (c - o) / g, np.sqrt(v) / g
 
     def log_likelihood_unchecked(self, counts: np.ndarray, expected: np.ndarray) -> np.ndarray:
+        if self._likelihood == "exact":
+            return self._exact(counts, expected, parts=1)[0]
         shape = np.broadcast_shapes(counts.shape, expected.shape)
         c, lam, g, o, y, s = self._electrons(counts, expected)
-        out = np.empty(y.shape)
-        readout = s > 0
-        if self._likelihood == "exact":
-            if self._all_readout:
-                out[:] = log_mixture(y, lam, s)
-            else:
-                out[readout] = log_mixture(y[readout], lam[readout], s[readout])
-        else:
-            yh = y + s * s
-            support = yh >= 0
-            huang = poisson_log_pmf(np.where(support, yh, 0.0), lam + s * s)
-            out[:] = np.where(support, huang, -np.inf)
-        if not self._all_readout:
-            lattice = ~readout
-            out[lattice] = _log_lattice(
-                c[lattice], o[lattice], g[lattice], y[lattice], lam[lattice]
-            )
+        yh = y + s * s
+        support = yh >= 0
+        out = np.where(support, poisson_log_pmf(np.where(support, yh, 0.0), lam + s * s), -np.inf)
+        self._lattice(out, None, c, lam, g, o, y, s)
         out -= np.log(g)
         return out.reshape(shape)
 
@@ -342,7 +331,7 @@ class SCMOS(Camera):
         """
         if self._likelihood != "exact":
             return super().log_likelihood_and_score_unchecked(counts, expected)
-        return self._exact(counts, expected)[:2]
+        return self._exact(counts, expected)
 
     def score_and_curvature_unchecked(self, counts, expected):
         """Where every pixel has readout: the ``exact`` tier's score and ``E[n (n - 1) |
@@ -364,44 +353,51 @@ class SCMOS(Camera):
             return super().score_and_curvature_unchecked(counts, expected)
         if self._likelihood == "huang":
             return self._huang(counts, expected)
-        return self._exact(counts, expected, curvature=True)[1:]
+        return self._exact(counts, expected, parts=3)[1:]
 
     def _huang(self, counts, expected):
         """The ``huang`` tier's score (the Poisson score on readout-free pixels) and, where
         every pixel has readout, its curvature ``-(y + s^2) / (lam + s^2)^2``, each of the
         broadcast shape; NaN outside its support."""
         shape = np.broadcast_shapes(counts.shape, expected.shape)
-        _, lam, _, _, y, s = self._electrons(counts, expected)
+        c, lam, g, o, y, s = self._electrons(counts, expected)
         shifted, mean = y + s * s, lam + s * s
         support = shifted >= 0
         with np.errstate(divide="ignore", invalid="ignore"):  # lam = s = 0: the lattice's
             score = np.where(support, shifted / mean - 1.0, np.nan)
             curvature = np.where(support, -shifted / (mean * mean), np.nan)
-        lattice = s == 0
-        if lattice.any():
-            score[lattice] = poisson_score(np.round(y[lattice]), lam[lattice])
+        self._lattice(None, score, c, lam, g, o, y, s)
         return score.reshape(shape), curvature.reshape(shape)
 
-    def _exact(self, counts, expected, curvature: bool = False):
-        """The ``exact`` tier's log p and score (and, where every pixel has readout, the
-        curvature), each of the broadcast shape, from one walk per pixel."""
+    def _exact(self, counts, expected, parts: int = 2):
+        """The ``exact`` tier from one walk per pixel, each of the broadcast shape: log p;
+        with ``parts`` 2 also the score; with 3 also the curvature (every pixel with readout:
+        ``score_and_curvature_unchecked`` takes the base class's otherwise)."""
         shape = np.broadcast_shapes(counts.shape, expected.shape)
         c, lam, g, o, y, s = self._electrons(counts, expected)
+        readout = slice(None) if self._all_readout else s > 0
+        at = (y[readout], lam[readout], s[readout])
+        walk = (log_mixture(*at),) if parts == 1 else log_mixture_and_score(*at, parts == 3)
+        out = [np.empty(y.shape) for _ in range(parts)]
+        for part, value in zip(out, walk, strict=True):
+            part[readout] = value
+        self._lattice(out[0], out[1] if parts > 1 else None, c, lam, g, o, y, s)
+        out[0] -= np.log(g)
+        return tuple(part.reshape(shape) for part in out)
+
+    def _lattice(self, log_p, score, c, lam, g, o, y, s) -> None:
+        """Fill the readout-free pixels (``v == 0``) of the flat ``log_p`` and ``score`` (either
+        may be None): the scaled Poisson on the lattice ``o + g n`` (``_log_lattice``, ``-inf``
+        off it) and its score ``n / lam - 1``."""
         if self._all_readout:
-            parts = list(log_mixture_and_score(y, lam, s, curvature))
-        else:
-            readout = s > 0
-            parts = [np.empty(y.shape), np.empty(y.shape)]
-            parts[0][readout], parts[1][readout] = log_mixture_and_score(
-                y[readout], lam[readout], s[readout]
-            )
-            lattice = ~readout
-            parts[0][lattice] = _log_lattice(
+            return
+        lattice = s == 0
+        if log_p is not None:
+            log_p[lattice] = _log_lattice(
                 c[lattice], o[lattice], g[lattice], y[lattice], lam[lattice]
             )
-            parts[1][lattice] = poisson_score(np.round(y[lattice]), lam[lattice])
-        parts[0] -= np.log(g)
-        return tuple(part.reshape(shape) for part in parts)
+        if score is not None:
+            score[lattice] = poisson_score(np.round(y[lattice]), lam[lattice])
 
     def _sample(self, expected: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         self._check_shape("expected", expected.shape)
