@@ -41,6 +41,7 @@ posterior is the same whether it is sampled alone or in any stack
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict
 
 import numpy as np
@@ -56,6 +57,7 @@ from bayespsf.inference.importance import (
     psis,
     systematic_resample,
 )
+from bayespsf.inference.result_file import molecule_attributes
 from bayespsf.psf import PARAMETER_NAMES
 
 PILOT = 64  # Laplace draws scored to judge the Laplace (auto)
@@ -149,7 +151,7 @@ def as_posterior(outcome: dict, counts, model, truth=None, scene=None):
     from bayespsf.inference.posterior import Posterior
 
     return Posterior.from_draws(
-        outcome["draws"].reshape(CHAINS, -1, len(PARAMETER_NAMES)),
+        as_chains(outcome["draws"]),
         tau=np.ones(6),
         info=outcome["info"],
         counts=counts,
@@ -157,6 +159,21 @@ def as_posterior(outcome: dict, counts, model, truth=None, scene=None):
         truth=truth,
         scene=scene,
     )
+
+
+def as_stored(outcome: dict, truth=None, row: dict | None = None) -> tuple[np.ndarray, dict]:
+    """A ``cheap_posteriors`` outcome as a store writes it (``Store.write``): its draws in
+    ``CHAINS`` chains and its attributes as JSON, those of ``as_posterior`` and the summary
+    ``row``."""
+    attrs = molecule_attributes(np.ones(6), outcome["info"], truth)
+    if row is not None:
+        attrs["summary_row"] = json.dumps(row)
+    return as_chains(outcome["draws"]), attrs
+
+
+def as_chains(draws: np.ndarray) -> np.ndarray:
+    """Independent draws (n, 6) as ``CHAINS`` chains (CHAINS, n / CHAINS, 6)."""
+    return draws.reshape(CHAINS, -1, len(PARAMETER_NAMES))
 
 
 def _info(given: dict, seed: int, mle_ok: bool, why: str, **facts) -> dict:

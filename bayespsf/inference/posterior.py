@@ -12,7 +12,6 @@ and the truth when known: it is self-describing and opens in plain ArviZ or xarr
 
 from __future__ import annotations
 
-import json
 import os
 import warnings
 from pathlib import Path
@@ -25,6 +24,13 @@ from numpy.typing import ArrayLike
 
 from bayespsf._validate import probability, real_array
 from bayespsf.errors import BayespsfInputError
+from bayespsf.inference.result_file import (
+    JSON_ATTRIBUTES,
+    json_attribute,
+    molecule_attributes,
+    open_result_file,
+    result_attributes,
+)
 from bayespsf.psf import PARAMETER_NAMES
 
 if TYPE_CHECKING:
@@ -113,20 +119,7 @@ class Posterior:
             # short run of many walkers has more chains than draws)
             warnings.filterwarnings("ignore", "Found chain dimension to be longer", UserWarning)
             tree = az.from_dict(groups, dims=dims)
-        unit = getattr(model, "photon_unit_label", "photons")
-        attrs = {"bayespsf": f"posterior of x0 y0 s_x s_y N b (nm, {unit})"}
-        if tau is not None:
-            attrs["tau"] = json.dumps(dict(zip(PARAMETER_NAMES, map(float, tau), strict=True)))
-        if info is not None:
-            attrs["sampler"] = json.dumps(info)
-        if getattr(model, "camera", None) is not None:
-            attrs["camera"] = json.dumps(model.camera.to_dict(), default=_jsonable)
-            attrs["geometry"] = json.dumps({"roi": model.roi, "pixel_size": model.pixel_size})
-            attrs["photon_unit"] = unit
-        if truth is not None:
-            attrs["truth"] = json.dumps(dict(zip(PARAMETER_NAMES, map(float, truth), strict=True)))
-        if scene is not None:
-            attrs["scene"] = scene.dumps()
+        attrs = result_attributes(model, scene) | molecule_attributes(tau, info, truth)
         tree.attrs.update(attrs)
         return cls(tree)
 
@@ -352,21 +345,16 @@ class Posterior:
             draw)``, at least one draw) in a ``posterior`` group, naming the file and what it
             is not; a named pipe, socket or device (refused before it is opened); or one of
             the attributes in ``JSON_ATTRIBUTES`` that is not a JSON table (damaged after it
-            was written), naming the file and the attribute.
+            was written), naming the file and the attribute; a file of a ``sample_many``
+            store, naming ``Store.posterior``, which reads its molecules.
         """
         path = Path(path)
-        what = _not_a_result_file(path)
-        if what:
-            raise BayespsfInputError(f"{path}: {what}")
-        try:
-            _readable_hdf5(path)  # before xarray: h5netcdf leaves a broken half-open file
-            # h5netcdf: the engine result files are written with; phony_dims names the dims of
-            # a plain HDF5 file's datasets (it warns when left to its default)
-            tree = xr.open_datatree(path, engine="h5netcdf", phony_dims="access").load()
-        except Exception as exc:  # h5py and xarray raise many kinds for a damaged file
+        tree = open_result_file(path)
+        if "molecules" in tree.children:
             raise BayespsfInputError(
-                f"{path}: a damaged or truncated result file ({type(exc).__name__}: {exc})"
-            ) from None
+                f"{path}: a file of a sample_many store, which holds many molecules; read one "
+                f"with bayespsf.parallel.Store({str(path.parent)!r}).posterior(index)"
+            )
         missing = _missing_draws(tree)
         if missing:
             raise BayespsfInputError(
@@ -377,91 +365,6 @@ class Posterior:
         for key in JSON_ATTRIBUTES:  # now, not as a JSON traceback in info or summary()
             json_attribute(tree.attrs, key, str(path))
         return cls(tree)
-
-
-HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"  # NetCDF4 files are HDF5 files
-# the attributes a result file holds as JSON tables (``from_draws``; ``sample_many`` adds
-# ``summary_row``); ``tau`` and ``truth`` map parameters to numbers
-JSON_ATTRIBUTES = ("tau", "sampler", "camera", "geometry", "truth", "summary_row")
-
-
-def json_attribute(attrs, key: str, where: str) -> dict | None:
-    """The JSON table stored in the attribute ``key`` of a result file (None where absent).
-
-    Parameters
-    ----------
-    attrs : Mapping
-        A result file's root attributes (``Posterior.tree.attrs``).
-    key : str
-        The attribute, one of ``JSON_ATTRIBUTES``.
-    where : str
-        What the attributes belong to (a file's path), for the message.
-
-    Returns
-    -------
-    dict or None
-        The decoded table; None where the attribute is absent.
-
-    Raises
-    ------
-    BayespsfInputError
-        Naming ``where`` and ``key``: the attribute is not a JSON table (a file truncated or
-        edited after it was written), or ``tau`` or ``truth`` holds something other than
-        numbers.
-    """
-    value = attrs.get(key)
-    if value is None:
-        return None
-    try:
-        table = json.loads(value)
-    except (TypeError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
-        why = f"not valid JSON ({exc})"
-    else:
-        numbers = key not in ("tau", "truth") or (
-            isinstance(table, dict)
-            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in table.values())
-        )
-        if isinstance(table, dict) and numbers:
-            return table
-        what = "a table of numbers per parameter" if key in ("tau", "truth") else "a JSON table"
-        why = f"not {what} (got {str(value)[:60]!r})"
-    raise BayespsfInputError(
-        f"{where}: its attribute {key!r} is damaged: {why}. The file was changed after "
-        "bayespsf wrote it; sample this molecule again (in a store, delete the file and rerun: "
-        "the run resumes and samples it again)"
-    )
-
-
-def _not_a_result_file(path: Path) -> str:
-    """What ``path`` is instead of a result file, judged from its first bytes ('' if it may be
-    one)."""
-    if not path.exists():
-        return "no such result file"
-    if path.is_dir():
-        return "is a directory, not a result file (.nc)"
-    if not path.is_file():  # opening a named pipe nobody writes to would wait forever
-        return "not a regular file (a named pipe, socket or device), not a result file (.nc)"
-    with path.open("rb") as file:
-        head = file.read(8)
-    if not head:
-        return "an empty file, not a result file"
-    if head[:3] == b"CDF":
-        return "a NetCDF3 file; bayespsf result files are NetCDF4 (HDF5)"
-    if head != HDF5_SIGNATURE:
-        return "not a bayespsf result file (NetCDF4/HDF5): its first bytes are not HDF5's"
-    return ""
-
-
-def _readable_hdf5(path: Path) -> None:
-    """Open ``path`` with h5py and read every dataset (raises for a damaged file)."""
-    import h5py
-
-    def read(_name, item):
-        if isinstance(item, h5py.Dataset):
-            item[()]
-
-    with h5py.File(path, "r") as file:
-        file.visititems(read)
 
 
 def _missing_draws(tree) -> str:
@@ -485,11 +388,3 @@ def _missing_draws(tree) -> str:
         except BayespsfInputError as exc:
             return str(exc)
     return ""
-
-
-def _jsonable(value):
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot store {type(value).__name__} in a result file")

@@ -10,14 +10,15 @@ processes (the default), in this process (``workers=1``), or on any
 ``molecule_seed`` ``(seed, i)``, so its result depends on ``seed`` and ``i`` only, never on
 the number of workers or the order in which they finish.
 
-The store (a folder) holds one self-describing result file per finished molecule
-(``molecule-000123.nc``, written atomically: a killed run leaves no half-written file), the run's
+The store (a folder, ``Store``) holds the finished molecules' posteriors, the molecules of one
+task to a file (``posteriors-000000-000255.nc``, written atomically: a killed run leaves no
+half-written file; ``Store.posterior(i)`` reads molecule ``i`` back), the run's
 ``manifest.json`` (what the store was made for: a rerun with other data or settings is refused
 by name), and ``summary.csv``, one row per molecule: per parameter the posterior mean, SD,
 quantiles (the central 50/68/90/95% intervals), ESS, tau, and, when the truth is given, the
 truth and its rank among ``RANK_DRAWS`` near-independent posterior draws (the statistic of
-simulation-based calibration, Talts et al., arXiv:1804.06788). Each row is also stored in its
-molecule's file, so the table is rebuilt from the files when a run resumes.
+simulation-based calibration, Talts et al., arXiv:1804.06788). Each row is also stored with its
+molecule's posterior, so the table is rebuilt from the files when a run resumes.
 """
 
 from __future__ import annotations
@@ -392,7 +393,7 @@ def _run(tasks, runner, saver, rows, bar) -> None:
     """Sample the tasks, write each result as it comes, fill ``rows``."""
     for index, post, row in run_tasks(_sample_one, tasks, runner):
         if saver is not None and post is not None:
-            saver.write(index, post)
+            saver.write_posterior(index, post)
         rows[index] = row
         bar.update(1)
 
@@ -434,13 +435,13 @@ def _table(pieces: list[pd.DataFrame], rows: dict[int, dict]) -> pd.DataFrame:
 def _posteriors_of_chunk(task):
     """Worker side: the fit (``fit_screened``) and the chain-free posteriors
     (``bayespsf.inference.batched``) of a chunk of ROIs (molecule ``i`` seeded with
-    ``molecule_seed(settings.seed, i)``), each written to the store (a path, or None) as it is
-    made. Returns the table of their summary rows, in molecule order, and for each ROI that
-    needs the chain its verdict: the method asked for, why, and its model check (picklable in
+    ``molecule_seed(settings.seed, i)``), written to the store (a path, or None) together.
+    Returns the table of their summary rows, in molecule order, and for each ROI that needs
+    the chain its verdict: the method asked for, why, and its model check (picklable in
     and out; a table, not rows, as the parent takes a table's columns in a fraction of the time
     it takes rows')."""
     from bayespsf.inference import fit_screened
-    from bayespsf.inference.batched import as_posterior, cheap_posteriors
+    from bayespsf.inference.batched import cheap_posteriors
 
     indices, stack, model, truths, settings, scene, store, check = task
     seeds = molecule_seeds(settings.seed, indices).tolist()
@@ -465,13 +466,16 @@ def _posteriors_of_chunk(task):
         if outcome["draws"] is None:
             verdict = {"requested": settings.method, "why": outcome["info"]["why"]}
             verdicts[int(index)] = verdict | ({"check": checks[k]} if check else {})
-    if store is not None:
-        for k, row in zip(made, rows, strict=True):
-            truth = None if truths is None else truths[k]
-            outcome = {**outcomes[k], "info": infos[k]}
-            post = as_posterior(outcome, stack[k], model, truth, scene)
-            post.tree.attrs["summary_row"] = json.dumps(row)
-            Store(store).write(int(indices[k]), post)
+    if store is not None and made:
+        Store(store).write_outcomes(
+            [int(indices[k]) for k in made],
+            [{**outcomes[k], "info": infos[k]} for k in made],
+            stack[made],
+            rows,
+            model,
+            scene,
+            None if truths is None else truths[made],
+        )
     return pd.DataFrame(rows), verdicts
 
 

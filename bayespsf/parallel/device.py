@@ -5,12 +5,11 @@ chain-free posteriors made (``bayespsf.inference.jax_sampling``) in this process
 device JAX finds; the summary rows of the posteriors made are assembled column by column (a
 dataset of 10^6 ROIs is not a loop of rows); the ROIs whose diagnostics need the chain are
 handed back, with why, for ``sample_many`` to run on the CPU as with the NumPy backend. With a
-store, each posterior is written to its file as the NumPy backend writes it.
+store, the posteriors are written to it as the NumPy backend writes them.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict
 
@@ -146,23 +145,26 @@ def _table(molecules, seeds, out, rows, seconds, truths, gof) -> pd.DataFrame:
 
 
 def _write(store, table, out, rows, indices, stack, model, truths, scene, settings) -> None:
-    """Each posterior made, to its file in ``store`` (as the NumPy backend writes it)."""
-    from bayespsf.inference.batched import as_posterior
-
-    saver = Store(store)
+    """The posteriors made, to the store (as the NumPy backend writes them)."""
     info_keys = ("method", "why", "converged", "ess", "khat", "weight_sd", "draws_scored")
+    outcomes, plain = [], []
     for position, i in enumerate(rows):
         row = table.iloc[position].to_dict()
         info = {**asdict(settings), "requested": settings.method, "mle_converged": True}
         info |= {"stuck_walkers": 0} | {key: _plain(out[key][i]) for key in info_keys}
         info |= {key: _plain(row[key]) for key in ("chi2", "chi2_dof", "chi2_p", "chi2_at")}
         info |= {"backend": "jax", "seed": int(row["seed"]), "seconds": float(row["seconds"])}
-        truth = None if truths is None else np.asarray(truths, float)[i]
-        post = as_posterior(
-            {"draws": out["samples"][i], "info": info}, stack[i], model, truth, scene
-        )
-        post.tree.attrs["summary_row"] = json.dumps({k: _plain(v) for k, v in row.items()})
-        saver.write(int(indices[i]), post)
+        outcomes.append({"draws": out["samples"][i], "info": info})
+        plain.append({k: _plain(v) for k, v in row.items()})
+    Store(store).write_outcomes(
+        [int(indices[i]) for i in rows],
+        outcomes,
+        stack[rows],
+        plain,
+        model,
+        scene,
+        None if truths is None else np.asarray(truths, float)[rows],
+    )
 
 
 def _plain(value):

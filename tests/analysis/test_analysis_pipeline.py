@@ -8,6 +8,7 @@ import pytest
 
 from bayespsf import Scene, cli, load_scene
 from bayespsf.model import Model
+from bayespsf.parallel import Store
 from bayespsf.simulation import match_truth, simulate_movie
 
 CAMERA = """[geometry]
@@ -139,7 +140,8 @@ def test_the_check_without_ground_truth_passes_on_a_right_model(run):
 def test_a_rerun_continues_from_the_store(run, capsys):
     out, made = run
     files = sorted((out / "posteriors").glob("*.nc"))
-    assert len(files) == len(pd.read_parquet(out / "locs.parquet"))  # one per analysed frame
+    analysed = len(pd.read_parquet(out / "locs.parquet"))  # a posterior per analysed frame
+    assert files and len(Store(out / "posteriors").finished(10**6)) == analysed
     stamps = [f.stat().st_mtime_ns for f in files]
     code = cli.main(
         [

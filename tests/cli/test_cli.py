@@ -71,7 +71,7 @@ def test_fit_command_tif_and_camera_file(tmp_path, capsys):
     import tifffile
 
     from bayespsf import load_scene, simulate
-    from bayespsf.inference import Posterior
+    from bayespsf.parallel import Store
 
     counts, _ = simulate(load_scene("emccd-typical"), 2, seed=4)
     tifffile.imwrite(tmp_path / "rois.tif", counts.astype(np.float32))
@@ -85,7 +85,7 @@ def test_fit_command_tif_and_camera_file(tmp_path, capsys):
     assert cli.main([*args, "--out", str(out), "--workers", "1"]) == 0
     summary = pd.read_csv(out / "summary.csv")
     assert len(summary) == 2 and {"s_x_mean", "s_x_sd", "s_x_q0975", "converged"} <= set(summary)
-    post = Posterior.load(out / "molecule-000001.nc")
+    post = Store(out).posterior(1)
     assert post.draws()["s_x"].mean() == pytest.approx(summary.loc[1, "s_x_mean"], rel=1e-12)
     assert cli.main([*args, "--out", str(out), "--workers", "1"]) == 0  # resumes: nothing to do
     assert "ROI 1 (importance): converged" in capsys.readouterr().out  # auto, the default

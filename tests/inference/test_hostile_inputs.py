@@ -19,7 +19,7 @@ from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import Posterior, bootstrap_check, fit_mle, sample_posterior
 from bayespsf.inference.gof import FIT_KEYS, pearson
 from bayespsf.inference.settings import MAX_CHAIN_WORK, check_chain_work, check_settings
-from bayespsf.parallel import sample_many
+from bayespsf.parallel import Store, sample_many
 from bayespsf.psf import PARAMETER_NAMES
 from bayespsf.simulation import simulate_chunks
 from bayespsf.simulation.pipeline import block_size
@@ -265,7 +265,7 @@ def test_every_summary_row_and_its_file_carry_the_statistic(tmp_path):
     table = sample_many(COUNTS, MODEL, seed=1, workers=1, progress=False, store=tmp_path / "store")
     assert list(table.columns[-5:]) == [*FIT_KEYS, "photon_unit"]  # added last
     for k in range(2):
-        post = Posterior.load(tmp_path / "store" / f"molecule-{k:06d}.nc")
+        post = Store(tmp_path / "store").posterior(k)
         row = json.loads(post.tree.attrs["summary_row"])
         assert {key: row[key] for key in FIT_KEYS} == {key: post.info[key] for key in FIT_KEYS}
     resumed = sample_many(

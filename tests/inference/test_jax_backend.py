@@ -10,13 +10,13 @@ from arviz_stats.base.array import array_stats
 
 from bayespsf import load_scene, simulate
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import Posterior, fit_mle, jax_sampling
+from bayespsf.inference import fit_mle, jax_sampling
 from bayespsf.inference.jax_model import JaxModel
 from bayespsf.inference.psis import psis as array_psis
 from bayespsf.inference.settings import check_settings
 from bayespsf.inference.summary import coverage
 from bayespsf.model import Model
-from bayespsf.parallel import sample_many
+from bayespsf.parallel import Store, sample_many
 from bayespsf.parallel.seeds import molecule_seed
 from bayespsf.psf import PARAMETER_NAMES
 
@@ -299,7 +299,7 @@ def test_a_store_made_on_the_device_reads_back_and_resumes(rois, tmp_path):
     store = tmp_path / "store"
     run = {"seed": 5, "workers": 1, "truths": truths[:4], "store": store, "backend": "jax"}
     table = sample_many(counts[:4], model, **run)
-    post = Posterior.load(store / "molecule-000002.nc")
+    post = Store(store).posterior(2)
     assert post.draws()["x0"].mean() == pytest.approx(table.loc[2, "x0_mean"], rel=1e-12)
     assert len(post.draws()) == table.loc[2, "draws"]
     again = sample_many(counts[:4], model, **run)  # resumes: read back, not sampled again
@@ -367,7 +367,7 @@ def test_a_movie_analysed_on_the_jax_backend(tmp_path):
     )  # fmt: skip
     assert len(result.frames) >= 8 and (result.frames["status"] == "converged").all()
     assert set(result.frames["method"]) <= {"laplace", "importance"}
-    assert len(list((tmp_path / "out" / "posteriors").glob("molecule-*.nc"))) == len(result.frames)
+    assert len(Store(tmp_path / "out" / "posteriors").finished(10**6)) == len(result.frames)
 
 
 def test_a_roi_whose_student_t_draws_the_prior_cuts_gets_more_rounds_not_the_chain():

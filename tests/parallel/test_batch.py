@@ -17,7 +17,7 @@ from bayespsf import load_scene, simulate
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.summary import QUANTILES, coverage, quantile_column
 from bayespsf.model import Model
-from bayespsf.parallel import molecule_seed, sample_many
+from bayespsf.parallel import Store, molecule_seed, sample_many
 from bayespsf.psf import PARAMETER_NAMES
 
 # short capped runs: the tests are about plumbing and reproducibility, not convergence
@@ -98,19 +98,21 @@ def test_killed_run_keeps_finished_molecules_and_resumes(serial, stack, tmp_path
     script = KILLED_RUN.format(n=N_MOLECULES, **OPTIONS)
     process = subprocess.Popen([sys.executable, "-c", script, str(store)])
     deadline = time.monotonic() + 120
-    while not list(store.glob("molecule-*.nc")):
+    while not list(store.glob("posteriors-*.nc")):
         assert process.poll() is None, "the run ended before it could be killed"
         assert time.monotonic() < deadline, "no molecule finished in 120 s"
         time.sleep(0.05)
     process.send_signal(signal.SIGKILL)
     process.wait()
-    finished = {p.name: p.stat().st_mtime_ns for p in store.glob("molecule-*.nc")}
+    # the chain writes each molecule as it finishes, to a file of its own
+    finished = {p.name: p.stat().st_mtime_ns for p in store.glob("posteriors-*.nc")}
     assert 1 <= len(finished) < N_MOLECULES
     assert not (store / "summary.csv").exists()
     table = sample_many(counts, model, seed=3, workers=1, truths=truths, store=store, **OPTIONS)
     for name, mtime in finished.items():  # finished molecules were read back, not redone
         assert (store / name).stat().st_mtime_ns == mtime
-    assert len(list(store.glob("molecule-*.nc"))) == N_MOLECULES
+    assert len(list(store.glob("posteriors-*.nc"))) == N_MOLECULES
+    assert sorted(Store(store).finished(N_MOLECULES)) == list(range(N_MOLECULES))
     assert not list(store.glob("*.partial"))
     pd.testing.assert_frame_equal(without_timing(table), without_timing(serial))
     on_disk = pd.read_csv(store / "summary.csv")
@@ -145,7 +147,7 @@ def test_the_model_check_is_stored_with_each_posterior(stack, tmp_path):
     # (bayespsf.inference.gof), its replicates drawn from the molecule's own seed, so the values
     # are those of bootstrap_check with those seeds, for the batched and the chain paths, on
     # one process or two
-    from bayespsf.inference import Posterior, bootstrap_check
+    from bayespsf.inference import bootstrap_check
 
     counts, _, model = stack
     seeds = [molecule_seed(5, i) for i in range(N_MOLECULES)]
@@ -157,9 +159,7 @@ def test_the_model_check_is_stored_with_each_posterior(stack, tmp_path):
     assert np.array_equal(batched["gof_p"].to_numpy(), expected)
     assert np.array_equal(chain["gof_p"].to_numpy(), expected[:2])
     assert (batched["gof_replicates"] == 49).all()
-    stored = json.loads(
-        Posterior.load(tmp_path / "s" / "molecule-000001.nc").tree.attrs["summary_row"]
-    )
+    stored = json.loads(Store(tmp_path / "s").posterior(1).tree.attrs["summary_row"])
     assert stored["gof_p"] == expected[1]
     assert "gof_p" in pd.read_csv(tmp_path / "s" / "summary.csv")
     with pytest.raises(BayespsfInputError, match="model check"):  # a store made with it
@@ -229,7 +229,7 @@ def test_store_path_is_not_required_to_exist(stack, tmp_path):
     counts, _, model = stack
     store = Path(tmp_path) / "a" / "b"
     sample_many(counts[:1], model, seed=3, workers=1, store=store, **OPTIONS)
-    assert (store / "molecule-000000.nc").exists()
+    assert (store / "posteriors-000000-000000.nc").exists()
     assert os.path.getsize(store / "summary.csv") > 0
 
 
