@@ -116,6 +116,18 @@ def test_scmos_benchmark_quick():
     assert np.all(turns["lowest"] > 0)
 
 
+def test_store_benchmark_quick():
+    # sample_many without and with a store on the same ROIs, then the resume and one read back
+    import store
+
+    table = store.main(["--quick"])
+    assert len(table) == 2 and np.all(table["ROIs/s, store"] > 0)
+    assert np.all(table["files"] == 1)  # 48 ROIs: one task, one file
+    np.testing.assert_allclose(
+        table["store / no store"], table["ROIs/s, store"] / table["ROIs/s, no store"]
+    )
+
+
 def test_gpu_benchmark_quick():
     # both backends on the same ROIs (JAX on the CPU here): the MLE agrees to 1e-6 and the
     # posterior means within Monte Carlo error (0.071 posterior SDs for two runs at ESS 400;
