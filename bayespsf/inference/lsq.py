@@ -45,11 +45,104 @@ def lsq_to_params(theta, pixel_size: float) -> np.ndarray:
     return np.stack([x0, y0, sx, sy, 2 * np.pi * sx * sy * f0 / pixel_size**2, b], axis=-1)
 
 
+STOPPED = "a step lowered the sum of squares by less than 1e-13 of itself"
+FTOL = 1e-13  # the stack's stop: a step lowers the sum of squares by less than this of itself
+MAX_STEPS = 200  # steps tried per ROI before the stack leaves it to scipy
+BLOCK = 1024  # ROIs per pass of the stack (~11 kB of Jacobian per ROI of 15 x 15)
+LOWEST_WIDTH = 1e-3  # the widths' lower bound, in pixels
+
+
+def params_to_lsq(params, pixel_size: float) -> np.ndarray:
+    """``x0 y0 s_x s_y N b`` to ``(f0, x0, y0, s_x, s_y, b)``, the inverse of
+    ``lsq_to_params``."""
+    x0, y0, sx, sy, n, b = np.moveaxis(np.asarray(params, float), -1, 0)
+    return np.stack([n * pixel_size**2 / (2 * np.pi * sx * sy), x0, y0, sx, sy, b], axis=-1)
+
+
+def _gauss2d_stack(theta, centres):
+    """``gauss2d`` for a stack of ``theta`` (m, 6): values (m, P) and Jacobians (m, 6, P)."""
+    f0, x0, y0, sx, sy, b = theta.T
+    dx = (centres - x0[:, None]) / sx[:, None]
+    dy = (centres - y0[:, None]) / sy[:, None]
+    gx, gy = np.exp(-0.5 * dx * dx), np.exp(-0.5 * dy * dy)
+    spot = f0[:, None, None] * gy[:, :, None] * gx[:, None, :]
+    m, n = spot.shape[:2]
+    jac = np.empty((m, 6, n, n))
+    jac[:, 0] = gy[:, :, None] * gx[:, None, :]
+    jac[:, 1] = spot * (dx / sx[:, None])[:, None, :]
+    jac[:, 2] = spot * (dy / sy[:, None])[:, :, None]
+    jac[:, 3] = spot * (dx * dx / sx[:, None])[:, None, :]
+    jac[:, 4] = spot * (dy * dy / sy[:, None])[:, :, None]
+    jac[:, 5] = 1.0
+    return (spot + b[:, None, None]).reshape(m, -1), jac.reshape(m, 6, -1)
+
+
+def _lsq_stack(photons, theta, model):
+    """Levenberg-Marquardt for a stack of ROIs at once, from ``theta`` (m, 6).
+
+    Returns the estimates (m, 6) and whether each converged: a step lowered its sum of
+    squares by less than ``FTOL`` of itself. The damping is scaled by the diagonal of
+    ``J^T J`` (Marquardt's scaling, as scipy's ``x_scale="jac"``); a step that would take a
+    width below ``LOWEST_WIDTH`` pixels, or to a non-finite value, is refused as one that
+    raises the sum. A ROI whose damping grows past 1e12 (no step lowers its sum) or that
+    takes ``MAX_STEPS`` steps is left unconverged, for scipy.
+    """
+    centres = pixel_centres(model.roi, model.pixel_size)
+    lowest = LOWEST_WIDTH * model.pixel_size
+    y = photons.reshape(len(photons), -1)
+    theta = np.array(theta, dtype=float)
+    values, jac = _gauss2d_stack(theta, centres)
+    residual = values - y
+    cost = np.einsum("mp,mp->m", residual, residual)
+    damping = np.full(len(theta), 1e-3)
+    converged = np.zeros(len(theta), dtype=bool)
+    active = np.arange(len(theta))
+    for _ in range(MAX_STEPS):
+        if not active.size:
+            break
+        j = jac[active]
+        normal = np.einsum("mip,mjp->mij", j, j)
+        gradient = np.einsum("mip,mp->mi", j, residual[active])
+        scale = np.einsum("mii->mi", normal)
+        scale = np.maximum(scale, 1e-12 * scale.max(axis=1, keepdims=True))  # a null column
+        damped = normal + damping[active, None, None] * (scale[:, :, None] * np.eye(6))
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            trial = theta[active] - _solve(damped, gradient)
+            valid = np.isfinite(trial).all(axis=1) & (trial[:, 3:5] > lowest).all(axis=1)
+            trial[~valid] = theta[active][~valid]
+            trial_values, trial_jac = _gauss2d_stack(trial, centres)
+            trial_residual = trial_values - y[active]
+            trial_cost = np.einsum("mp,mp->m", trial_residual, trial_residual)
+        better = valid & (trial_cost < cost[active])
+        done = better & (cost[active] - trial_cost <= FTOL * cost[active])
+        kept = active[better]
+        theta[kept], jac[kept] = trial[better], trial_jac[better]
+        residual[kept], cost[kept] = trial_residual[better], trial_cost[better]
+        damping[active] = np.where(better, damping[active] / 3, damping[active] * 4)
+        converged[active[done]] = True
+        active = active[~done & (damping[active] <= 1e12)]
+    return theta, converged
+
+
+def _solve(matrices, vectors):
+    """``matrices^-1 vectors`` per ROI, NaN for a singular matrix (LAPACK solves matrix by
+    matrix either way, so one singular matrix does not change the others' solutions)."""
+    try:
+        return np.linalg.solve(matrices, vectors[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.full_like(vectors, np.nan)
+        for k, (matrix, vector) in enumerate(zip(matrices, vectors, strict=True)):
+            try:
+                out[k] = np.linalg.solve(matrix, vector)
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
 def _lsq_one(photons, start, model):
     a = model.pixel_size
-    f0 = start[4] * a * a / (2 * np.pi * start[2] * start[3])
-    theta0 = np.array([f0, start[0], start[1], start[2], start[3], start[5]])
-    lower = [-np.inf, -np.inf, -np.inf, 1e-3 * a, 1e-3 * a, -np.inf]
+    theta0 = params_to_lsq(start, a)
+    lower = [-np.inf, -np.inf, -np.inf, LOWEST_WIDTH * a, LOWEST_WIDTH * a, -np.inf]
     y = photons.ravel()
 
     def residual(theta):
@@ -95,10 +188,15 @@ def fit_lsq(counts: ArrayLike, model: Model) -> pd.DataFrame:
     -----
     As in DeSantis, DeCenzo, Li & Wang, Opt. Express 18 (2010) (MATLAB ``lsqcurvefit``):
     counts are converted to photons with the camera's mean gain (``Model.to_photons``) and
-    fitted by a trust-region least squares (scipy ``least_squares``, analytic Jacobian) of the
-    sampled Gaussian with amplitude f0 and constant background. Its widths estimate the
-    pixelated width (Eq. tophat), not s0. Not converged: the optimiser failed, a width ran
-    away beyond the ROI, or a value is not finite.
+    the sampled Gaussian with amplitude f0 and constant background is fitted by least squares
+    with an analytic Jacobian, the widths bounded below by ``LOWEST_WIDTH`` pixels. The stack
+    is fitted at once, ``BLOCK`` ROIs at a time, by Levenberg-Marquardt (damping scaled by the
+    diagonal of ``J^T J``), each ROI until a step lowers its sum of squares by less than
+    ``FTOL`` of itself (``message``: ``STOPPED``); a ROI on which it stalls gets scipy's
+    trust-region ``least_squares`` (``x_scale="jac"``) with scipy's message. The stack's
+    estimates lie within ~1e-7 (relative) of the exact minimum, scipy's default stops within
+    ~1e-5. Its widths estimate the pixelated width (Eq. tophat), not s0. Not converged: the
+    optimiser failed, a width ran away beyond the ROI, or a value is not finite.
 
     Examples
     --------
@@ -111,15 +209,24 @@ def fit_lsq(counts: ArrayLike, model: Model) -> pd.DataFrame:
     stack, problems = _stack(counts, model)
     photons = model.to_photons(stack)
     starts = start_values(photons, model)
+    todo = np.array([k for k, problem in enumerate(problems) if problem is None], dtype=int)
+    theta, stopped = np.full((len(stack), 6), np.nan), np.zeros(len(stack), dtype=bool)
+    for first in range(0, todo.size, BLOCK):
+        block = todo[first : first + BLOCK]
+        start = params_to_lsq(starts[block], model.pixel_size)
+        theta[block], stopped[block] = _lsq_stack(photons[block], start, model)
     rows = []
     limit = model.roi * model.pixel_size
-    for image, start, problem in zip(photons, starts, problems, strict=True):
+    for k, (image, start, problem) in enumerate(zip(photons, starts, problems, strict=True)):
         if problem is not None:
             rows.append(_refused_row(problem))
             continue
-        res = _lsq_one(image, start, model)
-        params = lsq_to_params(res.x, model.pixel_size)
-        ok, message = bool(res.success), res.message
+        if stopped[k]:
+            params, ok, message = lsq_to_params(theta[k], model.pixel_size), True, STOPPED
+        else:  # stalled in the stack: scipy's trust region, with the width's bound
+            res = _lsq_one(image, start, model)
+            params = lsq_to_params(res.x, model.pixel_size)
+            ok, message = bool(res.success), res.message
         if not np.all(np.isfinite(params)):
             ok, message = False, "non-finite estimate"
         elif params[2] > limit or params[3] > limit:
@@ -179,4 +286,4 @@ def lsq_first_order(model: Model, params):
     return lsq_to_params(theta, model.pixel_size), to_params @ cov_theta @ to_params.T
 
 
-__all__ = ["fit_lsq", "gauss2d", "lsq_first_order", "lsq_to_params"]
+__all__ = ["fit_lsq", "gauss2d", "lsq_first_order", "lsq_to_params", "params_to_lsq"]
