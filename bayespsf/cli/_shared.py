@@ -1,5 +1,6 @@
 """What the subcommands share: ``CommandError``, the output folder of one run, the command line
-as typed, and the movie commands' camera model, spot SD and selection rules."""
+as typed, the movie commands' camera model, spot SD and selection rules, and the report that
+``bayespsf fit`` prints."""
 
 from __future__ import annotations
 
@@ -113,3 +114,37 @@ def selection_rules(args):
 def command_line(args) -> str:
     """The command as typed (``bayespsf calibrate ...``), for the provenance of its files."""
     return f"bayespsf {args.command} " + " ".join(sys.argv[2:] if args.argv is None else args.argv)
+
+
+SHOWN = 10  # ROIs named one by one in the fit's report, of each kind (sampled; without one)
+
+
+def fit_report(table, out: Path) -> str:
+    """What ``bayespsf fit`` prints: the first ``SHOWN`` posteriors' s_x and the first
+    ``SHOWN`` ROIs without a posterior, one line each, then the counts of each outcome and
+    method, and the files written."""
+    from bayespsf.parallel import Store
+
+    lines = []
+    bad = table["status"].isin(("refused", "failed")).to_numpy()
+    for _, row in table[~bad].head(SHOWN).iterrows():
+        lines.append(
+            f"ROI {row['molecule']} ({row['method']}): converged {row['converged']}, "
+            f"s_x = {row['s_x_mean']:.4g} +- {row['s_x_sd']:.3g} nm"
+        )
+    for _, row in table[bad].head(SHOWN).iterrows():
+        lines.append(f"ROI {row['molecule']}: {row['status']}: {row['message']}")
+    named = min(SHOWN, int((~bad).sum())) + min(SHOWN, int(bad.sum()))
+    if named < len(table):
+        lines.append(f"... {len(table) - named} more in {out / 'summary.csv'}")
+    status = ", ".join(f"{k} {v}" for k, v in table["status"].value_counts().items())
+    lines.append(f"{len(table)} ROIs: {status}")
+    if (~bad).any():
+        methods = ", ".join(f"{k} {v}" for k, v in table.loc[~bad, "method"].value_counts().items())
+        lines.append(f"posteriors by {methods}")
+    files = len(Store(out).files())
+    lines.append(
+        f"wrote {out / 'summary.csv'} and the posteriors of {int((~bad).sum())} ROIs in "
+        f"{files} file(s) (bayespsf.parallel.Store({str(out)!r}).posterior(i) reads ROI i's)"
+    )
+    return "\n".join(lines)

@@ -16,6 +16,7 @@ from pathlib import Path
 from bayespsf.cli._shared import (
     CommandError,
     command_line,
+    fit_report,
     geometry,
     movie_model,
     one_run,
@@ -208,15 +209,7 @@ def _fit(args) -> int:
         check=args.check,
         backend=args.backend,
     )
-    for _, row in table.iterrows():
-        if row["status"] in ("refused", "failed"):
-            print(f"ROI {row['molecule']}: {row['status']}: {row['message']}")
-            continue
-        print(
-            f"ROI {row['molecule']} ({row['method']}): converged {row['converged']}, "
-            f"s_x = {row['s_x_mean']:.4g} +- {row['s_x_sd']:.3g} nm"
-        )
-    print(f"wrote {out / 'summary.csv'} and {len(table)} result files")
+    print(fit_report(table, out))
     return 0
 
 

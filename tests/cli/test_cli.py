@@ -528,3 +528,29 @@ def test_dark_frames_are_read_at_the_channel_only_when_they_have_several(tmp_pat
     assert _dark_frames(str(tmp_path / "two.tif"), channel=1).frames().max() == 7
     tifffile.imwrite(tmp_path / "one.tif", frames[:, 0], photometric="minisblack")
     assert _dark_frames(str(tmp_path / "one.tif"), channel=1).frames().max() == 100
+
+
+def test_the_fit_report_names_a_few_rois_and_counts_the_rest(tmp_path):
+    # 25 ROIs, 3 of them refused: 10 posteriors and the 3 refused named, the other 12
+    # counted, with the outcomes, the methods and the files
+    from bayespsf.cli._shared import SHOWN, fit_report
+
+    rows = [
+        {"molecule": i, "status": "converged", "converged": True, "method": "importance",
+         "s_x_mean": 130.0 + i, "s_x_sd": 7.0, "message": ""}
+        for i in range(22)
+    ] + [
+        {"molecule": 22 + i, "status": "refused", "converged": False, "method": "mcmc",
+         "s_x_mean": np.nan, "s_x_sd": np.nan, "message": "every pixel has the same value"}
+        for i in range(3)
+    ]  # fmt: skip
+    lines = fit_report(pd.DataFrame(rows), tmp_path).splitlines()
+    assert SHOWN == 10 and lines[0] == "ROI 0 (importance): converged True, s_x = 130 +- 7 nm"
+    assert lines[9].startswith("ROI 9 (importance)")
+    assert lines[10:13] == [
+        f"ROI {i}: refused: every pixel has the same value" for i in (22, 23, 24)
+    ]
+    assert lines[13] == f"... 12 more in {tmp_path / 'summary.csv'}"
+    assert lines[14] == "25 ROIs: converged 22, refused 3"
+    assert lines[15] == "posteriors by importance 22"
+    assert lines[16].startswith(f"wrote {tmp_path / 'summary.csv'} and the posteriors of 22 ROIs")
