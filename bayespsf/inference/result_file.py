@@ -91,24 +91,27 @@ def molecule_attributes(
     return attrs
 
 
-def open_result_file(path: str | os.PathLike) -> xr.DataTree:
+def open_result_file(path: str | os.PathLike, group: str | None = None) -> xr.DataTree:
     """Read an HDF5/NetCDF4 file whole into a tree, or say what it is instead.
 
     Parameters
     ----------
     path : str or path-like
         The file.
+    group : str, optional
+        Read only this group (and the groups under it); default the whole file.
 
     Returns
     -------
     xarray.DataTree
-        Its groups, loaded into memory (the file is closed).
+        Its groups (``group``'s as the root), loaded into memory (the file is closed).
 
     Raises
     ------
     BayespsfInputError
         Naming the file: missing, a directory, a named pipe, socket or device (refused before
-        it is opened), empty, NetCDF3, not HDF5, or damaged or truncated.
+        it is opened), empty, NetCDF3, not HDF5, without ``group`` (``has no group``), or
+        damaged or truncated.
     """
     import xarray as xr
 
@@ -117,11 +120,15 @@ def open_result_file(path: str | os.PathLike) -> xr.DataTree:
     if what:
         raise BayespsfInputError(f"{path}: {what}")
     try:
-        _readable_hdf5(path)  # before xarray: h5netcdf leaves a broken half-open file
+        if not _readable_hdf5(path, group):  # before xarray: h5netcdf leaves a broken file
+            raise BayespsfInputError(f"{path}: has no group {group!r}")
         # h5netcdf: the engine result files are written with; phony_dims names the dims of
         # a plain HDF5 file's datasets (it warns when left to its default)
-        with xr.open_datatree(path, engine="h5netcdf", phony_dims="access") as tree:
+        options = {"engine": "h5netcdf", "phony_dims": "access"}
+        with xr.open_datatree(path, group=group, **options) as tree:
             return tree.load()
+    except BayespsfInputError:
+        raise
     except Exception as exc:  # h5py and xarray raise many kinds for a damaged file
         raise BayespsfInputError(
             f"{path}: a damaged or truncated result file ({type(exc).__name__}: {exc})"
@@ -195,8 +202,9 @@ def _not_a_result_file(path: Path) -> str:
     return ""
 
 
-def _readable_hdf5(path: Path) -> None:
-    """Open ``path`` with h5py and read every dataset (raises for a damaged file)."""
+def _readable_hdf5(path: Path, group: str | None = None) -> bool:
+    """Open ``path`` with h5py and read every dataset, or those under ``group`` (raises for a
+    damaged file); False where there is no ``group``."""
     import h5py
 
     def read(_name, item):
@@ -204,7 +212,10 @@ def _readable_hdf5(path: Path) -> None:
             item[()]
 
     with h5py.File(path, "r") as file:
-        file.visititems(read)
+        if group is not None and not isinstance(file.get(group), h5py.Group):
+            return False
+        (file if group is None else file[group]).visititems(read)
+    return True
 
 
 def _jsonable(value):

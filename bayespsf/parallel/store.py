@@ -208,9 +208,9 @@ class Store:
         """
         rows = {}
         for path in self.files():
-            tree = self._read(path)
-            texts = tree["molecules"]["summary_row"].values
-            for index, row in zip(_molecules(tree, path), texts, strict=True):
+            table = self._read(path, "molecules")  # not the draws
+            texts = table["summary_row"].values
+            for index, row in zip(_molecules(table, path), texts, strict=True):
                 if 0 <= index < n:
                     rows[index] = json_attribute(
                         {"summary_row": row}, "summary_row", f"{path}, molecule {index}"
@@ -244,7 +244,7 @@ class Store:
             if not first <= index <= last:
                 continue
             tree = self._read(path)
-            where = np.flatnonzero(_molecules(tree, path) == index)
+            where = np.flatnonzero(_molecules(tree["molecules"], path) == index)
             if where.size:
                 return _one(Posterior, tree, int(where[0]))
         raise BayespsfInputError(
@@ -360,18 +360,21 @@ class Store:
         table.to_csv(partial, index=False)
         os.replace(partial, self.path / "summary.csv")
 
-    def _read(self, path: Path) -> xr.DataTree:
-        """A result file of the store, whole, or an error naming it and the way on."""
+    def _read(self, path: Path, group: str | None = None) -> xr.DataTree:
+        """A result file of the store, whole or one ``group``, or an error naming it and the
+        way on."""
+        again = "delete it and rerun to sample its molecules again"
+        needed = {"posterior", "observed_data", "molecules"} if group is None else {group}
         try:
-            tree = open_result_file(path)
+            tree = open_result_file(path, group)
         except BayespsfInputError as exc:
-            raise BayespsfInputError(
-                f"{exc}; delete it and rerun to sample its molecules again"
-            ) from None
-        if not {"posterior", "observed_data", "molecules"} <= set(tree.children):
+            if "has no group" not in str(exc):
+                raise BayespsfInputError(f"{exc}; {again}") from None
+            tree = None
+        if tree is None or (group is None and not needed <= set(tree.children)):
             raise BayespsfInputError(
                 f"{path}: not a file of a bayespsf store (it needs the groups posterior, "
-                "observed_data and molecules); delete it and rerun to sample its molecules again"
+                f"observed_data and molecules); {again}"
             )
         return tree
 
@@ -382,9 +385,8 @@ def _span(path: Path) -> tuple[int, int] | None:
     return None if match is None else (int(match[1]), int(match[2]))
 
 
-def _molecules(tree, path: Path) -> np.ndarray:
-    """The molecule indices of a store file."""
-    molecules = tree["molecules"]
+def _molecules(molecules, path: Path) -> np.ndarray:
+    """The molecule indices of a store file's ``molecules`` group."""
     if "molecule" not in molecules.coords or "summary_row" not in molecules.data_vars:
         raise BayespsfInputError(
             f"{path}: its molecules group has no molecule coordinate or summary_row; delete "
