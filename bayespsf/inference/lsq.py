@@ -23,19 +23,9 @@ def gauss2d(theta, model: Model):
     ``theta = (f0, x0, y0, s_x, s_y, b)``: ``f0 exp(-(x-x0)^2/2s_x^2 - (y-y0)^2/2s_y^2) + b``.
     Returns ``(values (roi, roi), jacobian (6, roi, roi))``.
     """
-    f0, x0, y0, sx, sy, _ = theta
-    c = pixel_centres(model.roi, model.pixel_size)
-    dx, dy = (c - x0) / sx, (c - y0) / sy
-    gx, gy = np.exp(-0.5 * dx * dx), np.exp(-0.5 * dy * dy)
-    shape = gy[:, None] * gx[None, :]
-    jac = np.empty((6, model.roi, model.roi))
-    jac[0] = shape
-    jac[1] = f0 * shape * (dx / sx)[None, :]
-    jac[2] = f0 * shape * (dy / sy)[:, None]
-    jac[3] = f0 * shape * (dx * dx / sx)[None, :]
-    jac[4] = f0 * shape * (dy * dy / sy)[:, None]
-    jac[5] = 1.0
-    return f0 * shape + theta[5], jac
+    centres = pixel_centres(model.roi, model.pixel_size)
+    values, jac = _gauss2d_stack(np.asarray(theta, dtype=float)[None], centres)
+    return values.reshape(model.roi, model.roi), jac.reshape(6, model.roi, model.roi)
 
 
 def lsq_to_params(theta, pixel_size: float) -> np.ndarray:
@@ -65,10 +55,11 @@ def _gauss2d_stack(theta, centres):
     dx = (centres - x0[:, None]) / sx[:, None]
     dy = (centres - y0[:, None]) / sy[:, None]
     gx, gy = np.exp(-0.5 * dx * dx), np.exp(-0.5 * dy * dy)
-    spot = f0[:, None, None] * gy[:, :, None] * gx[:, None, :]
+    shape = gy[:, :, None] * gx[:, None, :]
+    spot = f0[:, None, None] * shape
     m, n = spot.shape[:2]
     jac = np.empty((m, 6, n, n))
-    jac[:, 0] = gy[:, :, None] * gx[:, None, :]
+    jac[:, 0] = shape
     jac[:, 1] = spot * (dx / sx[:, None])[:, None, :]
     jac[:, 2] = spot * (dy / sy[:, None])[:, :, None]
     jac[:, 3] = spot * (dx * dx / sx[:, None])[:, None, :]
