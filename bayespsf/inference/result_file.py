@@ -35,6 +35,10 @@ JSON_ATTRIBUTES = ("tau", "sampler", "camera", "geometry", "truth", "summary_row
 MOLECULE_ATTRIBUTES = ("tau", "sampler", "truth", "summary_row")
 
 
+class MissingGroup(BayespsfInputError):
+    """A file that ``open_result_file`` was asked one group of does not have it."""
+
+
 def result_attributes(model: Model | None = None, scene: Scene | None = None) -> dict[str, str]:
     """The attributes that the result files of one model and scene share.
 
@@ -110,8 +114,8 @@ def open_result_file(path: str | os.PathLike, group: str | None = None) -> xr.Da
     ------
     BayespsfInputError
         Naming the file: missing, a directory, a named pipe, socket or device (refused before
-        it is opened), empty, NetCDF3, not HDF5, without ``group`` (``has no group``), or
-        damaged or truncated.
+        it is opened), empty, NetCDF3, not HDF5, or damaged or truncated; ``MissingGroup``
+        (a subclass) where it has no ``group``.
     """
     import xarray as xr
 
@@ -121,7 +125,7 @@ def open_result_file(path: str | os.PathLike, group: str | None = None) -> xr.Da
         raise BayespsfInputError(f"{path}: {what}")
     try:
         if not _readable_hdf5(path, group):  # before xarray: h5netcdf leaves a broken file
-            raise BayespsfInputError(f"{path}: has no group {group!r}")
+            raise MissingGroup(f"{path}: has no group {group!r}")
         # h5netcdf: the engine result files are written with; phony_dims names the dims of
         # a plain HDF5 file's datasets (it warns when left to its default)
         options = {"engine": "h5netcdf", "phony_dims": "access"}
@@ -230,6 +234,7 @@ __all__ = [
     "HDF5_SIGNATURE",
     "JSON_ATTRIBUTES",
     "MOLECULE_ATTRIBUTES",
+    "MissingGroup",
     "json_attribute",
     "molecule_attributes",
     "open_result_file",

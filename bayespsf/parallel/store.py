@@ -19,6 +19,7 @@ molecule cost ~70 ms (h5netcdf writes each variable's dimensions one by one), an
 from __future__ import annotations
 
 import json
+import numbers
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -32,6 +33,7 @@ from numpy.typing import ArrayLike
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.result_file import (
     MOLECULE_ATTRIBUTES,
+    MissingGroup,
     json_attribute,
     open_result_file,
     result_attributes,
@@ -234,10 +236,13 @@ class Store:
         Raises
         ------
         BayespsfInputError
-            If no file of the store holds the molecule, or the file that does is damaged.
+            If ``index`` is not a whole number, no file of the store holds the molecule, or the
+            file that does is damaged.
         """
-        from bayespsf.inference import Posterior
-
+        if isinstance(index, bool) or not isinstance(index, numbers.Integral):
+            raise BayespsfInputError(
+                f"index must be a molecule's number (an integer), got {index!r}"
+            )
         index = int(index)
         for path in self.files():
             first, last = _span(path)
@@ -246,7 +251,7 @@ class Store:
             tree = self._read(path)
             where = np.flatnonzero(_molecules(tree["molecules"], path) == index)
             if where.size:
-                return _one(Posterior, tree, int(where[0]))
+                return _one(tree, int(where[0]))
         raise BayespsfInputError(
             f"store {self.path} holds no posterior of molecule {index} (not sampled yet, "
             "refused or failed: see summary.csv's status)"
@@ -367,10 +372,10 @@ class Store:
         needed = {"posterior", "observed_data", "molecules"} if group is None else {group}
         try:
             tree = open_result_file(path, group)
-        except BayespsfInputError as exc:
-            if "has no group" not in str(exc):
-                raise BayespsfInputError(f"{exc}; {again}") from None
+        except MissingGroup:
             tree = None
+        except BayespsfInputError as exc:
+            raise BayespsfInputError(f"{exc}; {again}") from None
         if tree is None or (group is None and not needed <= set(tree.children)):
             raise BayespsfInputError(
                 f"{path}: not a file of a bayespsf store (it needs the groups posterior, "
@@ -429,13 +434,15 @@ def _tree(molecules, draws, counts, attributes, per_molecule):
     return tree
 
 
-def _one(posterior_class, tree, k: int):
+def _one(tree, k: int):
     """Molecule ``k`` of a store file's tree as a ``Posterior``."""
+    from bayespsf.inference import Posterior
+
     table = tree["molecules"]
     chains, draws = int(table["chains"].values[k]), int(table["draws"].values[k])
     post = tree["posterior"]
     values = np.stack([post[name].values[k, :chains, :draws] for name in PARAMETER_NAMES], -1)
-    result = posterior_class.from_draws(values, counts=tree["observed_data"]["counts"].values[k])
+    result = Posterior.from_draws(values, counts=tree["observed_data"]["counts"].values[k])
     result.tree.attrs.update(tree.attrs)
     for key in MOLECULE_ATTRIBUTES:
         text = str(table[key].values[k])

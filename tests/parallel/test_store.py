@@ -76,6 +76,10 @@ def test_each_molecule_reads_back_as_its_own_result_file_would(tmp_path):
     assert store.finished(12) == {10: made[0]["row"], 11: made[1]["row"]}  # indices < n
     with pytest.raises(BayespsfInputError, match="holds no posterior of molecule 15"):
         store.posterior(15)
+    for index in (10.5, "10", True):  # read as molecule 10 (or 1) before it was refused
+        with pytest.raises(BayespsfInputError, match="index must be a molecule's number"):
+            store.posterior(index)
+    assert store.posterior(np.int64(11)).info == made[1]["info"]
     with pytest.raises(BayespsfInputError, match=r"many molecules; read one with .*\.posterior"):
         Posterior.load(store.files()[0])
 
