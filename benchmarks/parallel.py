@@ -2,7 +2,9 @@
 cluster of as many one-thread workers, for each number of workers asked, and a dataset of 10^5
 ROIs on the most workers (targets: two workers >= 1.8x one; on 16 cores, 16 local workers >=
 14x one and a 16-worker Dask cluster >= 12x; 10^5 emccd-typical posteriors in <= 10 minutes on
-2 cores).
+2 cores). Then ``bayespsf analyze --per-frame`` (``localize_frames``: detection, the fits and
+the posteriors of every spot of every frame) on a simulated movie, for each number of local
+workers.
 
 Every timing runs on the same ROIs, 2 000 per worker of the largest count (4 000 for 1 and 2
 workers, 32 000 up to 16), so that starting a pool counts little and each worker gets many
@@ -15,6 +17,7 @@ that the calling process spends per ROI while workers run (its own share of the 
     python benchmarks/parallel.py --workers 1,2,4,8,16   # the scaling table on a bigger machine
                                                          # (printed; --publish writes it too)
     python benchmarks/parallel.py --quick                # a small run that prints only (tests)
+    python benchmarks/parallel.py --frames 0             # without the movie
 """
 
 from __future__ import annotations
@@ -27,13 +30,15 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import resource  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from _report import machine, publish  # noqa: E402
 
-from bayespsf import load_scene, simulate  # noqa: E402
+from bayespsf import load_scene, simulate, simulate_movie  # noqa: E402
+from bayespsf.analysis import localize_frames  # noqa: E402
 from bayespsf.model import Model  # noqa: E402
 from bayespsf.parallel import sample_many  # noqa: E402
 
@@ -139,6 +144,47 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
     return table
 
 
+def per_frame(frames: int, workers, side: int = 256, molecules: int = 50) -> pd.DataFrame:
+    """``localize_frames`` (``bayespsf analyze --per-frame``, default ``method="auto"``) on a
+    simulated emccd-typical movie of ``frames`` frames of ``side`` x ``side`` pixels with
+    ``molecules`` blinking molecules, on each number of local ``workers`` (1: this process):
+    seconds, windows per second, whether the table is the one process's (all but the timing
+    column), and the calling process's CPU time as a share of the one-process run's (all the
+    work): the part that does not run on the workers (reading the frames, folding the windows
+    into chunks, the files), which bounds the speed-up (Amdahl)."""
+    scene = load_scene("emccd-typical").replace(
+        movie={"frames": frames, "height": side, "width": side, "molecules": molecules}
+        | {"dark_frames": 0, "bleach_mean": 1000.0, "two_fluorophores": 0.0, "moving": 0.0}
+    )
+    model, rows, first, alone = Model.from_scene(scene), [], None, None
+    with tempfile.TemporaryDirectory() as folder:
+        movie = simulate_movie(scene, seed=0, out=f"{folder}/m").files["movie"]
+        for w in workers:
+            found, seconds, cpu = _timed(
+                lambda w=w: localize_frames(
+                    movie, model, s0=130.0, out=f"{folder}/w{w}", workers=w, progress=False
+                )
+            )
+            locs = found.locs.drop(columns="seconds")
+            first, alone = (locs, cpu) if first is None else (first, alone)
+            rows.append(
+                {
+                    "how": "one process" if w == 1 else "local worker processes",
+                    "workers": w,
+                    "frames": frames,
+                    "windows": len(locs),
+                    "seconds": seconds,
+                    "windows/s": len(locs) / seconds,
+                    "same table as one process": np.nan if w == 1 else locs.equals(first),
+                    "calling process CPU / one process's": cpu / alone,
+                }
+            )
+    table = pd.DataFrame(rows)
+    table["speed-up vs one process"] = table["windows/s"] / table["windows/s"].iloc[0]
+    table["per worker"] = table["speed-up vs one process"] / table["workers"]
+    return table
+
+
 def main(argv=None):
     import argparse
 
@@ -158,6 +204,12 @@ def main(argv=None):
     )
     parser.add_argument("--no-dask", action="store_true", help="local processes only")
     parser.add_argument(
+        "--frames",
+        type=int,
+        default=200,
+        help="frames of the per-frame movie, 256 x 256 pixels (default 200; 0: none)",
+    )
+    parser.add_argument(
         "--publish", action="store_true", help="write the table into README.md with --workers"
     )
     args = parser.parse_args(argv)
@@ -168,21 +220,31 @@ def main(argv=None):
         parser.error(f"--rois: a whole number >= 1, got {args.rois}")
     if args.dataset < 0:
         parser.error(f"--dataset: a whole number >= 0 (0: no dataset run), got {args.dataset}")
+    if args.frames < 0:
+        parser.error(f"--frames: a whole number >= 0 (0: no movie), got {args.frames}")
     # enough ROIs that starting the workers counts little and every worker gets many chunks
     rois = 2000 * workers[-1] if args.rois is None else args.rois
     n, dataset = (16, min(32, args.dataset)) if args.quick else (rois, args.dataset)
     table = parallel(n, dataset, workers, dask=not args.no_dask)
     intro = '`sample_many` (default `method="auto"`, emccd-typical, N = 1000):'
+    text = f"{intro}\n\n{table.to_markdown(index=False, floatfmt='.3g')}\n\n"
+    movie = None
+    if args.frames:
+        frames = 2 if args.quick else args.frames
+        movie = per_frame(frames, workers, **(dict(side=64, molecules=3) if args.quick else {}))
+        text += (
+            f'`bayespsf analyze --per-frame` (`localize_frames`, `method="auto"`) on '
+            f"{frames} simulated emccd-typical frames of {64 if args.quick else 256} x "
+            f"{64 if args.quick else 256} pixels:\n\n"
+            f"{movie.to_markdown(index=False, floatfmt='.3g')}\n\n"
+        )
     flags = [] if argv is None else list(argv)
     flags = sys.argv[1:] if argv is None else flags
     command = " ".join(["python benchmarks/parallel.py", *flags])
-    text = (
-        f"{intro}\n\n{table.to_markdown(index=False, floatfmt='.3g')}\n\n"
-        f"Command: `{command}` on {machine()}."
-    )
-    default = args.workers == "1,2" and not args.no_dask
+    text += f"Command: `{command}` on {machine()}."
+    default = args.workers == "1,2" and not args.no_dask and args.frames == 200
     publish("parallel", text, args.quick or not (default or args.publish))
-    return table
+    return table, movie
 
 
 if __name__ == "__main__":

@@ -5,23 +5,28 @@ projection, the traces and the paper's selection rules (which need a trace) do n
 ``localize_frames``, the library side of ``bayespsf detect --per-frame`` and ``bayespsf analyze
 --per-frame``, runs instead:
 
-1. detection on every frame (``bayespsf.movie.iter_detect_frames``: the matched filter with
-   each frame's local background, its threshold from the camera law's exact tail for one
-   frame; the cut is the fitted window, so a candidate whose window crosses the frame's edge,
-   or that has a neighbour as ``detect`` defines one, is rejected);
+1. detection on every frame (``bayespsf.movie.detect_frame``: the matched filter with each
+   frame's local background, its threshold from the camera law's exact tail for one frame;
+   the cut is the fitted window, so a candidate whose window crosses the frame's edge, or
+   that has a neighbour as ``detect`` defines one, is rejected);
 2. the ``fit`` x ``fit`` window of each accepted candidate, cut from its own frame;
 3. per window the MLE with its Cramér-Rao bound (``fit_mle``) and, with ``posterior``, the
    paper's least squares and the posterior (``sample_many``, with its goodness-of-fit test),
-   in chunks of ``CHUNK`` windows, so that memory holds one chunk of windows and the tables;
+   in chunks of ``frame_tasks.CHUNK`` (512) windows in detection order;
 4. the files: ``candidates.csv`` (every frame's candidates), ``locs.hdf5`` + ``locs.yaml``
    (picasso), ``locs.csv`` (ThunderSTORM), ``locs.parquet`` (every column), one row per
    localisation, and ``report.md``.
 
+Steps 1 to 3 run as tasks on the workers (``bayespsf.analysis.frame_tasks``): blocks of frames
+to detect and chunks of windows to localise, later frames detected while earlier chunks are
+localised; this process reads the frames and folds the windows into chunks, and memory holds a
+few blocks and chunks whatever the movie's length.
+
 Seeds: window ``j`` of chunk ``k`` is sampled with ``molecule_seed(molecule_seed(seed, k), j)``
-(``sample_many``'s rule within a chunk whose seed is the chunk's), and chunks hold ``CHUNK``
-windows in detection order, so results depend on the seed and the movie only, not on the
-workers. The store of chunk ``k`` is ``OUT/posteriors/chunk-0000k``: a rerun of the same run
-continues.
+(``sample_many``'s rule within a chunk whose seed is the chunk's), and each chunk is sampled
+in one process, so results depend on the seed and the movie only, not on the workers (to the
+last bit). The store of chunk ``k`` is ``OUT/posteriors/chunk-0000k``: a rerun of the same
+run continues.
 """
 
 from __future__ import annotations
@@ -35,26 +40,25 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from bayespsf.analysis.localizations import PLACE_COLUMNS, localizations, locs_info
-from bayespsf.analysis.pipeline import _check_sampler, _estimates
+from bayespsf._runtime import progress_bar
+from bayespsf.analysis.frame_tasks import CHUNK, ChunkWork, block_frames, block_spots, run_frames
+from bayespsf.analysis.localizations import localizations, locs_info
+from bayespsf.analysis.pipeline import _check_sampler
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.gof import check_discrepancy
 from bayespsf.inference.summary import concat_tables
 from bayespsf.io import write_locs
 from bayespsf.io.run_record import check_folder, claim_folder, read_copies
 from bayespsf.model import Model
-from bayespsf.movie import Movie, geometry_for_psf
-from bayespsf.movie.detect import iter_detect_frames
+from bayespsf.movie import Movie, frame_settings, geometry_for_psf
 from bayespsf.movie.extract import check_sizes, frame_span, open_movie
 from bayespsf.movie.pipeline import selection_run
 from bayespsf.movie.psf_width import PsfWidth, resolve_psf_sd
-from bayespsf.parallel import molecule_seed, sample_many
+from bayespsf.parallel import task_runner
 
 if TYPE_CHECKING:
     from distributed import Client
 
-#: Windows sampled per ``sample_many`` call (fixed: the seeds depend on it).
-CHUNK = 4096
 #: What ``localize_frames`` writes with ``posterior`` (and ``run.json``, the copies).
 PER_FRAME_FILES = (
     *("candidates.csv", "locs.hdf5", "locs.yaml", "locs.csv", "locs.parquet", "report.md"),
@@ -128,17 +132,15 @@ def frame_spots(
     movie = open_movie(movie)
     check_sizes(fit, fit, names=("fit", "fit"))
     span = frame_span(movie, frames)
-    options = dict(psf_sd=psf_sd, camera=model, frames=span, block=block)
-    tables = iter_detect_frames(movie, **options, roi=fit, fit=fit, false_positives=false_positives)
-    half = fit // 2
-    for _, data in movie.blocks(block, span.start, span.stop):
-        for frame in data:
-            table = next(tables)
-            accepted = table[table["status"] == "accepted"]
-            windows = np.empty((len(accepted), fit, fit))
-            for i, (r, c) in enumerate(zip(accepted["row"], accepted["col"], strict=True)):
-                windows[i] = frame[r - half : r + half + 1, c - half : c + half + 1]
-            yield table, windows
+    settings = _detection(movie, model, psf_sd, fit, false_positives)
+    for first, data in movie.blocks(block, span.start, span.stop):
+        yield from block_spots(first, data, settings)
+
+
+def _detection(movie, model, psf_sd, fit, false_positives) -> dict:
+    """``block_spots``' settings for ``movie``: ``detect_frame``'s keywords and ``fit``."""
+    options = dict(roi=fit, fit=fit, false_positives=false_positives)
+    return frame_settings(movie, psf_sd=psf_sd, camera=model, **options)
 
 
 def localize_frames(
@@ -186,9 +188,15 @@ def localize_frames(
     posterior : bool, default True
         Also sample each window's posterior (``bayespsf analyze --per-frame``); False: the MLE
         and its Cramér-Rao bound only (``bayespsf detect --per-frame``).
-    method, backend, ess, max_seconds, seed, workers, executor, progress, gof_discrepancy
-        As ``analyze`` (the posterior's sampler and where it runs; seeds as the module
-        docstring says).
+    method, backend, ess, max_seconds, seed, gof_discrepancy
+        As ``analyze`` (the posterior's sampler; seeds as the module docstring says).
+    workers, executor
+        Where detection, the fits and the posteriors run, as ``analyze``: local worker
+        processes (default one per core; 1: this process) or a Dask cluster. With
+        ``backend="jax"`` the posteriors run here, on the device, the workers detect and
+        take the ROIs left to the chain.
+    progress : bool, optional
+        A bar of the windows localised (default: when stderr is a terminal).
     provenance : dict, optional
         What made the run, recorded in ``locs.yaml`` and the report.
     force : bool, default False
@@ -243,6 +251,7 @@ def localize_frames(
     run = selection_run(movie, model, s0=s0, roi=fit, fit=fit, false_positives=false_positives)
     run = {k: v for k, v in run.items() if k not in ("roi", "geometry", "projection", "rules")}
     run.update(command="analyze" if posterior else "detect", **{"per frame": True})
+    run["windows per chunk"] = CHUNK  # the seeds and stores depend on it
     budget = {}  # the chain's budget (sample_many's max_seconds), where given
     if posterior:
         budget = _check_sampler(method, ess, seed, max_seconds)
@@ -267,26 +276,21 @@ def localize_frames(
         provenance["goodness-of-fit discrepancy"] = gof_discrepancy
     paths = claim_folder(out, run, files, force=force, copies=copied, about=about)
     fitting = model.for_roi(fit)
-    sampler = dict(method=method, backend=backend, check=gof_discrepancy, progress=progress)
-    sampler.update(workers=workers, executor=executor, **({} if ess is None else {"ess": ess}))
-    sampler.update(budget)
-    candidates, rows = [], []
-    pending: list[tuple[pd.DataFrame, np.ndarray]] = []
-    spots = frame_spots(movie, fitting, psf_sd=width.sd, fit=fit, false_positives=false_positives)
-    first = waiting = 0  # the next frame's first candidate number; windows pending
-    for table, windows in spots:
-        table["molecule"] = np.arange(first, first + len(table))
-        first += len(table)
-        candidates.append(table)
-        place = table.loc[table["status"] == "accepted", list(PLACE_COLUMNS)]
-        pending.append((place.reset_index(drop=True), windows))
-        waiting += len(windows)
-        while waiting >= CHUNK:
-            chunk, pending = _split(pending, CHUNK)
-            rows.append(_localize(chunk, fitting, len(rows), seed, posterior, out, sampler))
-            waiting -= CHUNK
-    if waiting:
-        rows.append(_localize(pending, fitting, len(rows), seed, posterior, out, sampler))
+    sampler = dict(method=method, backend=backend, check=gof_discrepancy, progress=False)
+    sampler.update(budget, **({} if ess is None else {"ess": ess}))
+    frames = movie.blocks(block_frames(movie.shape[1:]), 0, len(movie))
+    settings = _detection(movie, fitting, width.sd, fit, false_positives)
+    device = posterior and backend == "jax"  # its chunks here, beside the device
+    with (
+        task_runner(executor, workers) as runner,
+        progress_bar(None, progress, unit="window") as bar,
+    ):
+        # a worker's chunk runs in it alone; the device's chunks send their chains to the workers
+        sampler.update(executor=runner) if device and runner else sampler.update(workers=1)
+        work = ChunkWork(fitting, seed, posterior, out, sampler)
+        candidates, rows = run_frames(
+            frames, settings, work, runner, chunks_here=device, done=bar.update
+        )
     candidates = pd.concat(candidates, ignore_index=True)
     paths["candidates.csv"] = out / "candidates.csv"
     candidates.to_csv(paths["candidates.csv"], index=False)
@@ -306,35 +310,6 @@ def localize_frames(
     paths["report.md"] = out / "report.md"
     paths["report.md"].write_text(_report(result, len(movie), posterior, provenance))
     return result
-
-
-def _split(pending, size):
-    """The first ``size`` windows of ``pending`` (a list of (place, windows)) and the rest."""
-    taken, rest, need = [], [], size
-    for place, windows in pending:
-        if need <= 0:
-            rest.append((place, windows))
-        elif len(windows) <= need:
-            taken.append((place, windows))
-            need -= len(windows)
-        else:
-            taken.append((place.iloc[:need].reset_index(drop=True), windows[:need]))
-            rest.append((place.iloc[need:].reset_index(drop=True), windows[need:]))
-            need = 0
-    return taken, rest
-
-
-def _localize(chunk, fitting, k, seed, posterior, out, sampler) -> pd.DataFrame:
-    """One chunk's rows: place, MLE + CRLB and, with ``posterior``, the posterior summary and
-    the least squares (chunk ``k``: its seed and store as the module docstring says)."""
-    place = pd.concat([p for p, _ in chunk], ignore_index=True)
-    counts = np.concatenate([w for _, w in chunk])
-    parts = [place, _estimates(counts, fitting, lsq=posterior)]
-    if posterior:
-        store = out / "posteriors" / f"chunk-{k:05d}"
-        summary = sample_many(counts, fitting, seed=molecule_seed(seed, k), store=store, **sampler)
-        parts.insert(1, summary.drop(columns="molecule"))
-    return pd.concat(parts, axis=1)
 
 
 def _report(result: FrameLocalizations, frames: int, posterior: bool, provenance) -> str:

@@ -11,9 +11,15 @@ not stated, and ``geometry_for_psf`` sizes the ROI and its fitted centre from it
 camera's calibration from a movie is in ``bayespsf.calibration``.
 """
 
-from bayespsf.movie.detect import detect, detect_frames, detect_movie
+from bayespsf.movie.detect import detect, detect_movie
 from bayespsf.movie.extract import RoiStack, cut_rois, iter_rois
 from bayespsf.movie.found import FoundMolecules
+from bayespsf.movie.frame_detect import (
+    detect_frame,
+    detect_frames,
+    frame_settings,
+    iter_detect_frames,
+)
 from bayespsf.movie.geometry import geometry_for_psf
 from bayespsf.movie.pipeline import find_molecules
 from bayespsf.movie.project import project
@@ -32,11 +38,14 @@ __all__ = [
     "bleach_steps",
     "cut_rois",
     "detect",
+    "detect_frame",
     "detect_frames",
     "detect_movie",
     "estimate_psf_sd",
     "find_molecules",
+    "frame_settings",
     "geometry_for_psf",
+    "iter_detect_frames",
     "iter_rois",
     "molecules_over_time",
     "project",

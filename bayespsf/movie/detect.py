@@ -55,7 +55,6 @@ saturated) are refused with the numbers.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -98,10 +97,8 @@ __all__ = [
     "COLUMNS",
     "camera_noise_variance",
     "detect",
-    "detect_frames",
     "detect_movie",
     "estimate_noise_variance",
-    "iter_detect_frames",
 ]
 
 _NAMES = (
@@ -384,107 +381,18 @@ def detect_movie(
     averaged = len(span) if projection == "mean" or len(span) == 1 else None
     what = f"{movie.path}: the {projection} projection of frames {span.start}-{span.stop - 1}"
     mask = None if counts is None else counts > 0
-    table = _detect_photons(image, averaged, movie, psf_sd, pixel_size, camera, options, mask, what)
+    pixel_size = resolve_pixel_size(pixel_size, camera, movie)
+    table = _detect_photons(image, averaged, psf_sd, pixel_size, camera, options, mask, what)
     table.attrs["detection"].update(projection=projection, frames=[span.start, span.stop])
     return table
 
 
-def iter_detect_frames(
-    movie: Movie | str | Path,
-    *,
-    psf_sd: float,
-    pixel_size: float | None = None,
-    camera: Camera | Model | None = None,
-    frames: slice | range | None = None,
-    block: int = 16,
-    **options,
-) -> Iterator[pd.DataFrame]:
-    """``detect`` on each frame in turn, one table per frame.
-
-    Parameters
-    ----------
-    movie, psf_sd, pixel_size, camera, frames, **options
-        As ``detect_movie`` (without ``projection``).
-    block : int, default 16
-        Frames read at a time.
-
-    Yields
-    ------
-    pandas.DataFrame
-        One frame's candidates: a ``frame`` column first, then ``detect``'s ``COLUMNS``
-        (``molecule`` numbers the rows of that frame).
-
-    See Also
-    --------
-    detect_frames : the same, concatenated into one table.
-    """
-    movie = open_movie(movie)
-    span = frame_span(movie, frames)
-    level = saturation_level(movie.dtype, camera)
-    for first, data in movie.blocks(block, span.start, span.stop):
-        for i, frame in enumerate(data):
-            mask = None if level is None else frame >= level
-            what = f"{movie.path}: frame {first + i}"
-            table = _detect_photons(
-                frame, 1, movie, psf_sd, pixel_size, camera, options, mask, what
-            )
-            table.insert(0, "frame", first + i)
-            yield table
-
-
-def detect_frames(movie: Movie | str | Path, **options) -> pd.DataFrame:
-    """Candidates frame by frame (blinking data): ``detect`` on every frame.
-
-    Parameters
-    ----------
-    movie : Movie or path
-        From ``read_movie`` (or a path it opens); counts in ADU.
-    **options
-        Keywords as ``detect_movie`` (``psf_sd`` required; ``pixel_size``, ``camera``,
-        ``frames`` and ``detect``'s options), without ``projection``, plus ``block`` (frames
-        read at a time, default 16).
-
-    Returns
-    -------
-    pandas.DataFrame
-        One table with a ``frame`` column before ``detect``'s ``COLUMNS``; ``molecule``
-        numbers the rows of the whole table. ``attrs["detection"]`` holds the first frame's
-        settings, the median ``noise_var`` over frames, the number of ``frames`` and the
-        counts by status.
-
-    Raises
-    ------
-    BayespsfInputError
-        As ``detect_movie``.
-
-    See Also
-    --------
-    iter_detect_frames : yields the per-frame tables instead.
-    detect_movie : on a temporal projection (immobile molecules).
-
-    Notes
-    -----
-    Memory: one block of frames and the table. With a camera, each frame's noise is the
-    camera law's at its background (one frame).
-    """
-    tables = list(iter_detect_frames(movie, **options))
-    settings = [t.attrs["detection"] for t in tables]
-    table = pd.concat([t for t in tables if len(t)] or tables[:1], ignore_index=True)
-    table["molecule"] = np.arange(len(table))
-    table.attrs["detection"] = settings[0] | {
-        "noise_var": float(np.median([s["noise_var"] for s in settings])),  # over frames
-        "frames": len(tables),
-        "counts": {s: int(np.count_nonzero(table["status"] == s)) for s in STATUSES},
-    }
-    return table
-
-
-def _detect_photons(image, frames, movie, psf_sd, pixel_size, camera, options, saturated, what):
-    """``detect`` on a frame or projection (``what``) in ADU: checked against the camera
-    (``check_signal``, ``check_offset``), converted with ``camera`` (if any), the noise from
-    the camera law over ``frames`` frames and the threshold from its exact tail (if a camera,
-    a mean or one frame, and no noise_var)."""
-    pixel_size = resolve_pixel_size(pixel_size, camera, movie)
+def _detect_photons(image, frames, psf_sd, pixel_size, camera, options, saturated, what):
+    """``detect`` on a frame or projection (``what``) in ADU, ``pixel_size`` resolved
+    (``resolve_pixel_size``): checked against the camera (``check_signal``, ``check_offset``),
+    converted with ``camera`` (if any), the noise from the camera law over ``frames`` frames
+    and the threshold from its exact tail (if a camera, a mean or one frame, and no
+    noise_var)."""
     options = {"noise_var": None, "background": None} | options
     law = None
     if camera is not None:

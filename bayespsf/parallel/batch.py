@@ -42,7 +42,7 @@ from bayespsf.inference.backends import check_backend
 from bayespsf.inference.summary import concat_tables, draws_rows, molecule_row
 from bayespsf.model import Model
 from bayespsf.parallel.device import device_posteriors
-from bayespsf.parallel.executors import _parallelism, run_tasks, task_runner
+from bayespsf.parallel.executors import parallelism, run_tasks, task_runner
 from bayespsf.parallel.seeds import molecule_seed, molecule_seeds
 from bayespsf.parallel.store import Store
 from bayespsf.scene import Scene
@@ -344,7 +344,7 @@ def sample_many(
                 todo = sorted(verdicts)
                 options = {**options, "method": "mcmc"}
             elif settings.method != "mcmc":  # the batched methods; the chain where they fail
-                parts = chunk_count(len(todo), _parallelism(runner), settings.ess)
+                parts = chunk_count(len(todo), parallelism(runner), settings.ess)
                 chunks = (
                     (
                         chunk,

@@ -22,11 +22,26 @@ if TYPE_CHECKING:
 SCHEDULER_TIMEOUT = 10.0  # seconds to reach a Dask scheduler before the address is called wrong
 
 
-def _parallelism(runner) -> int:
-    """The number of tasks ``runner`` runs at once (1 in this process). Neither
-    ``concurrent.futures``' pools nor Dask's ``ClientExecutor`` expose it publicly, so their
-    private ``_max_workers`` and ``_client`` are read where present, and the machine's core
-    count stands in where not: it sizes the chunks, never the results."""
+def parallelism(runner: cf.Executor | None) -> int:
+    """How many tasks ``runner`` runs at once.
+
+    Parameters
+    ----------
+    runner : concurrent.futures.Executor or None
+        From ``task_runner``.
+
+    Returns
+    -------
+    int
+        1 in this process (None); a Dask executor's worker count; a pool's size.
+
+    Notes
+    -----
+    Neither ``concurrent.futures``' pools nor Dask's ``ClientExecutor`` expose it publicly,
+    so their private ``_max_workers`` and ``_client`` are read where present, and the
+    machine's core count stands in where not: it sizes the chunks and how many tasks are
+    kept waiting, never the results.
+    """
     if runner is None:
         return 1
     client = getattr(runner, "client", None) or getattr(runner, "_client", None)
@@ -218,6 +233,7 @@ def run_tasks[T, R](
 __all__ = [
     "SCHEDULER_TIMEOUT",
     "local_executor",
+    "parallelism",
     "run_tasks",
     "task_runner",
 ]

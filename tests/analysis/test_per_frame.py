@@ -3,6 +3,7 @@ spot of every frame found and localised in its own frame, with error bars that h
 simulation's truth."""
 
 import json
+import os
 
 import numpy as np
 import pandas as pd
@@ -188,3 +189,76 @@ def test_a_bad_window_is_named_as_the_fit(movie):
     for fit in (4, None, 7.0):
         with pytest.raises(BayespsfInputError, match=r"^fit must be an odd number of pixels"):
             next(iter(frame_spots(path, model.for_roi(15), psf_sd=120.0, fit=fit)))
+
+
+def test_workers_and_the_order_tasks_finish_in_change_no_result(movie, tmp_path, monkeypatch):
+    """Chunks of 7 windows (48 windows: 7 chunks, split inside frames) and blocks of 3 frames:
+    one process, 3 threads on which the first block finishes last, and 2 worker processes give
+    the same tables and stores to the last bit (only the timings differ)."""
+    import concurrent.futures as cf
+    import time
+
+    from bayespsf.analysis import frame_tasks, per_frame
+    from bayespsf.parallel import local_executor
+
+    path, _, model, _ = movie
+    monkeypatch.setattr(frame_tasks, "CHUNK", 7)
+    monkeypatch.setattr(per_frame, "block_frames", lambda shape: 3)
+    options = dict(s0=120.0, method="laplace", gof_discrepancy="pearson")
+
+    def run(name, **where):
+        found = localize_frames(path, model, out=tmp_path / name, **options, **where)
+        stores = sorted(p.name for p in (tmp_path / name / "posteriors").iterdir())
+        return found, stores
+
+    alone, stores = run("alone", workers=1)
+    assert len(alone.locs) == 48 and stores == [f"chunk-{k:05d}" for k in range(7)]
+    finished = []
+    detect = frame_tasks.block_spots
+
+    def first_block_last(first, frames, settings):
+        time.sleep(0.5 if first == 0 else 0.0)
+        finished.append(first)
+        return detect(first, frames, settings)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(frame_tasks, "block_spots", first_block_last)
+        with cf.ThreadPoolExecutor(3) as threads:
+            late = run("threads", executor=threads)
+    assert finished[-1] == 0 and sorted(finished) == [0, 3, 6]
+    with local_executor(2) as pool:
+        processes = run("processes", executor=pool)
+    for found, folders in (late, processes):
+        assert folders == stores
+        pd.testing.assert_frame_equal(found.candidates, alone.candidates)
+        pd.testing.assert_frame_equal(
+            found.locs.drop(columns="seconds"), alone.locs.drop(columns="seconds")
+        )
+
+
+def test_the_device_localises_the_chunks_while_workers_detect(movie, tmp_path, monkeypatch):
+    """``backend="jax"``: the chunks run in this process (where the device is), the blocks of
+    frames on the workers; the tables do not depend on the workers."""
+    pytest.importorskip("jax")
+    from bayespsf.analysis import frame_tasks, per_frame
+    from bayespsf.parallel import local_executor
+
+    path, _, model, _ = movie
+    monkeypatch.setattr(frame_tasks, "CHUNK", 20)
+    monkeypatch.setattr(per_frame, "block_frames", lambda shape: 2)
+    options = dict(s0=120.0, method="laplace", backend="jax", gof_discrepancy="pearson")
+    alone = localize_frames(path, model, out=tmp_path / "a", workers=1, **options)
+    localized, localize = [], frame_tasks.localize_chunk
+
+    def here(*args):  # a local function: a worker could not even unpickle it
+        localized.append(os.getpid())
+        return localize(*args)
+
+    monkeypatch.setattr(frame_tasks, "localize_chunk", here)
+    with local_executor(2) as pool:
+        pooled = localize_frames(path, model, out=tmp_path / "p", executor=pool, **options)
+    assert localized == [os.getpid()] * 3  # 48 windows: chunks of 20, 20 and 8
+    assert len(alone.locs) == 48 and (alone.locs["method"] == "laplace").all()
+    pd.testing.assert_frame_equal(
+        pooled.locs.drop(columns="seconds"), alone.locs.drop(columns="seconds")
+    )

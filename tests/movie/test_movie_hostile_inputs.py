@@ -284,7 +284,7 @@ def test_single_emccd_frames_at_low_background_keep_the_stated_rate(tmp_path):
         expected = frames * rate
         assert len(table) <= expected + 3 * np.sqrt(expected) + 1, (rate, len(table))
         if rate == 1.0:
-            from bayespsf.movie.detect import iter_detect_frames
+            from bayespsf.movie import iter_detect_frames
 
             above = np.array(
                 [

@@ -198,10 +198,15 @@ def test_auto_choice_benchmark_quick():
 def test_parallel_benchmark_quick():
     # one process, two workers, a Dask LocalCluster (with Dask's worker environment, then with
     # its malloc trim threshold unset) and a small dataset: all finish, and two workers and
-    # both clusters give the one process's posteriors (rows do not depend on the workers)
+    # both clusters give the one process's posteriors (rows do not depend on the workers); the
+    # per-frame movie on one process and on two workers gives one table
     import parallel
 
-    table = parallel.main(["--quick"])
+    table, movie = parallel.main(["--quick"])
+    assert movie["workers"].tolist() == [1, 2] and (movie["windows"] > 0).all()
+    assert movie["same table as one process"].iloc[1] == True  # noqa: E712 (a numpy bool)
+    share = movie["calling process CPU / one process's"]
+    assert share.iloc[0] == 1.0 and 0.0 < share.iloc[1] < 1.0
     assert len(table) == 5 and np.all(table["ROIs/s"] > 0)
     assert table["how"].str.contains("malloc trim unset").sum() == 1
     assert table["same posteriors as one process"].iloc[1:4].tolist() == [True, True, True]
@@ -209,11 +214,14 @@ def test_parallel_benchmark_quick():
     cpu = table["calling process CPU per ROI (µs)"]
     assert np.all(np.isfinite(cpu) & (cpu > 0)), cpu
     # a list of workers: one row per local run and per Dask run, the dataset on the most
-    table = parallel.main(["--quick", "--workers", "3,1", "--no-dask", "--dataset", "0"])
+    table, movie = parallel.main(
+        ["--quick", "--workers", "3,1", "--no-dask", "--dataset", "0", "--frames", "0"]
+    )
+    assert movie is None
     assert table["workers"].tolist() == [1, 3]
     assert table["same posteriors as one process"].iloc[1:].tolist() == [True]
     # no ROIs, or a negative dataset, is refused by name before any run
-    for flags in (["--rois", "0"], ["--dataset", "-5"]):
+    for flags in (["--rois", "0"], ["--dataset", "-5"], ["--frames", "-1"]):
         with pytest.raises(SystemExit):
             parallel.main(flags)
 
