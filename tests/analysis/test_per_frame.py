@@ -193,8 +193,9 @@ def test_a_bad_window_is_named_as_the_fit(movie):
 
 def test_workers_and_the_order_tasks_finish_in_change_no_result(movie, tmp_path, monkeypatch):
     """Chunks of 7 windows (48 windows: 7 chunks, split inside frames) and blocks of 3 frames:
-    one process, 3 threads on which the first block finishes last, and 2 worker processes give
-    the same tables and stores to the last bit (only the timings differ)."""
+    one process, 3 threads on which the first block finishes last, 2 worker processes and a
+    Dask cluster of 2 give the same tables and stores to the last bit (only the timings
+    differ)."""
     import concurrent.futures as cf
     import time
 
@@ -228,7 +229,15 @@ def test_workers_and_the_order_tasks_finish_in_change_no_result(movie, tmp_path,
     assert finished[-1] == 0 and sorted(finished) == [0, 3, 6]
     with local_executor(2) as pool:
         processes = run("processes", executor=pool)
-    for found, folders in (late, processes):
+    distributed = pytest.importorskip("distributed")  # a dependency: installed by pyproject
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, dashboard_address=None, processes=True
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        dask = run("dask", executor=client)
+    for found, folders in (late, processes, dask):
         assert folders == stores
         pd.testing.assert_frame_equal(found.candidates, alone.candidates)
         pd.testing.assert_frame_equal(
