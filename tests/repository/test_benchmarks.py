@@ -78,6 +78,21 @@ def test_hot_path_benchmark_quick():
     assert np.all(psis["Pareto k-hat"] <= 0.7) and np.all(psis["ESS"] >= 400)
 
 
+def test_localize_benchmark_quick():
+    # picasso's localize and bayespsf's per-frame commands on one small movie (3 frames, 3
+    # molecules at 1 000 photons: every spot far above any threshold): each finds the 9 spots
+    # and nothing else, and each error bar and error is scored against the truth
+    import localize
+
+    table = localize.main(["--quick"])
+    assert len(table) == 4 and table["method"].str.startswith("picasso").sum() == 2
+    assert (table["missed"] == 0).all() and (table["false"] == 0).all()
+    assert (table["localisations"] == 9).all()
+    assert np.all((table["RMS error (nm)"] > 0) & (table["median error bar (nm)"] > 0))
+    assert table["threshold"].iloc[:2].isin(localize.THRESHOLDS).all()
+    assert table["time / picasso gausslq"].iloc[0] == 1.0
+
+
 def test_throughput_benchmark_quick():
     # picasso's fitters and ours on the same ROIs; every method fits and is timed, and the
     # stack engine is unbiased in s_x within 4 standard errors (picasso's sampled-Gaussian LM
