@@ -71,13 +71,16 @@ def picasso(path: Path, scene, method: str, net_gradient: float) -> pd.DataFrame
         camera = scene.to_dict()["camera"]
         info = {"Baseline": camera["offset"], "Sensitivity": camera["e_per_adu"]}
         info |= {"Gain": camera["gain"], "Qe": 1.0, "Pixelsize": scene.geometry["pixel_size"]}
-        locs, _ = localize.localize(
-            movie,
-            camera_info=info,
-            identification_parameters={"Min. Net Gradient": net_gradient, "Box Size": BOX},
-            fitting_method=method,
-            threaded=True,
-        )
+        try:
+            locs, _ = localize.localize(
+                movie,
+                camera_info=info,
+                identification_parameters={"Min. Net Gradient": net_gradient, "Box Size": BOX},
+                fitting_method=method,
+                threaded=True,
+            )
+        finally:
+            movie.close()  # its file stays open until then
     return locs[["frame", "x", "y", "lpx", "lpy"]]
 
 

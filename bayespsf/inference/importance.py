@@ -110,6 +110,58 @@ class GaussianProposal:
         return self.centre + u @ self.cholesky.T, -0.5 * np.sum(u * u, axis=1)
 
 
+class DefensiveMixture:
+    """A mixture of Student-t proposals (``IndependenceMove``) in fixed shares, as one
+    importance proposal: each draw comes from one part, its density is the mixture's.
+
+    With a part that covers the posterior's bulk (the Laplace Student-t) the importance
+    ratio stays below ``1 / share`` of that part's own wherever it is bounded, whatever the
+    other parts do (defensive importance sampling: Hesterberg, Technometrics 37 (1995)); the
+    other part is fitted to weighted draws of the posterior (``fitted_t``), which follows a
+    shifted or skewed posterior the Laplace misses (adaptive importance sampling: Cornuet,
+    Marin, Mira & Robert, Scand. J. Stat. 39 (2012)).
+    """
+
+    def __init__(self, parts, shares):
+        self.parts = list(parts)
+        shares = np.asarray(shares, dtype=np.float64)
+        self.shares = shares / shares.sum()
+        # each part's normalisation relative to the others: its Cholesky factor's determinant
+        # (same dimension and degrees of freedom, so the rest of the constant is shared)
+        self.log_weights = np.log(self.shares) - [
+            np.sum(np.log(np.diag(part.cholesky))) for part in self.parts
+        ]
+
+    def log_density(self, z) -> np.ndarray:
+        """Log mixture density up to a constant."""
+        pairs = zip(self.log_weights, self.parts, strict=True)
+        terms = [w + part.log_density(z) for w, part in pairs]
+        return np.logaddexp.reduce(terms, axis=0)
+
+    def draw(self, n: int, random) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` draws (a NumPy RandomState's stream: the parts' counts, then each part's
+        draws in turn) and their log mixture density."""
+        counts = random.multinomial(n, self.shares)
+        z = np.concatenate(
+            [part.draw(int(k), random)[0] for part, k in zip(self.parts, counts, strict=True) if k]
+        )
+        return z, self.log_density(z)
+
+
+def fitted_t(draws: np.ndarray, weights: np.ndarray) -> IndependenceMove:
+    """The Student-t proposal with the weighted mean and covariance of ``draws`` (k, 6)
+    under normalised ``weights`` (k,).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        Where that covariance is not positive definite (too few draws carry the weight).
+    """
+    mean = weights @ draws
+    centred = draws - mean
+    return IndependenceMove(mean, (weights[:, None] * centred).T @ centred)
+
+
 class ImportanceRun:
     """One ROI's importance sampling, batch by batch: ``propose()`` gives the next batch's
     draws (sampling coordinates), ``take(log_posterior)`` scores them; ``done`` once the
@@ -197,10 +249,12 @@ def systematic_resample(weights: np.ndarray, n: int, rng) -> np.ndarray:
 
 __all__ = [
     "KHAT_MAX",
+    "DefensiveMixture",
     "GaussianProposal",
     "ImportanceRun",
     "IndependenceMove",
     "first_batch",
+    "fitted_t",
     "psis",
     "systematic_resample",
 ]
