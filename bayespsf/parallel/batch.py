@@ -88,6 +88,8 @@ def _sample_one(task):
     except BayespsfInputError as error:  # e.g. a ROI outside the likelihood tier's support
         row = _outcome_row(index, seed, "failed", str(error))  # and why the chain was tried
         return index, None, row | ({"why": verdict["why"]} if "why" in verdict else {})
+    if options.get("method") == "importance" and "why" in verdict:  # the device left it
+        verdict["why"] = f"{verdict['why']}; on the host: {post.info['why']}"
     info = dict(post.info, **verdict, seconds=time.perf_counter() - started)  # the posterior's
     if check and checked is None:
         checked = _model_checks(counts[None], model, [seed], check)[0]
@@ -342,7 +344,10 @@ def sample_many(
                 )
                 bar.update(len(made))
                 todo = sorted(verdicts)
-                options = {**options, "method": "mcmc"}
+                # importance sampling, then where it fails the chain, here: the host's runs
+                # from a t fitted to the Student-t's draws, which the device has not
+                host = "mcmc" if settings.method == "laplace" else "importance"
+                options = {**options, "method": host}
             elif settings.method != "mcmc":  # the batched methods; the chain where they fail
                 parts = chunk_count(len(todo), parallelism(runner), settings.ess)
                 chunks = (

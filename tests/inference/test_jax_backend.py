@@ -391,3 +391,20 @@ def test_a_roi_whose_student_t_draws_the_prior_cuts_gets_more_rounds_not_the_cha
     assert (table["method"] == "importance").all(), table["why"].tolist()
     scored = table["why"].str.extract(r"ESS \d+ of (\d+) draws")[0].astype(int)
     assert (scored > 2080).all(), table["why"].tolist()  # beyond the third round
+
+
+def test_a_roi_the_device_leaves_is_importance_sampled_on_the_host_before_the_chain():
+    # N = 250: ROI 12 of this stack fails the device's Student-t rounds (k-hat 0.84). The host
+    # samples it by the NumPy engine's importance path (the Student-t judged afresh, then the
+    # fitted mixture's rounds) before any chain: its row says both, and it is a posterior
+    scene = load_scene("emccd-typical").replace(emitter={"photons": 250.0})
+    counts, _ = simulate(scene, 40, seed=12)
+    model = Model.from_scene(scene)
+    table = sample_many(counts, model, seed=2, workers=1, backend="jax", method="importance")
+    host = table["why"].str.contains("; on the host: ")
+    assert np.flatnonzero(host).tolist() == [12]
+    row = table.loc[12]
+    assert "Student-t failed" in row["why"].split("; on the host: ")[0]
+    assert row["method"] == "importance"
+    assert row["status"] == "converged" and row["s_x_ess"] >= 400
+    assert (table["method"] == "importance").all()
