@@ -285,8 +285,10 @@ def localize_frames(
         task_runner(executor, workers) as runner,
         progress_bar(None, progress, unit="window") as bar,
     ):
-        # a worker's chunk runs in it alone; the device's chunks send their chains to the workers
-        sampler.update(executor=runner) if device and runner else sampler.update(workers=1)
+        if device and runner is not None:  # the device's chunks send their chains there
+            sampler["executor"] = runner
+        else:  # a worker's chunk runs in it alone
+            sampler["workers"] = 1
         work = ChunkWork(fitting, seed, posterior, out, sampler)
         candidates, rows = run_frames(
             frames, settings, work, runner, chunks_here=device, done=bar.update
