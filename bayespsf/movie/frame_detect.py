@@ -29,7 +29,7 @@ __all__ = ["detect_frame", "detect_frames", "frame_settings", "iter_detect_frame
 
 
 def frame_settings(
-    movie: Movie,
+    movie: Movie | str | Path,
     *,
     psf_sd: float,
     pixel_size: float | None = None,
@@ -41,8 +41,8 @@ def frame_settings(
 
     Parameters
     ----------
-    movie : Movie
-        From ``read_movie``.
+    movie : Movie or path
+        From ``read_movie`` (or a path it opens).
     psf_sd, pixel_size, camera, **options
         As ``iter_detect_frames``.
 
@@ -56,8 +56,10 @@ def frame_settings(
     Raises
     ------
     BayespsfInputError
-        No pixel size from the arguments or the movie, or one outside 1 nm to 10 µm.
+        A movie that ``read_movie`` refuses; no pixel size from the arguments or the movie,
+        or one outside 1 nm to 10 µm.
     """
+    movie = open_movie(movie)
     return dict(
         psf_sd=psf_sd,
         pixel_size=resolve_pixel_size(pixel_size, camera, movie),

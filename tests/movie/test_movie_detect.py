@@ -12,7 +12,14 @@ from scipy import stats
 from bayespsf import psf, theory
 from bayespsf.cameras import EMCCD, Photon
 from bayespsf.errors import BayespsfInputError
-from bayespsf.movie import detect, detect_frames, detect_movie, read_movie
+from bayespsf.movie import (
+    detect,
+    detect_frame,
+    detect_frames,
+    detect_movie,
+    frame_settings,
+    read_movie,
+)
 from bayespsf.movie.detect import COLUMNS, camera_noise_variance, estimate_noise_variance
 
 A, S = 79.0, 120.0  # pixel size and PSF SD (nm), the paper's
@@ -226,6 +233,15 @@ def test_a_movie_is_detected_on_its_projection_and_frame_by_frame(tmp_path):
     assert 27 <= (per_frame["status"] == "accepted").sum() <= 31
     per_frame.to_csv(tmp_path / "d.csv", index=False)
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "d.csv"), per_frame, check_dtype=False)
+    # one frame already read, with the settings of the movie (given as its path): that frame's
+    # rows of the per-frame table, its candidates numbered within the frame
+    settings = frame_settings(tmp_path / "m.tif", psf_sd=S, pixel_size=A, camera=camera)
+    assert settings["source"] == str(tmp_path / "m.tif") and settings["pixel_size"] == A
+    one = detect_frame(movie.frames(4, 5)[0], 4, **settings)
+    expected = per_frame[per_frame["frame"] == 4].drop(columns="molecule")
+    pd.testing.assert_frame_equal(
+        one.drop(columns="molecule"), expected.reset_index(drop=True), check_like=False
+    )
 
 
 @pytest.mark.parametrize(
