@@ -17,7 +17,8 @@ bayespsf one worker per core), from the movie's file to the localisations in mem
   the least squares), window 13 (both from s0, as the command takes it from the camera file).
 
 Each localisation is matched to the nearest molecule that is on in its frame (within one
-pixel); reported are the seconds, localisations, missed and false ones, the RMS error of x and
+pixel); reported are the seconds, localisations, those without a position (a fit that did not
+converge: NaN, as picasso leaves such rows out), missed and false ones, the RMS error of x and
 y against the truth, the median error bar (picasso's ``lpx``, ``lpy``: the fit's Cramér-Rao
 bound or its least-squares error; bayespsf's: the posterior SD, or the bound after ``detect``)
 and how often the truth lies within 1.96 error bars (0.95 when the error bars are right; its
@@ -94,9 +95,10 @@ def bayespsf(path: Path, scene, posterior: bool, out: Path) -> pd.DataFrame:
 
 
 def score(locs: pd.DataFrame, truth: pd.DataFrame, pixel_size: float) -> dict:
-    """Each localisation matched to the nearest molecule on in its frame within one pixel:
-    missed and false ones, the RMS error (nm), the median error bar (nm), the share of errors
-    within 1.96 error bars and the SD of the errors over their error bars (x and y pooled)."""
+    """Each localisation with a position and error bar matched to the nearest molecule on in
+    its frame within one pixel: those without one (NaN: a fit that did not converge), missed
+    and false ones, the RMS error (nm), the median error bar (nm), the share of errors within
+    1.96 error bars and the SD of the errors over their error bars (x and y pooled)."""
     on = truth[truth["on"]]
     apart = 1e4  # frames this many pixels apart: no match across frames
     tree = cKDTree(np.column_stack([on["x"] + apart * on["frame"], on["y"]]))
@@ -120,8 +122,9 @@ def score(locs: pd.DataFrame, truth: pd.DataFrame, pixel_size: float) -> dict:
     inside = np.abs(error) <= 1.96 * bar
     return {
         "localisations": len(locs),
+        "without a position": len(locs) - len(finite),  # a fit that did not converge
         "missed": len(on) - len(keep),
-        "false": len(locs) - len(keep),
+        "false": len(finite) - len(keep),
         "RMS error (nm)": pixel_size * np.sqrt(np.mean(error**2)),
         "median error bar (nm)": pixel_size * np.median(bar),
         "within 1.96 error bars": inside.mean(),

@@ -87,6 +87,7 @@ def test_localize_benchmark_quick():
     table = localize.main(["--quick"])
     assert len(table) == 4 and table["method"].str.startswith("picasso").sum() == 2
     assert (table["missed"] == 0).all() and (table["false"] == 0).all()
+    assert (table["without a position"] == 0).all()
     assert (table["localisations"] == 9).all()
     assert np.all((table["RMS error (nm)"] > 0) & (table["median error bar (nm)"] > 0))
     assert table["threshold"].iloc[:2].isin(localize.THRESHOLDS).all()
