@@ -167,7 +167,10 @@ def fixed_pattern_variance(residual, keep, variance) -> float:
         if not kept.any():
             break
         ratio = float(np.mean(d2[kept] / scale[kept])) / KEPT_VARIANCE
-        extra = max(0.0, extra + (ratio - 1.0) * float(np.mean(scale[kept])) / 2.0)
+        step = max(0.0, extra + (ratio - 1.0) * float(np.mean(scale[kept])) / 2.0)
+        if step == extra:  # a fixed point (0 where the law explains the pixels)
+            break
+        extra = step
     return extra
 
 
@@ -214,57 +217,88 @@ class _Window:
 
     def __init__(self, shape: tuple[int, int], size: int, reach: int):
         parts = _window_parts(tuple(shape), size, reach)
-        self.axes, self.full, self.curved, self.variance = parts
+        self.axes, self.full, self.curved, self.variance, self.inverse = parts
         self.count = self.full[0, 0]
 
     def fit(self, image: np.ndarray, keep: np.ndarray, previous) -> np.ndarray:
         """The surfaces of the ``keep`` pixels at every pixel; ``previous`` (or the mean of
         the kept pixels where None) where a window keeps under ``_KEPT_SHARE`` of its pixels."""
         weight = keep.astype(np.float64)
-        if keep.all():  # the first fit: the unmasked windows' sums, computed once per shape
-            masked = self.full
-        else:
-            masked = _moments(self.axes, weight, 2 * DEGREE if self.curved else 0)
-        data = _moments(self.axes, weight * image, DEGREE if self.curved else 0)
+        degree = DEGREE if self.curved else 0
+        unmasked = keep.all()  # the first fit: the windows' sums and inverses kept per shape
+        masked = self.full if unmasked else _moments(self.axes, weight, 2 * degree)
+        data = _moments(self.axes, weight * image, degree)
         count = masked[0, 0]
         coef = np.zeros((*count.shape, len(_TERMS)))
         with np.errstate(divide="ignore", invalid="ignore"):
             coef[..., 0] = data[0, 0] / count
-        if self.curved:  # the quartic where its value is well determined, else the quadratic
-            gram = _normal_matrix(masked)
+        if self.curved:
             rhs = np.stack([data[a, b] for a, b in _TERMS], axis=-1)
-            todo = np.ones(count.shape, dtype=bool)
-            for terms, full in zip((len(_TERMS), _QUADRATIC), self.variance, strict=True):
-                found, variance = _solve(gram[todo][:, :terms, :terms], rhs[todo][:, :terms])
-                solve = np.zeros_like(todo)
-                solve[todo] = variance <= _WELL_DETERMINED * full[todo]
-                coef[solve, :terms] = found[solve[todo]]
-                todo &= ~solve
-                if not todo.any():
-                    break
+            if unmasked:  # every window's quartic is well determined
+                coef = np.einsum("...ij,...j->...i", self.inverse, rhs)
+            else:
+                _masked_fit(masked, rhs, self.variance, coef.reshape(-1, len(_TERMS)))
         coef[count < _KEPT_SHARE * self.count] = np.nan
-        (_, row_anchor, u), (_, col_anchor, v) = self.axes
-        back = np.zeros(image.shape)
-        for k, (a, b) in enumerate(_TERMS if self.curved else _TERMS[:1]):
-            term = np.take(np.take(coef[..., k], row_anchor, axis=0), col_anchor, axis=1)
-            term *= u[:, None] ** a
-            term *= v[None, :] ** b
-            back += term
+        back = _evaluate(coef, self.axes, degree)
         if previous is None:
             previous = np.full(image.shape, image[keep].mean() if keep.any() else image.mean())
         return np.where(np.isfinite(back), back, previous)
 
 
+def _masked_fit(masked: np.ndarray, rhs: np.ndarray, full, coef: np.ndarray) -> None:
+    """Each anchor's coefficients, written into ``coef`` (anchors, terms): the quartic where
+    its value is well determined (variance at most ``_WELL_DETERMINED`` times the unmasked
+    window's, ``full``), else the quadratic where it is, else left as they are (``fit``'s
+    constant)."""
+    gram = _normal_matrix(masked)
+    k = gram.shape[-1]
+    gram = gram.reshape(-1, k, k)
+    quadratic = gram[:, :_QUADRATIC, :_QUADRATIC].copy()  # before the quartic's ridge
+    rhs = rhs.reshape(-1, k)
+    todo = np.arange(len(gram))
+    for system, limit in zip((gram, quadratic), full, strict=True):
+        terms = system.shape[-1]
+        chosen = system if len(todo) == len(gram) else system[todo]
+        found, variance = _solve(chosen, rhs[todo, :terms])
+        solve = variance <= _WELL_DETERMINED * limit.ravel()[todo]
+        coef[todo[solve], :terms] = found[solve]
+        todo = todo[~solve]
+        if not todo.size:
+            break
+
+
+def _evaluate(coef: np.ndarray, axes, degree: int) -> np.ndarray:
+    """Each pixel's value of its nearest anchor's surface ``Σ coef[k] u^a v^b`` (``coef``:
+    anchors × anchors × terms of ``_TERMS``, those of degree up to ``degree``), summed in
+    columns first: for each power ``a`` of ``u``, the anchor rows' polynomials in ``v`` at
+    every column, then those rows taken to the pixels' rows and weighted by ``u^a``."""
+    (_, row_anchor, u), (_, col_anchor, v) = axes
+    back = np.zeros((row_anchor.size, col_anchor.size))
+    powers = v[None, :] ** np.arange(degree + 1)[:, None]  # (b, columns)
+    for a in range(degree + 1):
+        terms = [k for k, (p, _) in enumerate(_TERMS[: _count(degree)]) if p == a]
+        rows = np.einsum("rck,kc->rc", coef[:, col_anchor][..., terms], powers[: len(terms)])
+        back += rows[row_anchor] * (u[:, None] ** a)
+    return back
+
+
+def _count(degree: int) -> int:
+    """The number of terms of a surface of ``degree``."""
+    return (degree + 1) * (degree + 2) // 2
+
+
 def _moments(axes, values: np.ndarray, degree: int) -> np.ndarray:
     """``m[a, b]``: the sums of ``values u^a v^b`` over each anchor's window of ``axes``
     (``_axis``'s, rows then columns) for ``a + b <= degree`` (else 0), shape ``(degree + 1,
-    degree + 1, row anchors, column anchors)``."""
+    degree + 1, row anchors, column anchors)``: one sparse product for every power of ``u``,
+    then one for each with every power of ``v`` it takes."""
     (rows, _, _), (cols, _, _) = axes
-    out = np.zeros((degree + 1, degree + 1, rows[0].shape[0], cols[0].shape[0]))
+    n_rows, n_cols = rows[0].shape[0], cols[0].shape[0]
+    left = rows[degree] @ values  # (powers of u x row anchors, columns)
+    out = np.zeros((degree + 1, degree + 1, n_rows, n_cols))
     for a in range(degree + 1):
-        left = (rows[a] @ values).T  # (columns, row anchors)
-        for b in range(degree + 1 - a):
-            out[a, b] = (cols[b] @ left).T
+        both = cols[degree - a] @ left[a * n_rows : (a + 1) * n_rows].T
+        out[a, : degree + 1 - a] = both.reshape(-1, n_cols, n_rows).transpose(0, 2, 1)
     return out
 
 
@@ -278,17 +312,17 @@ def _window_parts(shape: tuple[int, int], size: int, reach: int):
     full = _moments(axes, np.ones(shape), 2 * DEGREE)
     spans = [int(powers[0].sum(axis=1).min()) for powers, _, _ in axes]
     curved = min(spans) >= 2 * reach  # else a constant: too narrow a window
+    if not curved:
+        return axes, full, curved, None, None
     gram = _normal_matrix(full)
-    variance = (
-        [_centre_variance(gram), _centre_variance(gram[..., :_QUADRATIC, :_QUADRATIC])]
-        if curved
-        else None
-    )
-    return axes, full, curved, variance
+    variance = [_centre_variance(gram), _centre_variance(gram[..., :_QUADRATIC, :_QUADRATIC])]
+    inverse = np.linalg.inv(_regularised(gram.reshape(-1, *gram.shape[-2:]))[0])
+    return axes, full, curved, variance, inverse.reshape(gram.shape)
 
 
 def _axis(length: int, size: int):
-    """``(powers, anchor, u)`` of one axis (see ``_Window``)."""
+    """``(powers, anchor, u)`` of one axis (see ``_Window``): ``powers[m]`` stacks the sparse
+    matrices of ``u**0`` to ``u**m`` (anchors × pixels each) in rows."""
     half = max(1, size // 2)
     step = max(1, size // 8)
     anchors = np.unique(np.r_[np.arange(0, length, step), length - 1])
@@ -298,9 +332,10 @@ def _axis(length: int, size: int):
     rows = np.broadcast_to(np.arange(anchors.size)[:, None], where.shape)[inside]
     u = np.broadcast_to(offsets / half, where.shape)[inside]
     shape = (anchors.size, length)
-    powers = [
+    single = [
         sparse.csr_array((u**k, (rows, where[inside])), shape=shape) for k in range(2 * DEGREE + 1)
     ]
+    powers = [sparse.vstack(single[: m + 1], format="csr") for m in range(2 * DEGREE + 1)]
     anchor = np.abs(np.arange(length)[:, None] - anchors[None, :]).argmin(axis=1)
     return powers, anchor, (np.arange(length) - anchors[anchor]) / half
 
@@ -308,19 +343,27 @@ def _axis(length: int, size: int):
 def _centre_variance(gram: np.ndarray) -> np.ndarray:
     """``(gram⁻¹)₀₀``: the variance of the fitted value at the anchor over the pixels'
     (``_solve``'s)."""
-    flat = gram.reshape(-1, *gram.shape[-2:])
+    flat = gram.reshape(-1, *gram.shape[-2:]).copy()
     return _solve(flat, np.zeros(flat.shape[:-1]))[1].reshape(gram.shape[:-2])
+
+
+def _regularised(gram: np.ndarray) -> np.ndarray:
+    """``gram`` (n, k, k) with a ridge of 1e-12 of its trace on the diagonal (1 where the
+    trace is 0: no pixel), added in place; returned with its traces."""
+    k = gram.shape[-1]
+    scale = np.einsum("nii->n", gram)
+    gram[:, np.arange(k), np.arange(k)] += (1e-12 * scale + (scale == 0))[:, None]
+    return gram, scale
 
 
 def _solve(gram: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The least-squares coefficients ``gram⁻¹ rhs`` (n, k) and ``(gram⁻¹)₀₀`` (n,), the
     variance of the fitted value at the anchor over the pixels', from one batched solve with
     ``rhs`` and the first unit vector as right-hand sides. A singular ``gram``, kept from a
-    ridge of 1e-12 of its trace, gives a huge variance; no pixel, an infinite one."""
+    ridge of 1e-12 of its trace, gives a huge variance; no pixel, an infinite one. ``gram``
+    is overwritten (the ridge is added to it)."""
     n, k = gram.shape[:2]
-    scale = np.einsum("nii->n", gram)
-    regular = gram.copy()
-    regular[:, np.arange(k), np.arange(k)] += (1e-12 * scale + (scale == 0))[:, None]
+    regular, scale = _regularised(gram)
     sides = np.zeros((n, k, 2))
     sides[..., 0], sides[:, 0, 1] = rhs, 1.0
     out = np.linalg.solve(regular, sides)
@@ -333,4 +376,7 @@ _PAIRS = np.array([[(a + c, b + d) for c, d in _TERMS] for a, b in _TERMS])  # (
 def _normal_matrix(moments: np.ndarray) -> np.ndarray:
     """The surface's normal matrix at each anchor, ``(..., 15, 15)`` (its leading 6 × 6 block
     the quadratic's)."""
-    return np.moveaxis(moments[_PAIRS[..., 0], _PAIRS[..., 1]], (0, 1), (-2, -1))
+    side = moments.shape[0]
+    flat = np.ascontiguousarray(moments.reshape(side * side, -1).T)  # (anchors, a * side + b)
+    gram = np.take(flat, _PAIRS[..., 0] * side + _PAIRS[..., 1], axis=1)
+    return gram.reshape(*moments.shape[2:], len(_TERMS), len(_TERMS))

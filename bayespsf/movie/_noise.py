@@ -4,6 +4,7 @@ background under a spot is estimated in ``_background``)."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,7 @@ MASK_SCORE = 3.0  # the least score whose neighbourhood is left out of the backg
 CLIP = 4.0  # differences of adjacent pixels beyond CLIP SDs are left out of the noise variance
 # variance of a standard normal truncated to (-CLIP, CLIP)
 KEPT_VARIANCE = 1.0 - 2.0 * CLIP * stats.norm.pdf(CLIP) / (1.0 - 2.0 * stats.norm.sf(CLIP))
+_MAD_SCALE = float(stats.norm.ppf(0.75))  # a normal law's median absolute deviation over its SD
 
 
 def camera_noise_variance(camera, background, frames: int = 1) -> np.ndarray:
@@ -60,8 +62,8 @@ def estimate_noise_variance(image) -> float:
     """
     image = np.asarray(image, dtype=np.float64)
     diffs = np.concatenate([np.diff(image, axis=0).ravel(), np.diff(image, axis=1).ravel()])
-    sd = stats.median_abs_deviation(diffs, scale="normal") or diffs.std()
     deviations = np.abs(diffs - np.median(diffs))
+    sd = float(np.median(deviations)) / _MAD_SCALE or diffs.std()
     for _ in range(3):
         kept = diffs[deviations < CLIP * sd]
         sd = np.sqrt(kept.var() / KEPT_VARIANCE) if kept.size > 1 else sd
@@ -256,20 +258,36 @@ def check_offset(image: np.ndarray, camera, what: str) -> None:
         )
 
 
+_LEVEL_STEP = np.log(1.02)  # the lattice of background levels: 2 % apart in log background
+_MOST_LEVELS = 64
+
+
 def threshold_map(law, spot, back, alpha):
-    """The exact-tail threshold at each pixel's background: computed on a grid of background
-    levels (geometric, 2 % apart at most) and interpolated in log background."""
+    """The exact-tail threshold at each pixel's background (a number or a map): computed at the
+    levels of a fixed lattice, ``1.02**k`` photons (every ``s``-th, ``s`` the least stride
+    that spans the image's backgrounds down to 1e-3 of the highest in ``_MOST_LEVELS``), and
+    interpolated in log background. Each level's threshold is computed once per process
+    (``_level_threshold``), so that the frames of a movie share them."""
     lam = np.maximum(np.asarray(back, dtype=np.float64), 0.0)
     low, high = float(lam.min()), float(lam.max())
     if high <= 0:
         return float(stats.norm.isf(alpha))
     low = max(low, 1e-3 * high)
-    n = int(np.clip(np.ceil(np.log(high / low) / np.log(1.02)) + 1, 1, 64))
-    grid = np.geomspace(low, high, n) if n > 1 else np.array([high])
-    levels = null_thresholds(law, spot, grid, alpha)
-    if n == 1 or not lam.ndim:
-        return float(levels[0]) if not lam.ndim else np.full(lam.shape, levels[0])
-    return np.interp(np.log(np.maximum(lam, low)), np.log(grid), levels)
+    first, last = np.log(low) / _LEVEL_STEP, np.log(high) / _LEVEL_STEP
+    stride = max(1, int(np.ceil((np.ceil(last) - np.floor(first)) / (_MOST_LEVELS - 1))))
+    ks = np.arange(np.floor(first / stride), np.ceil(last / stride) + 1, dtype=int) * stride
+    g = np.outer(*spot).ravel()
+    key = (g / np.sqrt(np.sum(g**2))).tobytes()
+    levels = [_level_threshold(law, key, int(k), float(alpha)) for k in ks]
+    found = np.interp(np.log(np.maximum(lam, low)), ks * _LEVEL_STEP, levels)
+    return float(found) if not lam.ndim else found
+
+
+@functools.lru_cache(maxsize=4096)
+def _level_threshold(law: PixelLaw, weights: bytes, k: int, alpha: float) -> float:
+    """``null_thresholds`` at ``1.02**k`` photons, for the template weights ``c`` (bytes of
+    ``g / ||g||``)."""
+    return _threshold(law, np.frombuffer(weights), float(np.exp(k * _LEVEL_STEP)), alpha)
 
 
 def spot_variance(law, var, back):
