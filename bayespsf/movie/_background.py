@@ -33,9 +33,11 @@ pixel for a window under 16 pixels) and evaluated at each pixel from its nearest
 anchor's surface: the background is smooth on the window's scale, and the sums become sparse
 matrix products. Where the kept pixels leave the quartic's value poorly determined (its
 variance at the anchor over 4 times the full window's: much of the window left out, or all on
-one side) the quadratic is fitted, and where that is poorly determined too, or the window
-spans under twice the template, a constant (the masked local mean); a window with under a
-tenth of its pixels kept keeps the previous estimate.
+one side) the quadratic is fitted, and where that is poorly determined too a constant (the
+masked local mean); a window with under a tenth of its pixels kept keeps the previous
+estimate. A window (or an image) narrower than twice the template gets the constant
+everywhere; a window cut by the image's edge is judged by its own unmasked variance, so that
+the quartic reaches the edges.
 
 Noise. Without a camera law, each pixel's noise variance is estimated from the differences of
 adjacent kept pixels within the same window (``local_noise_variance``), as
@@ -71,8 +73,9 @@ def estimate_background(
     size: int,
     mask_score: float,
     variance,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The local background (photons per pixel) and the mask of the pixels it kept.
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The local background (photons per pixel), the mask of the pixels it kept and the
+    surface's degree (``DEGREE``, or 0 where the window spans under twice the template).
 
     First fitted to every pixel, then twice to the pixels within ``PIXEL_CLIP`` noise SDs of
     the previous fit (the spots' bright pixels out, so that they cannot bend the first fits),
@@ -90,7 +93,7 @@ def estimate_background(
     for _ in range(2):
         keep = background_pixels(image, back, variance, spot, mask_score)
         back = window.fit(image, keep, back)
-    return back, keep
+    return back, keep, DEGREE if window.curved else 0
 
 
 def background_pixels(image, back, variance, spot, mask_score: float) -> np.ndarray:
@@ -115,8 +118,8 @@ def background_and_noise(image, spot, size: int, level: float, estimate, backgro
     """
     keep = None
     if background is None:
-        back, keep = estimate_background(image, spot, size, level, estimate)
-        back_source = f"local quartic ({size} px)"
+        back, keep, degree = estimate_background(image, spot, size, level, estimate)
+        back_source = f"local {'quartic' if degree else 'mean'} ({size} px)"
     else:
         back, back_source = checked_map("background", background, image.shape), "given"
     if noise is None:
@@ -277,8 +280,8 @@ def _evaluate(coef: np.ndarray, axes, degree: int) -> np.ndarray:
     powers = v[None, :] ** np.arange(degree + 1)[:, None]  # (b, columns)
     for a in range(degree + 1):
         terms = [k for k, (p, _) in enumerate(_TERMS[: _count(degree)]) if p == a]
-        rows = np.einsum("rck,kc->rc", coef[:, col_anchor][..., terms], powers[: len(terms)])
-        back += rows[row_anchor] * (u[:, None] ** a)
+        rows = np.einsum("rck,kc->rc", coef[..., terms][:, col_anchor], powers[: len(terms)])
+        back += rows[row_anchor] * (u[:, None] ** a) if a else rows[row_anchor]
     return back
 
 
@@ -310,8 +313,7 @@ def _window_parts(shape: tuple[int, int], size: int, reach: int):
     quadratic's variances at the anchors."""
     axes = [_axis(n, size) for n in shape]
     full = _moments(axes, np.ones(shape), 2 * DEGREE)
-    spans = [int(powers[0].sum(axis=1).min()) for powers, _, _ in axes]
-    curved = min(spans) >= 2 * reach  # else a constant: too narrow a window
+    curved = min(min(size, n) for n in shape) >= 2 * reach  # else a constant: too narrow a window
     if not curved:
         return axes, full, curved, None, None
     gram = _normal_matrix(full)

@@ -27,7 +27,9 @@ photons per pixel, single frames) exceed in the far tail: one 4096 × 4096 EMCCD
 photons per pixel gave 9 false candidates against a stated 0.01 (docs/movies.md).
 
 The background. ``b`` is local: at each pixel, a least-squares quartic surface of the pixels
-around it away from the spots (``_background``), which follows a ramp or an illumination
+around it away from the spots (``_background``; a window of three ROI sides, and at least
+three sides of the spot's own ROI, so that a frame detected with the fitted window as its ROI
+still gets the quartic), which follows a ramp or an illumination
 profile (a beam narrower than the window too) to the image's edge, so that the threshold is set
 against the background and the camera law at each pixel's own level; without a camera the noise
 variance is estimated pixel by pixel over the same window. With a camera, the variance the
@@ -133,10 +135,12 @@ def detect(
     noise_var : float or array_like (h, w), optional
         Noise variance per pixel in photons² (``camera_noise_variance`` gives it from the
         camera law); by default estimated from the image pixel by pixel, from the differences
-        of adjacent pixels away from spots over a window of three ROI sides.
+        of adjacent pixels away from spots over the background's window.
     background : float or array_like (h, w), optional
         Background in photons per pixel; by default the least-squares quartic surface of the
-        pixels away from spots over a window of three ROI sides around each pixel.
+        pixels away from spots over a window of three ROI sides around each pixel, and at
+        least three sides of the spot's own ROI (``geometry_for_psf``; 63 pixels for a 130 nm
+        spot on 100 nm pixels), whatever ``roi`` is given.
     false_positives : float, default 0.01
         Expected number of background pixels above the threshold per image (> 0, below the
         number of pixels): a bound on the expected number of false candidates per image.
@@ -249,11 +253,11 @@ def _detect(
         raise BayespsfInputError(f"image must be 2-D (h, w) with h, w >= 3, got {image.shape}")
     check_pixel_size(pixel_size, "pixel_size=")
     spot = template(psf_sd, pixel_size, image.shape)
-    if roi is None or fit is None:
-        sides = geometry_for_psf(psf_sd, pixel_size)
-        roi = sides[0] if roi is None else psf.check_geometry(roi, pixel_size)[0]
-        fit = min(sides[1], roi) if fit is None else fit
+    sides = geometry_for_psf(psf_sd, pixel_size)
+    roi = sides[0] if roi is None else psf.check_geometry(roi, pixel_size)[0]
+    fit = min(sides[1], roi) if fit is None else fit
     check_sizes(roi, fit)
+    window = 3 * max(roi, sides[0])  # the background's: three ROI sides, at least the spot's
     if min_distance is not None:
         min_distance = scalar_in_range("min_distance", min_distance, 0.0)
     fp = scalar_in_range("false_positives", false_positives, 0.0, image.size, low_inclusive=False)
@@ -272,7 +276,7 @@ def _detect(
             )
     # pixels left out of the estimates: those near a score above the threshold (the law's)
     level = gaussian if law is None else threshold_map(law, spot, np.median(image), fp_p)
-    found = background_and_noise(image, spot, 3 * roi, level, estimate, background, noise_var, law)
+    found = background_and_noise(image, spot, window, level, estimate, background, noise_var, law)
     back, back_source, var, source, law, pattern = found
     if np.any(var <= 0):
         raise BayespsfInputError("noise_var must be > 0 photons²")
