@@ -20,7 +20,7 @@ import pandas as pd
 from numpy.typing import ArrayLike
 
 from bayespsf._runtime import one_blas_thread
-from bayespsf._validate import finite_array
+from bayespsf._validate import finite_array, scalar_in_range
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import diagnostics, solver
 from bayespsf.inference.backends import check_backend
@@ -277,6 +277,8 @@ def fit_screened(
     engine: str = "stack",
     crlb: bool = True,
     backend: str = "numpy",
+    *,
+    decrement: float = solver.DECREMENT,
 ) -> pd.DataFrame:
     """``fit_mle`` of a stack whose ROIs ``Model.roi_problems`` has already judged: the fit
     without judging them again (``sample_many`` screens a stack once, then fits it).
@@ -293,6 +295,10 @@ def fit_screened(
         with it. None: every ROI passed.
     start, laplace, engine, crlb, backend
         As ``fit_mle``.
+    decrement : float, default 1e-10
+        The stack engine's convergence test: a ROI has converged when its Newton decrement
+        (log-likelihood units: about twice its distance from the maximum) is below this
+        (``bayespsf.inference.solver``). The model check's refits take 1e-6.
 
     Returns
     -------
@@ -310,6 +316,7 @@ def fit_screened(
     fit_mle : the same fit of counts not yet judged.
     """
     _check_options(engine, backend, model, laplace=laplace, crlb=crlb)
+    decrement = scalar_in_range("decrement", decrement, 0.0, low_inclusive=False)
     stack = model.check_shape(stack)
     if stack.ndim != 3:
         raise BayespsfInputError(f"stack must have shape (n, roi, roi), got {stack.shape}")
@@ -335,9 +342,10 @@ def fit_screened(
         found = jax_mle.maximise(model, fitted, starts, laplace, True)  # bound: see below
         params, logl = found["params"], found["log_likelihood"]
         ok, message = found["converged"], found["message"]
+    elif engine == "stack":
+        params, logl, ok, message = solver.maximise(model, fitted, starts, decrement=decrement)
     else:
-        maximise = solver.maximise if engine == "stack" else solver.maximise_scipy
-        params, logl, ok, message = maximise(model, fitted, starts)
+        params, logl, ok, message = solver.maximise_scipy(model, fitted, starts)
     low, high = solver.box(model.roi)
     u = solver.to_internal(params, model.pixel_size)
     # b's bound 0 is physical; any other coordinate on its bound is a failed search

@@ -12,7 +12,11 @@ their replicates and get small p-values.
 
 The replicates are continuous counts from the camera law (``Camera.sample``); an ADC that
 rounds to whole ADU adds 1/12 ADU^2 of variance that they lack, negligible beside a readout of
-a few ADU.
+a few ADU. Each replicate is refitted from the ROI's fit until its Newton decrement is below
+``REFIT_DECREMENT`` (1e-6, where ``fit_mle`` goes on to 1e-10): its ``T`` is then within half
+of that of its maximum's (5.9e-7 at most over 9 800 emccd-typical replicates, whose ``T`` has
+an SD of 9 about each ROI's), and the check takes 30% less time; the p-values of 512
+emccd-typical ROIs were all the same as at 1e-10.
 
 Two discrepancies are offered. The default, the negative log-likelihood, is the most
 sensitive to a spot of the wrong shape, but its mean under the model depends on the fitted
@@ -37,12 +41,13 @@ from scipy import stats
 from bayespsf._runtime import refuse_beyond_memory
 from bayespsf._validate import real_array
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference.estimators import fit_mle
+from bayespsf.inference.estimators import fit_mle, fit_screened
 from bayespsf.inference.settings import check_settings
 from bayespsf.model import Model
 from bayespsf.psf import PARAMETER_NAMES
 
 REPLICATE_STREAM = 0x6F66  # a ROI's replicates: its seed's stream of this number
+REFIT_DECREMENT = 1e-6  # a replicate's refit has converged below this Newton decrement
 CHUNK = 256  # ROIs whose replicates are drawn and refitted together (memory ~ CHUNK x replicates)
 CHUNK_PIXELS = 2**26  # ... fewer where their replicates would pass this many pixels (512 MB)
 
@@ -247,12 +252,14 @@ def bootstrap_check(
         rows = ok[start : start + chunk]
         lam = np.repeat(model.expected(theta[rows]), replicates, axis=0)
         images = draw(rows, lam)
-        refits = fit_mle(
+        refits = fit_screened(
             images,
             model,
+            model.roi_problems(images),
             start=np.repeat(theta[rows], replicates, axis=0),
             laplace=False,
             crlb=False,
+            decrement=REFIT_DECREMENT,
         )
         t_rep = measure(images, refits).reshape(-1, replicates)
         usable = refits["converged"].to_numpy(bool).reshape(-1, replicates) & np.isfinite(t_rep)

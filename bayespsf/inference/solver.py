@@ -279,10 +279,11 @@ def observed_information(model, counts, p):
     return hessian
 
 
-def maximise(model, counts: np.ndarray, starts: np.ndarray, held=None):
+def maximise(model, counts: np.ndarray, starts: np.ndarray, held=None, decrement=DECREMENT):
     """Maximum-likelihood parameters of every ROI of ``counts`` (n, roi, roi) from ``starts``
     (n, 6), block by block; ``held`` (6,) bool marks parameters kept at their start (the
-    widths, for a fit at a given axial position: ``bayespsf.axial.posterior``).
+    widths, for a fit at a given axial position: ``bayespsf.axial.posterior``); a ROI has
+    converged when its Newton decrement is below ``decrement`` (log-likelihood units).
 
     Returns ``(params (n, 6), log_likelihood (n,), converged (n,) bool, message (n,) str)``.
     """
@@ -294,12 +295,12 @@ def maximise(model, counts: np.ndarray, starts: np.ndarray, held=None):
     for first in range(0, n, step):
         block = slice(first, min(first + step, n))
         params[block], logl[block], converged[block], message[block] = _maximise_block(
-            model, counts[block], starts[block], held
+            model, counts[block], starts[block], held, decrement
         )
     return params, logl, converged, message
 
 
-def _maximise_block(model, counts, starts, held):
+def _maximise_block(model, counts, starts, held, tolerance):
     a = model.pixel_size
     low, high = box(model.roi)
     u = np.clip(to_internal(starts, a), low, high)
@@ -318,16 +319,16 @@ def _maximise_block(model, counts, starts, held):
         grad, metric = freeze_bounds(ua, gradients[active], metrics[active], low, high, held)
         diagonal = np.einsum("nkk->nk", metric)
         decrement = np.einsum("nk,nk->n", grad, _solve(metric, grad))
-        # below DECREMENT by the secant's metric, a ROI stays where it is and takes the Fisher
+        # below the tolerance by the secant's metric, a ROI stays where it is and takes the Fisher
         # metric there (no step), and has converged only when that decrement is below too
-        below = decrement < DECREMENT
+        below = decrement < tolerance
         verify = below & by_secant[active]
         finished = below & ~verify
         # within CHORD of its maximum a ROI's metric, which only steers the step, is not
         # computed again: the secant update carries it to the next point
         keeps_metric = (decrement < CHORD) & ~verify
         done[active[finished]] = True
-        message[active[finished]] = "Newton decrement below 1e-10"
+        message[active[finished]] = f"Newton decrement below {tolerance:g}"
         keep = ~finished
         active, ua, grad, metric, diagonal = (
             active[keep],

@@ -6,7 +6,8 @@ import pytest
 
 from bayespsf import load_scene, simulate
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import bootstrap_check, fit_mle
+from bayespsf.inference import bootstrap_check, fit_mle, gof
+from bayespsf.inference.estimators import fit_screened
 from bayespsf.inference.gof import pearson
 from bayespsf.model import Model
 
@@ -64,6 +65,33 @@ def test_per_roi_seeds_make_a_rois_check_independent_of_its_stack():
         bootstrap_check(counts, MODEL, seed=[-1, *seeds[1:]])
     with pytest.raises(BayespsfInputError, match="seed must be an integer"):
         bootstrap_check(counts, MODEL, seed=-1)  # numpy's own ValueError before
+
+
+def test_replicates_refitted_to_a_looser_decrement_give_the_same_test(monkeypatch):
+    """The check refits its replicates until the Newton decrement is below 1e-6
+    (``REFIT_DECREMENT``), not fit_mle's 1e-10: each refit's log-likelihood is below the
+    converged one by at most half the decrement (the quadratic model's gap; 1e-6 allowed), and
+    over 60 ROIs x 19 replicates the p-values are those of refits run to 1e-10 (a flip needs
+    two discrepancies, whose SD about a ROI's is ~9, within 1e-6 of each other)."""
+    counts, _ = simulate(SCENE, 60, seed=13)
+    fits = fit_mle(counts, MODEL, laplace=False, crlb=False)
+    theta = fits[["x0", "y0", "s_x", "s_y", "N", "b"]].to_numpy()
+    images = MODEL.camera.sample(
+        np.repeat(MODEL.expected(theta), 4, axis=0), np.random.default_rng(5)
+    )
+    start = np.repeat(theta, 4, axis=0)
+    tight = fit_screened(images, MODEL, None, start=start, laplace=False, crlb=False)
+    loose = fit_screened(
+        images, MODEL, None, start=start, laplace=False, crlb=False, decrement=gof.REFIT_DECREMENT
+    )
+    gap = tight["log_likelihood"] - loose["log_likelihood"]
+    assert (gap >= -1e-9).all() and gap.max() < 1e-6
+    assert (loose["message"] == "Newton decrement below 1e-06").mean() > 0.9
+    found = bootstrap_check(counts, MODEL, replicates=19, seed=7, fits=fits)
+    monkeypatch.setattr(gof, "REFIT_DECREMENT", 1e-10)
+    reference = bootstrap_check(counts, MODEL, replicates=19, seed=7, fits=fits)
+    assert (found["gof_p"] == reference["gof_p"]).all()
+    assert (found["gof_replicates"] == reference["gof_replicates"]).all()
 
 
 def test_pearson_is_the_sum_of_squared_standardised_residuals():
