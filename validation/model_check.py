@@ -6,8 +6,10 @@
 photons, EMCCD gain 200), analysed with that scene's Gaussian model, at N = 300, 1 000, 3 000
 and 10 000 photons:
 
-- ``right``: the model's own scene. With 19 replicates p is uniform on {1, ..., 20}/20, so the
-  flag fires at exactly 0.1 (the false-alarm rate, within its binomial SE);
+- ``right``: the model's own scene. With 19 replicates (stopped once 10 are as discrepant)
+  ``P(p <= 0.1) = 0.1`` exactly, the flag of at most one of 19 as discrepant (the
+  false-alarm rate, within its binomial SE), and the mean of p is 0.527 (the sequential
+  p-value's, ``bayespsf.inference.gof``);
 - ``two molecules``: two spots of N photons each, 400 nm apart (the case that motivates the check:
   the posterior alone reports one converged wide spot);
 - ``Airy``: the in-focus Airy disk of 620 nm light at NA 1.0 (its best-fitting Gaussian SD is
@@ -25,7 +27,7 @@ and 10 000 photons:
 Each case is checked with both of ``bootstrap_check``'s discrepancies, on the same ROIs and
 replicates: the MLE's negative log-likelihood (the default) and Pearson's statistic.
 
-    python validation/model_check.py            # 200 ROIs per case and N (104 s on 2 cores)
+    python validation/model_check.py            # 200 ROIs per case and N (24 s on 2 cores)
     python validation/model_check.py --quick    # 20 ROIs per case at N = 1000 and 10 000
 """
 

@@ -113,21 +113,26 @@ def zscores(frame_z: pd.DataFrame, parameters, path) -> Path:
 
 
 def gof_pvalues(p_values, path) -> Path:
-    """Histogram of the goodness-of-fit p-values: flat where the model holds. The p-values lie
-    on the lattice k / 50 (49 replicates); each of the 10 bins holds 5 of its points (edges
-    halfway between them), so a flat law gives a flat histogram (20 equal bins held 2 or 3
-    points each, a sawtooth with no misfit at all)."""
+    """The goodness-of-fit p-values against their law where the model holds: at each value
+    ``s`` a p-value takes, the share of frames with ``gof_p <= s`` against ``s`` (the diagonal
+    where the model holds, ``P(p <= s) = s`` at those values whether the replicates stopped
+    early or not: ``bayespsf.inference.gof``), with a band of two binomial SEs. A misfit
+    lifts the points above the diagonal at small ``s``. (A histogram in equal bins is not flat
+    here: above ``stop_after / replicates`` the values ``10 / l`` crowd towards 0.2.)"""
     path = Path(path)
     p = np.asarray(p_values, dtype=float)
-    p = p[np.isfinite(p)]
-    edges = (np.arange(0, 51, 5) + 0.5) / 50
+    p = np.sort(p[np.isfinite(p)])
     with _figure(path, figsize=(5, 3)) as (_, ax):
-        ax.hist(p, bins=edges, color="C0")
+        ax.plot([0, 1], [0, 1], color="k", lw=1, ls="--", label="model holds")
         if p.size:
-            ax.axhline(p.size / 10, color="k", lw=1, ls="--", label="uniform (model holds)")
+            s = np.unique(p)
+            share = np.searchsorted(p, s, side="right") / p.size
+            band = 2.0 * np.sqrt(s * (1.0 - s) / p.size)
+            ax.fill_between(s, s - band, s + band, color="0.85", label="2 binomial SEs")
+            ax.plot(s, share, ".", color="C0", ms=3, label="frames")
             ax.legend(fontsize=7)
-        ax.set_xlabel("goodness-of-fit p-value per frame (gof_p)")
-        ax.set_ylabel("frames")
+        ax.set_xlabel("goodness-of-fit p-value s")
+        ax.set_ylabel("share of frames with gof_p <= s")
     return path
 
 

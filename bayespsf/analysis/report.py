@@ -135,8 +135,9 @@ def report_markdown(result: Analysis, provenance: dict | None = None) -> str:
         "## Can the model have made each image?",
         "",
         "A parametric-bootstrap goodness-of-fit test of every frame's ROI "
-        f"(`bayespsf.inference.gof`: {discrepancy} against 49 "
-        "refitted replicates; column `gof_p`). `frames` counts the frames tested, `flagged "
+        f"(`bayespsf.inference.gof`: {discrepancy} against up to 49 "
+        "refitted replicates, stopped once 10 are as discrepant; column `gof_p`). `frames` "
+        "counts the frames tested, `flagged "
         "frames` those with `gof_p <= alpha` and `flagged fraction` their share. Where the "
         "model holds, a fraction alpha of the frames has `gof_p <= alpha`; more flags mean "
         "ROIs it does not describe (two "

@@ -158,7 +158,8 @@ def _add_fit(commands) -> None:
         "--check",
         action="store_true",
         help="also test whether the model can have made each ROI (a parametric-bootstrap "
-        "goodness-of-fit p-value, gof_p, in each row and result file; about doubles the time)",
+        "goodness-of-fit p-value, gof_p, in each row and result file; about four times the "
+        "time on emccd-typical)",
     )
     add_workers(fit, scheduler=True)
     add_out(fit, "bayespsf-fit", "output folder (default bayespsf-fit)")

@@ -10,6 +10,17 @@ are near uniform, and a flag at ``p <= alpha`` fires at rate ~alpha. ROIs the mo
 explain (two molecules, an undeclared hot pixel, a spot that is not Gaussian) fit worse than
 their replicates and get small p-values.
 
+The replicates are drawn and refitted ``ROUND`` at a time, and a ROI's stop once ``stop_after``
+(``STOP_AFTER``, 10) of them are at least as discrepant as it is: its p-value is then
+``stop_after / l``, ``l`` the replicates up to and including the one that made ``stop_after``
+(Besag & Clifford, Biometrika 78 (1991) 301, sequential Monte Carlo p-values). The p-value is
+valid as the full test's is, ``P(p <= s) = s`` at each value ``s`` it can take where the
+model holds, and it is the full test's wherever that is below ``stop_after / replicates``
+(0.2 at 49): the flags at ``p <= 0.1`` are the same test. A ROI the model describes has
+p-values spread over (0, 1) and stops early: on average 29 of 49 replicates are refitted
+where the full test refits 49. Above ``stop_after / replicates`` the p-value takes the values
+``stop_after / l`` (10/49 ... 1), not the lattice ``k / 50``.
+
 The replicates are continuous counts from the camera law (``Camera.sample``); an ADC that
 rounds to whole ADU adds 1/12 ADU^2 of variance that they lack, negligible beside a readout of
 a few ADU. Each replicate is refitted from the ROI's fit until its Newton decrement is below
@@ -22,9 +33,9 @@ Two discrepancies are offered. The default, the negative log-likelihood, is the 
 sensitive to a spot of the wrong shape, but its mean under the model depends on the fitted
 parameters (through each pixel's entropy), and a plug-in bootstrap p-value is then
 conservative (Robins, van der Vaart & Ventura, JASA 95 (2000)): with 2.75 background photons
-per pixel it flagged 3.5-7% of the ROIs the model describes at p <= 0.1. Pearson's statistic
+per pixel it flagged 5-8% of the ROIs the model describes at p <= 0.1. Pearson's statistic
 ``sum (y - E y)^2 / var y`` at the fit has a mean near the number of pixels whatever the
-parameters, and flagged 8-9.5% of the same ROIs, with a power alike on the misfits
+parameters, and flagged 7-11% of the same ROIs, with a power alike on the misfits
 (``validation/model_check.py``, 200 ROIs per case and N, compares both).
 """
 
@@ -48,6 +59,8 @@ from bayespsf.psf import PARAMETER_NAMES
 
 REPLICATE_STREAM = 0x6F66  # a ROI's replicates: its seed's stream of this number
 REFIT_DECREMENT = 1e-6  # a replicate's refit has converged below this Newton decrement
+STOP_AFTER = 10  # a ROI's replicates stop once this many are at least as discrepant as it
+ROUND = 10  # replicates drawn and refitted at a time per ROI
 CHUNK = 256  # ROIs whose replicates are drawn and refitted together (memory ~ CHUNK x replicates)
 CHUNK_PIXELS = 2**26  # ... fewer where their replicates would pass this many pixels (512 MB)
 
@@ -60,6 +73,28 @@ def check_discrepancy(name: str, value) -> str:
     if not (isinstance(value, str) and value in DISCREPANCIES):
         raise BayespsfInputError(f"{name} must be one of {', '.join(DISCREPANCIES)}; got {value!r}")
     return value
+
+
+def describe_check(discrepancy: str) -> str:
+    """The model check's procedure in words, as a store's manifest records it (a store made
+    under another procedure is another run).
+
+    Parameters
+    ----------
+    discrepancy : str
+        One of ``DISCREPANCIES``.
+
+    Returns
+    -------
+    str
+        The test, its discrepancy where not the default, and its sequential stop.
+    """
+    check_discrepancy("discrepancy", discrepancy)
+    named = "" if discrepancy == "likelihood" else f", discrepancy {discrepancy}"
+    return (
+        f"parametric bootstrap (bayespsf.inference.gof){named}, replicates stopped once "
+        f"{STOP_AFTER} are as discrepant, {ROUND} at a time"
+    )
 
 
 def pearson(model: Model, counts: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -156,6 +191,7 @@ def bootstrap_check(
     seed: int | Sequence[int] = 0,
     fits: pd.DataFrame | None = None,
     discrepancy: str = "likelihood",
+    stop_after: int | None = STOP_AFTER,
 ) -> pd.DataFrame:
     """The parametric-bootstrap goodness-of-fit p-value of every ROI under ``model``.
 
@@ -166,7 +202,7 @@ def bootstrap_check(
     model : Model
         The model to test (its camera law draws the replicates).
     replicates : int
-        Replicate images drawn and refitted per ROI (>= 1).
+        The most replicate images drawn and refitted per ROI (>= 1).
     seed : int or sequence of int
         One integer for the whole stack, or one per ROI (then ROI ``k``'s replicates depend
         on ``seed[k]`` alone, not on the stack it is checked in: ``sample_many`` checks each
@@ -176,21 +212,27 @@ def bootstrap_check(
     discrepancy : {"likelihood", "pearson"}
         ``"likelihood"`` (the MLE's negative log-likelihood) or ``"pearson"`` (``pearson`` at
         the fit; calibrated where the other is conservative, module docstring).
+    stop_after : int or None, default 10
+        A ROI's replicates stop once this many are at least as discrepant as it is (Besag &
+        Clifford's sequential p-value, module docstring); None: every ROI's ``replicates``
+        are refitted.
 
     Returns
     -------
     pandas.DataFrame
         One row per ROI: ``gof_p`` (NaN where the ROI's own fit, or every replicate's refit,
         did not converge), ``gof_discrepancy`` (``T(y)``) and ``gof_replicates`` (the
-        replicates whose refit converged, which the p-value counts; a replicate that fails to
-        converge is likely one of high ``T``, so many failures bias ``p`` up).
+        replicates whose refit converged, which the p-value counts, up to the one that
+        stopped them; a replicate that fails to converge is likely one of high ``T``, so many
+        failures bias ``p`` up).
 
     Raises
     ------
     BayespsfInputError
-        If ``replicates``, ``seed`` or ``discrepancy`` is invalid (``replicates`` so many that
-        one ROI's cannot be held in memory, too), ``counts`` is not real of shape
-        ``(n, roi, roi)``, or ``fits`` is not ``fit_mle``'s table of these ROIs.
+        If ``replicates``, ``seed``, ``discrepancy`` or ``stop_after`` is invalid
+        (``replicates`` so many that one ROI's cannot be held in memory, too), ``counts`` is
+        not real of shape ``(n, roi, roi)``, or ``fits`` is not ``fit_mle``'s table of these
+        ROIs.
 
     See Also
     --------
@@ -199,8 +241,9 @@ def bootstrap_check(
 
     Notes
     -----
-    The test, its calibration and the two discrepancies are described in the module
-    docstring (Davison & Hinkley 1997; Robins, van der Vaart & Ventura 2000).
+    The test, its calibration, the sequential stop and the two discrepancies are described
+    in the module docstring (Davison & Hinkley 1997; Besag & Clifford 1991; Robins, van der
+    Vaart & Ventura 2000).
     """
     if (
         isinstance(replicates, bool)
@@ -215,6 +258,12 @@ def bootstrap_check(
         "use fewer replicates (49, the default, resolves p-values of 0.02)",
     )
     discrepancy = check_discrepancy("discrepancy", discrepancy)
+    if stop_after is not None and (
+        isinstance(stop_after, bool)
+        or not isinstance(stop_after, numbers.Integral)
+        or stop_after < 1
+    ):
+        raise BayespsfInputError(f"stop_after must be an integer >= 1 or None, got {stop_after!r}")
     stack = real_array("counts", counts)
     if stack.ndim != 3 or stack.shape[1:] != (model.roi, model.roi):
         raise BayespsfInputError(
@@ -245,57 +294,113 @@ def bootstrap_check(
     out = pd.DataFrame(
         {"gof_p": np.nan, "gof_discrepancy": measure(stack, fits), "gof_replicates": 0}
     )
-    ok = np.flatnonzero(converged & np.isfinite(out["gof_discrepancy"].to_numpy()))
-    draw = _replicate_drawer(seed, len(stack), model, replicates)
-    chunk = min(CHUNK, max(1, CHUNK_PIXELS // (replicates * model.roi**2)))
-    for start in range(0, len(ok), chunk):
-        rows = ok[start : start + chunk]
-        lam = np.repeat(model.expected(theta[rows]), replicates, axis=0)
-        images = draw(rows, lam)
+    t = out["gof_discrepancy"].to_numpy()
+    ok = np.flatnonzero(converged & np.isfinite(t))
+    drawer = _Replicates(seed, len(stack), model)
+
+    def replicate_round(rows, k):
+        """``k`` more replicates of each of ``rows``, refitted from its fit: their
+        discrepancies and whether each counts (its refit converged), ``(len(rows), k)``."""
+        lam = np.repeat(model.expected(theta[rows]), k, axis=0)
+        images = drawer.draw(rows, lam, k)
         refits = fit_screened(
             images,
             model,
             model.roi_problems(images),
-            start=np.repeat(theta[rows], replicates, axis=0),
+            start=np.repeat(theta[rows], k, axis=0),
             laplace=False,
             crlb=False,
             decrement=REFIT_DECREMENT,
         )
-        t_rep = measure(images, refits).reshape(-1, replicates)
-        usable = refits["converged"].to_numpy(bool).reshape(-1, replicates) & np.isfinite(t_rep)
-        t = out["gof_discrepancy"].to_numpy()[rows, None]
-        count = usable.sum(axis=1)
-        exceed = (usable & (t_rep >= t)).sum(axis=1)
-        out.loc[rows, "gof_p"] = np.where(count > 0, (1 + exceed) / (1 + count), np.nan)
-        out.loc[rows, "gof_replicates"] = count
+        t_rep = measure(images, refits).reshape(-1, k)
+        return t_rep, refits["converged"].to_numpy(bool).reshape(-1, k) & np.isfinite(t_rep)
+
+    chunk = min(CHUNK, max(1, CHUNK_PIXELS // (min(ROUND, replicates) * model.roi**2)))
+    for first in range(0, len(ok), chunk):
+        rows = ok[first : first + chunk]
+        p, counted = _sequential_p(rows, t[rows], replicates, stop_after, replicate_round)
+        out.loc[rows, "gof_p"] = p
+        out.loc[rows, "gof_replicates"] = counted
+        drawer.forget(rows)
     return out
 
 
-def _replicate_drawer(seed, n: int, model: Model, replicates: int):
-    """``draw(rows, lam)``: the replicates of ``rows`` (expected counts ``lam``, ``replicates``
-    per row), from one stream for the stack or from each ROI's own (``REPLICATE_STREAM``)."""
-    if np.ndim(seed) == 0:
-        rng = np.random.default_rng(check_settings(seed=seed).seed)
-        return lambda rows, lam: model.camera.sample(lam, rng)
-    try:  # Python integers: molecule seeds reach 2**64
-        seeds = [check_settings(seed=s).seed for s in seed]
-    except BayespsfInputError as error:
-        raise BayespsfInputError(f"{error} (seed: one per ROI)") from None
-    if len(seeds) != n:
-        raise BayespsfInputError(
-            f"seed must be an integer or {n} integers >= 0 (one per ROI), got {len(seeds)} values"
+def _sequential_p(rows, t, replicates: int, stop_after, replicate_round):
+    """The p-values and counted replicates of ``rows`` (m,), of discrepancy ``t`` (m,):
+    ``replicate_round(rows, k)`` gives ``k`` more replicates' discrepancies and whether each
+    counts, ``ROUND`` at a time up to
+    ``replicates``; a ROI stops at the replicate that makes ``stop_after`` at least as
+    discrepant (p = stop_after / counted), else p = (1 + exceeding) / (1 + counted)."""
+    exceed, counted = np.zeros(len(t), dtype=int), np.zeros(len(t), dtype=int)
+    p = np.full(len(t), np.nan)
+    active = np.arange(len(t))
+    for done in range(0, replicates, ROUND):
+        if not active.size:
+            break
+        k = min(ROUND, replicates - done)
+        t_rep, counts = replicate_round(rows[active], k)
+        hits = counts & (t_rep >= t[active, None])
+        stops = np.zeros(len(active), dtype=bool)
+        if stop_after is not None:
+            reached = exceed[active, None] + np.cumsum(hits, axis=1) >= stop_after
+            stops = reached.any(axis=1)
+            at = reached.argmax(axis=1)
+            length = counted[active] + np.cumsum(counts, axis=1)[np.arange(len(active)), at]
+            p[active[stops]] = stop_after / length[stops]
+            counted[active[stops]] = length[stops]
+        going = active[~stops]
+        exceed[going] += hits[~stops].sum(axis=1)
+        counted[going] += counts[~stops].sum(axis=1)
+        active = going
+    with np.errstate(invalid="ignore", divide="ignore"):
+        p[active] = np.where(
+            counted[active] > 0, (1 + exceed[active]) / (1 + counted[active]), np.nan
         )
+    return p, counted
 
-    def draw(rows, lam):
-        parts = lam.reshape(len(rows), replicates, *lam.shape[1:])
+
+class _Replicates:
+    """The replicates' draws: from one stream for the stack (an integer ``seed``), or from
+    each ROI's own (``[seed[k], REPLICATE_STREAM]``), kept between its rounds."""
+
+    def __init__(self, seed, n: int, model: Model):
+        self.model = model
+        self.streams: dict[int, np.random.Generator] = {}
+        if np.ndim(seed) == 0:
+            self.rng, self.seeds = np.random.default_rng(check_settings(seed=seed).seed), None
+            return
+        try:  # Python integers: molecule seeds reach 2**64
+            self.seeds = [check_settings(seed=s).seed for s in seed]
+        except BayespsfInputError as error:
+            raise BayespsfInputError(f"{error} (seed: one per ROI)") from None
+        if len(self.seeds) != n:
+            raise BayespsfInputError(
+                f"seed must be an integer or {n} integers >= 0 (one per ROI), got "
+                f"{len(self.seeds)} values"
+            )
+
+    def draw(self, rows, lam, k: int) -> np.ndarray:
+        """``k`` replicates of each of ``rows`` from their expected counts ``lam``
+        (``len(rows) * k``, roi, roi)."""
+        if self.seeds is None:
+            return self.model.camera.sample(lam, self.rng)
+        parts = lam.reshape(len(rows), k, *lam.shape[1:])
         return np.concatenate(
             [
-                model.camera.sample(part, np.random.default_rng([int(seeds[k]), REPLICATE_STREAM]))
-                for k, part in zip(rows, parts, strict=True)
+                self.model.camera.sample(part, self._stream(r))
+                for r, part in zip(rows, parts, strict=True)
             ]
         )
 
-    return draw
+    def _stream(self, row: int) -> np.random.Generator:
+        if row not in self.streams:
+            self.streams[row] = np.random.default_rng([int(self.seeds[row]), REPLICATE_STREAM])
+        return self.streams[row]
+
+    def forget(self, rows) -> None:
+        """Drop the streams of ``rows`` (their replicates are done)."""
+        for r in rows:
+            self.streams.pop(int(r), None)
 
 
 def flag_excess_p(gof_p: pd.Series, alpha: float) -> float:
@@ -316,6 +421,7 @@ __all__ = [
     "FIT_KEYS",
     "bootstrap_check",
     "check_discrepancy",
+    "describe_check",
     "flag_excess_p",
     "pearson",
     "pearson_columns",

@@ -15,15 +15,88 @@ SCENE = load_scene("emccd-typical").replace(emitter={"position": "pixel", "photo
 MODEL = Model.from_scene(SCENE)
 
 
+def _sequential_null_moments(replicates: int, stop_after: int) -> tuple[float, float]:
+    """The mean and SD of the sequential p-value where the model holds: it takes the values
+    (g + 1) / (replicates + 1) for g < stop_after and stop_after / l for l from replicates down
+    to stop_after, with P(p <= s) = s at each (Besag & Clifford 1991)."""
+    n = replicates + 1
+    values = [(g + 1) / n for g in range(stop_after)]
+    values += [stop_after / length for length in range(replicates, stop_after - 1, -1)]
+    s = np.array(sorted(values))
+    mass = np.diff(np.r_[0.0, s])
+    mean = float((s * mass).sum())
+    return mean, float(np.sqrt((s**2 * mass).sum() - mean**2))
+
+
 def test_false_alarms_at_their_nominal_rate():
-    # 300 ROIs of the model's own scene, 19 replicates: p is uniform on {1..20}/20, so
-    # P(p <= 0.1) = 0.1 (binomial SE 0.017) and the mean of p is 0.525 (SE 0.017); 4 SE
+    """300 ROIs of the model's own scene, 19 replicates stopped at 10 at least as discrepant:
+    P(p <= 0.1) = 0.1 (at most one of 19 as discrepant: the full test's flag; binomial SE
+    0.017), and the mean of p is that of the sequential p-value's law (0.527, SE 0.017); 4 SE
+    each. Every ROI counts at least 10 replicates, and some stop before 19."""
     counts, _ = simulate(SCENE, 300, seed=11)
     check = bootstrap_check(counts, MODEL, replicates=19, seed=1)
     p = check["gof_p"].to_numpy()
-    assert np.isfinite(p).all() and (check["gof_replicates"] >= 18).all()
+    counted = check["gof_replicates"].to_numpy()
+    assert np.isfinite(p).all() and (counted >= 10).all() and (counted <= 19).all()
+    assert (counted < 19).mean() > 0.3
     assert abs(np.mean(p <= 0.1) - 0.1) < 4 * np.sqrt(0.1 * 0.9 / 300)
-    assert abs(p.mean() - 0.525) < 4 * 0.2887 / np.sqrt(300)
+    mean, sd = _sequential_null_moments(19, 10)
+    assert abs(p.mean() - mean) < 4 * sd / np.sqrt(300)
+
+
+def test_the_sequential_p_value_is_the_full_tests_below_its_stop():
+    """With each ROI's own seed, the replicates come in the same order whether the test stops
+    or not: on 40 ROIs the model describes and 20 with a hot pixel (small p), the sequential
+    p-value equals the full test's wherever fewer than 10 of 49 are as discrepant (p <= 0.2),
+    and elsewhere is 10 / l with l the replicates counted, both above 0.2."""
+    counts, _ = simulate(SCENE, 60, seed=14)
+    per_adu, _ = MODEL.camera.photons_per_adu()
+    counts[40:, 1, 1] += 100.0 / per_adu
+    seeds = list(range(500, 560))
+    fits = fit_mle(counts, MODEL, laplace=False, crlb=False)
+    sequential = bootstrap_check(counts, MODEL, seed=seeds, fits=fits)
+    full = bootstrap_check(counts, MODEL, seed=seeds, fits=fits, stop_after=None)
+    low = full["gof_p"].to_numpy() <= 10 / 50
+    assert low.sum() >= 20 and (~low).sum() >= 20
+    assert (sequential["gof_p"][low] == full["gof_p"][low]).all()
+    high = sequential[~low]
+    assert np.allclose(high["gof_p"], 10 / high["gof_replicates"])
+    assert (high["gof_p"] > 0.2).all() and (high["gof_replicates"] < 49).any()
+    with pytest.raises(BayespsfInputError, match="stop_after"):
+        bootstrap_check(counts[:2], MODEL, stop_after=0)
+
+
+def test_the_sequential_rule_against_one_replicate_at_a_time():
+    """``_sequential_p`` (rounds of 10, vectorised) against Besag & Clifford's rule written
+    one replicate at a time, on random sequences of discrepancies with refits that fail."""
+    rng = np.random.default_rng(8)
+    m, replicates, stop_after = 400, 37, 7
+    t = rng.normal(size=m)
+    t_rep = rng.normal(size=(m, replicates)) + rng.uniform(-2.0, 2.0, size=(m, 1))
+    counts = rng.random((m, replicates)) > 0.1
+    served = np.zeros(m, dtype=int)
+
+    def replicate_round(rows, k):
+        first = served[rows]
+        assert (first == first[0]).all()  # every ROI still running is at the same replicate
+        served[rows] += k
+        return t_rep[rows, first[0] : first[0] + k], counts[rows, first[0] : first[0] + k]
+
+    p, counted = gof._sequential_p(np.arange(m), t, replicates, stop_after, replicate_round)
+    for i in range(m):
+        exceed = used = 0
+        expected = None
+        for j in range(replicates):
+            if not counts[i, j]:
+                continue
+            used += 1
+            exceed += t_rep[i, j] >= t[i]
+            if exceed == stop_after:
+                expected = stop_after / used
+                break
+        if expected is None:
+            expected = (1 + exceed) / (1 + used)
+        assert p[i] == pytest.approx(expected, rel=1e-12) and counted[i] == used
 
 
 def test_two_molecules_in_one_roi_are_flagged():
