@@ -242,10 +242,11 @@ def _detect(
     *,
     law=None,
     saturated=None,
+    what="the image",
 ) -> pd.DataFrame:
     """``detect``; ``law`` (a ``PixelLaw``): the threshold from the camera law's exact tail;
     ``saturated``: pixels at the ADC's full scale in some frame (default: in an integer image,
-    those at its type's maximum)."""
+    those at its type's maximum); ``what``: the image's name in errors."""
     if saturated is None:
         saturated = at_type_maximum(image)
     image = finite_array("image", image)
@@ -265,7 +266,7 @@ def _detect(
         raise BayespsfInputError(f"false_positives must be below the {image.size} pixels")
     fp_p = fp / image.size  # per pixel
     gaussian = float(stats.norm.isf(fp_p))
-    check_signal(image, saturated, "photons")
+    check_signal(image, saturated, "photons", what)
     estimate = None
     if noise_var is None or background is None:
         estimate = estimate_noise_variance(image)
@@ -409,4 +410,6 @@ def _detect_photons(image, frames, psf_sd, pixel_size, camera, options, saturate
             options["noise_var"] = lambda back: camera_noise_variance(model, back, frames)
             law = pixel_law(model, frames)
     given = options.pop("noise_var"), options.pop("background")
-    return _detect(image, psf_sd, pixel_size, *given, **options, law=law, saturated=saturated)
+    return _detect(
+        image, psf_sd, pixel_size, *given, **options, law=law, saturated=saturated, what=what
+    )

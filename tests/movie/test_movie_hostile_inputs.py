@@ -131,6 +131,9 @@ def test_saturated_and_all_zero_movies_are_named(tmp_path, value, words):
         detect_movie(movie, psf_sd=S, pixel_size=A, camera=CAMERA)
     with pytest.raises(BayespsfInputError, match=words.replace("ADU", "photons")[:30]):
         detect(np.full((64, 64), value, dtype=np.uint16), psf_sd=S, pixel_size=A)
+    # frame by frame without a camera (counts taken as photons), the frame is named
+    with pytest.raises(BayespsfInputError, match=r"m\.npy: frame 2: every pixel is"):
+        detect_frames(movie, psf_sd=S, pixel_size=A, frames=range(2, 4))
 
 
 def test_a_mostly_saturated_movie_is_named(tmp_path):
