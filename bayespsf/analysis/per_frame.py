@@ -162,6 +162,7 @@ def localize_frames(
     progress: bool | None = None,
     provenance: dict | None = None,
     gof_discrepancy: str = "likelihood",
+    keep_draws: bool = True,
     force: bool = False,
     copies: dict[str, str | Path] | None = None,
 ) -> FrameLocalizations:
@@ -197,6 +198,10 @@ def localize_frames(
         take the ROIs left to the chain.
     progress : bool, optional
         A bar of the windows localised (default: when stderr is a terminal).
+    keep_draws : bool, default True
+        Whether the chunks' stores (``OUT/posteriors``) keep each window's draws
+        (``sample_many``'s ``keep_draws``: False keeps a fifth of the disk, the summaries
+        only; ``bayespsf analyze --per-frame --no-draws``).
     provenance : dict, optional
         What made the run, recorded in ``locs.yaml`` and the report.
     force : bool, default False
@@ -246,6 +251,11 @@ def localize_frames(
     {0: 2, 1: 2, 2: 2}
     """
     check_discrepancy("gof_discrepancy", gof_discrepancy)
+    if keep_draws is not True and (keep_draws is not False or not posterior):
+        raise BayespsfInputError(
+            f"keep_draws must be True or False, and False only with posterior=True (the MLE "
+            f"keeps no draws); got {keep_draws!r}"
+        )
     movie, out, copied = open_movie(movie), Path(out), read_copies(copies)
     check_sizes(None, fit, missing_ok=True)
     run = selection_run(movie, model, s0=s0, roi=fit, fit=fit, false_positives=false_positives)
@@ -257,6 +267,7 @@ def localize_frames(
         budget = _check_sampler(method, ess, seed, max_seconds)
         run.update(method=method, ess=ess, seed=seed, **{"model check": gof_discrepancy})
         run.update({"max seconds": budget["max_seconds"]} if budget else {})
+        run.update({} if keep_draws else {"draws": "not kept"})
     files = PER_FRAME_FILES if posterior else PER_FRAME_FILES[:-1]
     check_folder(out, run, files, force=force, copies=copied)  # before the work
     width = resolve_psf_sd(movie, model, s0, fit=fit or 15, false_positives=false_positives)
@@ -277,6 +288,7 @@ def localize_frames(
     paths = claim_folder(out, run, files, force=force, copies=copied, about=about)
     fitting = model.for_roi(fit)
     sampler = dict(method=method, backend=backend, check=gof_discrepancy, progress=False)
+    sampler.update({} if keep_draws else {"keep_draws": False})
     sampler.update(budget, **({} if ess is None else {"ess": ess}))
     frames = movie.blocks(block_frames(movie.shape[1:]), 0, len(movie))
     settings = _detection(movie, fitting, width.sd, fit, false_positives)

@@ -251,6 +251,8 @@ def _analyze(args) -> int:
     roi, fit = geometry(args)
     if args.per_frame:
         return per_frame(args, out, movie, model, s0, fit)
+    if args.no_draws:
+        raise CommandError("--no-draws goes with --per-frame (the molecules' draws are kept)")
     rules = selection_rules(args)
     command = command_line(args)
     camera_text = Path(args.camera).read_text(encoding="utf-8")

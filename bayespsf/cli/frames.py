@@ -37,6 +37,7 @@ def per_frame(args, out: Path, movie, model, s0: float | None, fit: int) -> int:
         options["provenance"]["camera file"] = Path(args.camera).read_text(encoding="utf-8")
         options.update(method=args.method, backend=args.backend, ess=args.ess, seed=args.seed)
         options.update(gof_discrepancy=args.gof_discrepancy, max_seconds=args.max_seconds)
+        options["keep_draws"] = not args.no_draws
         options.update(workers=None if args.scheduler else args.workers, executor=args.scheduler)
     else:
         options["false_positives"] = args.false_positives

@@ -76,6 +76,60 @@ def check_discrepancy(name: str, value) -> str:
     return value
 
 
+def check_option(check) -> str | bool:
+    """``sample_many``'s ``check`` as False or the name of the discrepancy to test with.
+
+    Parameters
+    ----------
+    check : bool or str
+        True (the default discrepancy, ``"likelihood"``), False, or one of
+        ``DISCREPANCIES``.
+
+    Returns
+    -------
+    str or False
+        The discrepancy's name, or False.
+
+    Raises
+    ------
+    BayespsfInputError
+        For anything else, naming ``check``.
+    """
+    if isinstance(check, bool | np.bool_):
+        return "likelihood" if check else False
+    return check_discrepancy("check (True, False or a discrepancy)", check)
+
+
+def check_rows(stack, model: Model, seeds, discrepancy: str, fits=None) -> list[dict]:
+    """The model check of each ROI as ``sample_many`` adds it to its rows.
+
+    Parameters
+    ----------
+    stack : ndarray, shape (n, roi, roi)
+        ROIs in ADU.
+    model : Model
+        The model to test.
+    seeds : sequence of int
+        Each ROI's seed: its replicates come from it alone.
+    discrepancy : str
+        One of ``DISCREPANCIES``.
+    fits : pandas.DataFrame, optional
+        ``fit_mle``'s table of the ROIs, if made.
+
+    Returns
+    -------
+    list of dict
+        Per ROI ``gof_p``, ``gof_discrepancy`` and ``gof_replicates`` (``bootstrap_check``).
+    """
+    table = bootstrap_check(
+        stack, model, seed=[int(s) for s in seeds], fits=fits, discrepancy=discrepancy
+    )
+    return [
+        {"gof_p": float(p), "gof_discrepancy": float(t), "gof_replicates": int(k)}
+        for p, t, k in table[["gof_p", "gof_discrepancy", "gof_replicates"]].itertuples(index=False)
+    ]
+
+
 def describe_check(discrepancy: str) -> str:
     """The model check's procedure in words, as a store's manifest records it (a store made
     under another procedure is another run).
@@ -422,6 +476,8 @@ __all__ = [
     "FIT_KEYS",
     "bootstrap_check",
     "check_discrepancy",
+    "check_option",
+    "check_rows",
     "describe_check",
     "flag_excess_p",
     "pearson",

@@ -39,12 +39,13 @@ from bayespsf._runtime import one_blas_thread, progress_bar
 from bayespsf._validate import real_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.backends import check_backend
+from bayespsf.inference.gof import check_option, check_rows
 from bayespsf.inference.summary import concat_tables, draws_rows, molecule_row
 from bayespsf.model import Model
 from bayespsf.parallel.device import device_posteriors
 from bayespsf.parallel.executors import parallelism, run_tasks, task_runner
 from bayespsf.parallel.seeds import molecule_seed, molecule_seeds
-from bayespsf.parallel.store import Store
+from bayespsf.parallel.store import NO_DRAWS, Store
 from bayespsf.scene import Scene
 
 if TYPE_CHECKING:
@@ -92,35 +93,11 @@ def _sample_one(task):
         verdict["why"] = f"{verdict['why']}; on the host: {post.info['why']}"
     info = dict(post.info, **verdict, seconds=time.perf_counter() - started)  # the posterior's
     if check and checked is None:
-        checked = _model_checks(counts[None], model, [seed], check)[0]
+        checked = check_rows(counts[None], model, [seed], check)[0]
     post.tree.attrs["sampler"] = json.dumps(info)
     row = molecule_row(post, index, seed) | (checked or {})
     post.tree.attrs["summary_row"] = json.dumps(row)
     return index, post, row
-
-
-def _check_kind(check) -> str | bool:
-    """``sample_many``'s ``check`` as False or the name of the discrepancy to test with."""
-    from bayespsf.inference.gof import check_discrepancy
-
-    if isinstance(check, bool | np.bool_):
-        return "likelihood" if check else False
-    return check_discrepancy("check (True, False or a discrepancy)", check)
-
-
-def _model_checks(stack, model, seeds, discrepancy: str, fits=None) -> list[dict]:
-    """The parametric-bootstrap goodness-of-fit test of each ROI (``bayespsf.inference.gof``),
-    its replicates drawn from the ROI's own seed: ``gof_p``, ``gof_discrepancy``,
-    ``gof_replicates`` per ROI."""
-    from bayespsf.inference import bootstrap_check
-
-    table = bootstrap_check(
-        stack, model, seed=[int(s) for s in seeds], fits=fits, discrepancy=discrepancy
-    )
-    return [
-        {"gof_p": float(p), "gof_discrepancy": float(t), "gof_replicates": int(k)}
-        for p, t, k in table[["gof_p", "gof_discrepancy", "gof_replicates"]].itertuples(index=False)
-    ]
 
 
 def _resolved_sampler_settings(options: dict) -> dict:
@@ -170,6 +147,7 @@ def sample_many(
     progress: bool | None = None,
     check: bool | str = False,
     backend: str = "numpy",
+    keep_draws: bool = True,
     **options: Any,
 ) -> pd.DataFrame:
     """Sample the posterior of every ROI in ``counts``; return the summary table.
@@ -191,6 +169,10 @@ def sample_many(
     store : str or path-like, optional
         Result folder (see the module docstring). A rerun with the same store resumes: finished
         molecules are read back, not sampled again.
+    keep_draws : bool, default True
+        Whether the store's files hold each molecule's draws (~27 kB per 13 x 13 ROI sampled
+        by importance) or only its summary row, sampler record and counts (~5.4 kB; for
+        datasets of 10^6 ROIs and more; ``Store.posterior`` then refuses). Needs a store.
     truths : array_like, shape (n, 6), optional
         True ``x0 y0 s_x s_y N b`` (simulations): adds truth and SBC-rank columns.
     scene : Scene, optional
@@ -289,7 +271,7 @@ def sample_many(
     )
 
     check_model(model)
-    check = _check_kind(check)
+    check = check_option(check)
     check_backend(backend, model)  # an unsupported camera law is named before any work
     options.setdefault("method", "auto")
     settings = check_settings(seed=seed, **options)  # a bad setting fails here, not in workers
@@ -306,6 +288,11 @@ def sample_many(
         truths = real_array("truths", truths)
         if truths.shape != (n, 6):
             raise BayespsfInputError(f"truths must have shape ({n}, 6), got {truths.shape}")
+    if not isinstance(keep_draws, bool | np.bool_) or (store is None and not keep_draws):
+        raise BayespsfInputError(
+            f"keep_draws must be True or False, and False only with a store; got {keep_draws!r}"
+            + ("" if store is not None else " without one")
+        )
     problems = model.roi_problems(stack)
     rows: dict[int, dict] = {}
     saver = None
@@ -314,7 +301,8 @@ def sample_many(
         saver.lock()
     try:
         if saver is not None:
-            saver.open(_manifest(stack, model, seed, options, truths, check, backend))
+            manifest = _manifest(stack, model, seed, options, truths, check, backend)
+            saver.open(manifest | ({} if keep_draws else NO_DRAWS))
             rows = saver.finished(n)
         for i, problem in enumerate(problems):
             if problem is not None:
@@ -451,7 +439,7 @@ def _posteriors_of_chunk(task):
     fits = fit_screened(stack, model, crlb=bool(check))
     outcomes = cheap_posteriors(stack, model, fits, seeds, settings)
     seconds = (time.perf_counter() - started) / len(indices)
-    checks = _model_checks(stack, model, seeds, check, fits) if check else [{}] * len(indices)
+    checks = check_rows(stack, model, seeds, check, fits) if check else [{}] * len(indices)
     made = [k for k, outcome in enumerate(outcomes) if outcome["draws"] is not None]
     infos = {k: dict(outcomes[k]["info"], seconds=seconds) for k in made}
     rows = draws_rows(  # the summary rows of all the chunk's posteriors at once

@@ -86,9 +86,9 @@ def _chunk(indices, stack, model, seeds, truths, settings, scene, store, check):
     made = out["made"]
     checks = {}
     if check:
-        from bayespsf.parallel.batch import _model_checks
+        from bayespsf.inference.gof import check_rows
 
-        checks = _model_checks(stack, model, seeds, check, fits)
+        checks = check_rows(stack, model, seeds, check, fits)
     verdicts = {
         int(indices[i]): {"requested": settings.method, "why": str(out["why"][i])}
         | ({"check": checks[i]} if check else {})

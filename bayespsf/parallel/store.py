@@ -6,10 +6,11 @@ refuses a second run on the same folder.
 
 A file holds the molecules of one task (up to ``FILE_MOLECULES``): its ``posterior`` group the
 draws with dims ``(molecule, chain, draw)``, each molecule's draws followed by NaN up to the
-file's longest, ``observed_data`` the counts ``(molecule, row, column)``, ``molecules`` the
-number of chains and draws of each and its attributes as JSON (the sampler's record, the
-autocorrelation time, the truth, the summary row: ``MOLECULE_ATTRIBUTES``), and as root
-attributes what the molecules share (camera, geometry, photon unit, scene).
+file's longest (none in a store that keeps no draws, ``NO_DRAWS``), ``observed_data`` the
+counts ``(molecule, row, column)``, ``molecules`` the number of chains and draws of each and
+its attributes as JSON (the sampler's record, the autocorrelation time, the truth, the summary
+row: ``MOLECULE_ATTRIBUTES``), and as root attributes what the molecules share (camera,
+geometry, photon unit, scene).
 ``Store.posterior`` gives back one molecule's ``Posterior``, as ``Posterior.save`` would have
 written it. Writing many molecules to a file costs ~0.5 ms per molecule, where a file per
 molecule cost ~70 ms (h5netcdf writes each variable's dimensions one by one), and a dataset of
@@ -51,6 +52,8 @@ if TYPE_CHECKING:
 STORE_FORMAT = "bayespsf store 2: posteriors-FIRST-LAST.nc, many molecules to a file"
 #: Most molecules to a file (a larger write is split).
 FILE_MOLECULES = 4096
+#: The manifest's entry for a store that keeps no draws (``sample_many(keep_draws=False)``).
+NO_DRAWS = {"draws": "not kept: each molecule's summary row, sampler record and counts only"}
 _NAME = re.compile(r"posteriors-(\d+)-(\d+)\.nc")
 
 
@@ -219,6 +222,18 @@ class Store:
                     )
         return rows
 
+    def keeps_draws(self) -> bool:
+        """Whether the store's files hold the molecules' draws.
+
+        Returns
+        -------
+        bool
+            False where its manifest says ``NO_DRAWS`` (``sample_many(keep_draws=False)``):
+            its files hold each molecule's summary row, sampler record and counts only.
+        """
+        file = self.path / "manifest.json"
+        return not (file.exists() and "draws" in json.loads(file.read_text()))
+
     def posterior(self, index: int) -> Posterior:
         """The posterior of molecule ``index``.
 
@@ -236,14 +251,20 @@ class Store:
         Raises
         ------
         BayespsfInputError
-            If ``index`` is not a whole number, no file of the store holds the molecule, or the
-            file that does is damaged.
+            If ``index`` is not a whole number, the store keeps no draws, no file of the store
+            holds the molecule, or the file that does is damaged.
         """
         if isinstance(index, bool) or not isinstance(index, numbers.Integral):
             raise BayespsfInputError(
                 f"index must be a molecule's number (an integer), got {index!r}"
             )
         index = int(index)
+        if not self.keeps_draws():
+            raise BayespsfInputError(
+                f"store {self.path} keeps no draws (sampled with keep_draws=False, "
+                "--no-draws): its summary.csv holds each molecule's summary; sample again "
+                "into a new store with the draws kept to read a posterior"
+            )
         for path in self.files():
             first, last = _span(path)
             if not first <= index <= last:
@@ -282,6 +303,8 @@ class Store:
             stored empty).
         """
         counts = np.asarray(counts)
+        if not self.keeps_draws():  # a draw axis of length 0: the files keep the rest
+            draws = [np.asarray(d)[:, :0] for d in draws]
         for first in range(0, len(molecules), FILE_MOLECULES):
             part = slice(first, first + FILE_MOLECULES)
             tree = _tree(molecules[part], draws[part], counts[part], attributes, per_molecule[part])
@@ -457,4 +480,4 @@ def _atomic_write_text(path: Path, text: str) -> None:
     os.replace(partial, path)
 
 
-__all__ = ["FILE_MOLECULES", "STORE_FORMAT", "Store"]
+__all__ = ["FILE_MOLECULES", "NO_DRAWS", "STORE_FORMAT", "Store"]

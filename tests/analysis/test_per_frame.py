@@ -13,6 +13,7 @@ from bayespsf import Model, cli, load_scene, simulate_movie
 from bayespsf.analysis import localizations, localize_frames
 from bayespsf.errors import BayespsfInputError
 from bayespsf.io import CAMERA_KEYS
+from bayespsf.parallel import Store
 from bayespsf.psf import PARAMETER_NAMES as NAMES
 
 
@@ -40,12 +41,17 @@ def movie(tmp_path_factory):
     scene = _scene(8, 6)
     folder = tmp_path_factory.mktemp("per_frame")
     made = simulate_movie(scene, seed=3, out=folder / "m")
+    truth = pd.read_csv(made.files["truth"])
+    return made.files["movie"], _camera_file(scene, folder), Model.from_scene(scene), truth
+
+
+def _camera_file(scene, folder):
+    """The scene's EMCCD and pixel size as a camera file (``folder/camera.toml``)."""
     camera = {k: v for k, v in scene.to_dict()["camera"].items() if k in CAMERA_KEYS["emccd"]}
     lines = [f"{k} = {v!r}" for k, v in {"kind": "emccd", **camera}.items()]
     lines += ["[geometry]", "pixel_size = 79.0"]
     (folder / "camera.toml").write_text("[camera]\n" + "\n".join(lines) + "\n")
-    truth = pd.read_csv(made.files["truth"])
-    return made.files["movie"], folder / "camera.toml", Model.from_scene(scene), truth
+    return folder / "camera.toml"
 
 
 def _matched(locs, truth, radius=1.0):
@@ -114,6 +120,25 @@ def test_posteriors_per_frame_cover_the_truth(tmp_path):
     # the MLE and least squares are kept beside the posterior; the store holds the chunk
     assert {"x0_mle", "crlb_x0", "x0_lsq", "gof_p"} <= set(locs.columns)
     assert (tmp_path / "a" / "posteriors" / "chunk-00000" / "summary.csv").exists()
+    # --no-draws: the same table from chunk stores that keep no draws, recorded in run.json
+    base = ["analyze", str(made.files["movie"]), "--camera", str(_camera_file(scene, tmp_path))]
+    base += ["--psf-sd", "120", "--workers", "1", "--no-draws"]
+    assert cli.main([*base, "--per-frame", "--out", str(tmp_path / "b")]) == 0
+    bare = pd.read_csv(tmp_path / "b" / "locs.csv")
+    assert np.allclose(bare["x [nm]"], pd.read_csv(tmp_path / "a" / "locs.csv")["x [nm]"])
+    assert not Store(tmp_path / "b" / "posteriors" / "chunk-00000").keeps_draws()
+    record = json.loads((tmp_path / "b" / "run.json").read_text())
+    assert record["run"]["draws"] == "not kept"
+    with pytest.raises(SystemExit, match="--no-draws goes with --per-frame"):
+        cli.main([*base, "--out", str(tmp_path / "c")])
+    with pytest.raises(BayespsfInputError, match="keep_draws"):
+        localize_frames(
+            made.files["movie"],
+            Model.from_scene(scene),
+            out=tmp_path / "d",
+            posterior=False,
+            keep_draws=False,
+        )
 
 
 def test_the_command_line_runs_per_frame_and_refuses_trace_options(movie, tmp_path, capsys):

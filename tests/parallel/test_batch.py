@@ -361,3 +361,28 @@ def test_a_table_of_batched_and_chain_rows_takes_its_unit_column_without_a_warni
     table = sample_many(counts, Model.from_scene(scene), seed=1, workers=1, truths=truth.to_numpy())
     assert set(table["method"]) == {"importance", "mcmc"}
     assert (table["photon_unit"] == Model.from_scene(scene).photon_unit_label).all()
+
+
+def test_a_store_without_draws_gives_the_same_table(stack, tmp_path):
+    """``keep_draws=False``: the same summary table as with the draws kept (batched and chain
+    posteriors), the store's files under half the size, its rerun resumed from them;
+    False without a store, or a value that is not a bool, is refused by name."""
+    counts, _, model = stack
+    kept = sample_many(counts, model, seed=2, workers=1, store=tmp_path / "k", method="auto")
+    bare = sample_many(
+        counts, model, seed=2, workers=1, store=tmp_path / "b", method="auto", keep_draws=False
+    )
+    pd.testing.assert_frame_equal(kept.drop(columns="seconds"), bare.drop(columns="seconds"))
+    size = [sum(p.stat().st_size for p in Store(tmp_path / s).files()) for s in ("k", "b")]
+    assert size[1] < size[0] / 2
+    again = sample_many(
+        counts, model, seed=2, workers=1, store=tmp_path / "b", method="auto", keep_draws=False
+    )
+    pd.testing.assert_frame_equal(again, bare)
+    chain = sample_many(
+        counts[:1], model, seed=2, workers=1, store=tmp_path / "c", keep_draws=False, **OPTIONS
+    )
+    assert chain["method"].iloc[0] == "mcmc" and not Store(tmp_path / "c").keeps_draws()
+    for bad in ({"keep_draws": False}, {"keep_draws": "no", "store": tmp_path / "x"}):
+        with pytest.raises(BayespsfInputError, match="keep_draws must be True or False"):
+            sample_many(counts[:1], model, workers=1, method="laplace", **bad)

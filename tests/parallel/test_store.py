@@ -152,3 +152,26 @@ def test_a_killed_runs_partial_files_are_removed_by_the_next_run(tmp_path):
     finally:
         store.unlock()
     assert not partial.exists()
+
+
+def test_a_store_that_keeps_no_draws_keeps_the_rest(tmp_path):
+    """A store opened with ``NO_DRAWS`` writes each molecule's summary row, sampler record and
+    counts but no draws: its files are smaller, ``finished`` reads the rows back as from a
+    store with draws, ``Store.posterior`` refuses by name, and a run that keeps draws is
+    refused there as another run."""
+    made = molecules(40, seed=5)
+    kept, bare = Store(tmp_path / "kept"), Store(tmp_path / "bare")
+    kept.open({"run": 1})
+    bare.open({"run": 1} | store_module.NO_DRAWS)
+    write(kept, made)
+    write(bare, made)
+    assert kept.keeps_draws() and not bare.keeps_draws()
+    assert (
+        bare.finished(100) == kept.finished(100) == {10 + i: m["row"] for i, m in enumerate(made)}
+    )
+    size = [sum(p.stat().st_size for p in s.files()) for s in (kept, bare)]
+    assert size[1] < 0.8 * size[0]
+    with pytest.raises(BayespsfInputError, match="keeps no draws"):
+        bare.posterior(10)
+    with pytest.raises(BayespsfInputError, match="draws differ"):
+        bare.open({"run": 1})
