@@ -4,8 +4,9 @@ On simulated `emccd-typical` ROIs (15 x 15, N = 1 000), one process (`workers=1`
 thread), `method="auto"`: in each round, on ROIs of its own, `sample_many` without a store,
 then with a new store (what `bayespsf fit` and `analyze` write), then again on that store (a
 resume that reads every molecule back and samples none), then `Store.posterior` of one
-molecule. Wall-clock seconds, as the store's cost is writing files; the ratio of stored to
-unstored throughput is taken within each round.
+molecule, then with a store that keeps no draws (`keep_draws=False`, `bayespsf analyze
+--per-frame --no-draws`). Wall-clock seconds, as the store's cost is writing files; the
+ratio of stored to unstored throughput is taken within each round.
 
     pip install -e ".[bench]"
     python benchmarks/store.py            # full run, rewrites its section of README.md
@@ -42,7 +43,8 @@ def _seconds(function):
 
 
 def rounds(n: int, count: int) -> pd.DataFrame:
-    """One row per round: ROIs/s without and with a store, the resume, one molecule's read."""
+    """One row per round: ROIs/s without and with a store, the resume, one molecule's read,
+    and a store without draws."""
     scene = load_scene(SCENE)
     model = Model.from_scene(scene)
     rows = []
@@ -58,7 +60,13 @@ def rounds(n: int, count: int) -> pd.DataFrame:
             stored = _seconds(lambda c=counts, r=run, s=store: sample_many(c, model, store=s, **r))
             resumed = _seconds(lambda c=counts, r=run, s=store: sample_many(c, model, store=s, **r))
             read = _seconds(lambda s=store: Store(s).posterior(n // 2))
-            files = Store(store).files()
+            bare = store.with_name(store.name + "-bare")
+            light = _seconds(
+                lambda c=counts, r=run, s=bare: sample_many(
+                    c, model, store=s, keep_draws=False, **r
+                )
+            )
+            files, bare_files = Store(store).files(), Store(bare).files()
             rows.append(
                 {
                     "round": k,
@@ -71,6 +79,8 @@ def rounds(n: int, count: int) -> pd.DataFrame:
                     "Store.posterior (ms)": 1e3 * read,
                     "files": len(files),
                     "kB per ROI": sum(f.stat().st_size for f in files) / n / 1e3,
+                    "ROIs/s, store without draws": n / light,
+                    "kB per ROI without draws": sum(f.stat().st_size for f in bare_files) / n / 1e3,
                 }
             )
     return pd.DataFrame(rows)
