@@ -17,8 +17,8 @@ The replicates are drawn and refitted ``ROUND`` at a time, and a ROI's stop once
 valid as the full test's is, ``P(p <= s) = s`` at each value ``s`` it can take where the
 model holds, and it is the full test's wherever that is below ``stop_after / replicates``
 (0.2 at 49): the flags at ``p <= 0.1`` are the same test. A ROI the model describes has
-p-values spread over (0, 1) and stops early: of emccd-typical's (N = 1 000) 26 of the 49
-replicates count on average (the round that stops a ROI is refitted whole). Above
+p-values spread over (0, 1) and stops early: on emccd-typical's ROIs (N = 1 000) 26 of the
+49 replicates count on average (the round that stops a ROI is refitted whole). Above
 ``stop_after / replicates`` the p-value takes the values ``stop_after / l`` (10/49 ... 1),
 not the lattice ``k / 50``.
 
@@ -383,9 +383,9 @@ def bootstrap_check(
 def _sequential_p(rows, t, replicates: int, stop_after, replicate_round):
     """The p-values and counted replicates of ``rows`` (m,), of discrepancy ``t`` (m,):
     ``replicate_round(rows, k)`` gives ``k`` more replicates' discrepancies and whether each
-    counts, ``ROUND`` at a time up to
-    ``replicates``; a ROI stops at the replicate that makes ``stop_after`` at least as
-    discrepant (p = stop_after / counted), else p = (1 + exceeding) / (1 + counted)."""
+    counts, ``ROUND`` at a time up to ``replicates``; a ROI stops at the replicate that makes
+    ``stop_after`` at least as discrepant (p = stop_after / counted), else p = (1 +
+    exceeding) / (1 + counted) (NaN where none counts)."""
     exceed, counted = np.zeros(len(t), dtype=int), np.zeros(len(t), dtype=int)
     p = np.full(len(t), np.nan)
     active = np.arange(len(t))
@@ -407,10 +407,7 @@ def _sequential_p(rows, t, replicates: int, stop_after, replicate_round):
         exceed[going] += hits[~stops].sum(axis=1)
         counted[going] += counts[~stops].sum(axis=1)
         active = going
-    with np.errstate(invalid="ignore", divide="ignore"):
-        p[active] = np.where(
-            counted[active] > 0, (1 + exceed[active]) / (1 + counted[active]), np.nan
-        )
+    p[active] = np.where(counted[active] > 0, (1 + exceed[active]) / (1 + counted[active]), np.nan)
     return p, counted
 
 

@@ -29,10 +29,10 @@ photons per pixel gave 9 false candidates against a stated 0.01 (docs/movies.md)
 The background. ``b`` is local: at each pixel, a least-squares quartic surface of the pixels
 around it away from the spots (``_background``; a window of three ROI sides, and at least
 three sides of the spot's own ROI, so that a frame detected with the fitted window as its ROI
-still gets the quartic), which follows a ramp or an illumination
-profile (a beam narrower than the window too) to the image's edge, so that the threshold is set
-against the background and the camera law at each pixel's own level; without a camera the noise
-variance is estimated pixel by pixel over the same window. With a camera, the variance the
+still gets the quartic), which follows a ramp or an illumination profile (a beam narrower
+than the window too) to the image's edge, so that the threshold is set against the
+background and the camera law at each pixel's own level; without a camera the noise variance
+is estimated pixel by pixel over the same window. With a camera, the variance the
 background pixels show beyond the law (a per-pixel offset pattern, which a projection keeps
 whole) is added to the law as a Gaussian term (``_background.fixed_pattern_variance``).
 
