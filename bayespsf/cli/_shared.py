@@ -142,9 +142,14 @@ def fit_report(table, out: Path) -> str:
     if (~bad).any():
         methods = ", ".join(f"{k} {v}" for k, v in table.loc[~bad, "method"].value_counts().items())
         lines.append(f"posteriors by {methods}")
-    files = len(Store(out).files())
+    store = Store(out)
+    files = len(store.files())
     lines.append(
         f"wrote {out / 'summary.csv'} and the posteriors of {int((~bad).sum())} ROIs in "
-        f"{files} file(s) (bayespsf.parallel.Store({str(out)!r}).posterior(i) reads ROI i's)"
+        + (
+            f"{files} file(s) (bayespsf.parallel.Store({str(out)!r}).posterior(i) reads ROI i's)"
+            if store.keeps_draws()
+            else f"{files} file(s), their summaries without draws (--no-draws)"
+        )
     )
     return "\n".join(lines)

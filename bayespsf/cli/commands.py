@@ -208,6 +208,7 @@ def _fit(args) -> int:
         max_seconds=args.max_seconds,
         check=args.check,
         backend=args.backend,
+        keep_draws=not args.no_draws,
     )
     print(fit_report(table, out))
     return 0

@@ -93,6 +93,12 @@ def test_fit_command_tif_and_camera_file(tmp_path, capsys):
     assert cli.main([*args, "--check", "--out", str(checked), "--workers", "1"]) == 0
     assert pd.read_csv(checked / "summary.csv")["gof_p"].between(0, 1).all()
     assert "gof_p" not in summary
+    bare = tmp_path / "fit-bare"  # --no-draws: the same summary, the files without draws
+    assert cli.main([*args, "--no-draws", "--out", str(bare), "--workers", "1"]) == 0
+    assert "summaries without draws (--no-draws)" in capsys.readouterr().out
+    same = pd.read_csv(bare / "summary.csv").drop(columns="seconds")
+    pd.testing.assert_frame_equal(same, summary.drop(columns="seconds"))
+    assert not Store(bare).keeps_draws()
     chain = tmp_path / "fit-mcmc"
     args = [*args[:-1], "400", "--method", "mcmc", "--out", str(chain), "--workers", "1"]
     assert cli.main(args) == 0
