@@ -200,8 +200,8 @@ def localize_frames(
         A bar of the windows localised (default: when stderr is a terminal).
     keep_draws : bool, default True
         Whether the chunks' stores (``OUT/posteriors``) keep each window's draws
-        (``sample_many``'s ``keep_draws``: False keeps a fifth of the disk, the summaries
-        only; ``bayespsf analyze --per-frame --no-draws``).
+        (``sample_many``'s ``keep_draws``: False keeps the summaries only, a quarter of the
+        disk; ``bayespsf analyze --per-frame --no-draws``).
     provenance : dict, optional
         What made the run, recorded in ``locs.yaml`` and the report.
     force : bool, default False

@@ -252,7 +252,7 @@ def _add_analyze(commands) -> None:
         "--no-draws",
         action="store_true",
         help="with --per-frame: keep each window's summary in posteriors/, not its draws "
-        "(about 5 kB per window instead of 27: for datasets of millions of spots)",
+        "(about 7 kB per window instead of 30: for datasets of millions of spots)",
     )
     add_out(analyze, "bayespsf-analyze")
     add_force(analyze)
