@@ -61,7 +61,7 @@ def choices(photons, rois: int) -> pd.DataFrame:
 
 def main(argv=None):
     quick = quick_run(__doc__, argv)
-    photons = (1000, 20_000) if quick else (300, 1000, 3000, 5000, 10_000, 20_000)
+    photons = (1000, 20_000) if quick else (150, 200, 300, 1000, 3000, 5000, 10_000, 20_000)
     table = choices(photons, 20 if quick else 400)
     intro = '`sample_many` (`method="auto"`, ESS 400, one process), emccd-typical at each N:'
     publish_table("auto", intro, table, quick)
