@@ -251,7 +251,7 @@ def localize_frames(
     {0: 2, 1: 2, 2: 2}
     """
     check_discrepancy("gof_discrepancy", gof_discrepancy)
-    if keep_draws is not True and (keep_draws is not False or not posterior):
+    if not isinstance(keep_draws, bool | np.bool_) or not (keep_draws or posterior):
         raise BayespsfInputError(
             f"keep_draws must be True or False, and False only with posterior=True (the MLE "
             f"keeps no draws); got {keep_draws!r}"

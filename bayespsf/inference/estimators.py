@@ -296,9 +296,10 @@ def fit_screened(
     start, laplace, engine, crlb, backend
         As ``fit_mle``.
     decrement : float, default 1e-10
-        The stack engine's convergence test: a ROI has converged when its Newton decrement
-        (log-likelihood units: about twice its distance from the maximum) is below this
-        (``bayespsf.inference.solver``). The model check's refits take 1e-6.
+        The NumPy stack engine's convergence test: a ROI has converged when its Newton
+        decrement (log-likelihood units: about twice its distance from the maximum) is below
+        this (``bayespsf.inference.solver``; another value is refused with the other engine or
+        backend). The model check's refits take 1e-6.
 
     Returns
     -------
@@ -309,7 +310,8 @@ def fit_screened(
     ------
     BayespsfInputError
         As ``fit_mle`` for the stack's shape and the options; ``problems`` not one entry per
-        ROI.
+        ROI; a ``decrement`` that is not > 0, or not the default with the scipy engine or the
+        JAX backend.
 
     See Also
     --------
@@ -317,6 +319,11 @@ def fit_screened(
     """
     _check_options(engine, backend, model, laplace=laplace, crlb=crlb)
     decrement = scalar_in_range("decrement", decrement, 0.0, low_inclusive=False)
+    if decrement != solver.DECREMENT and (engine != "stack" or backend != "numpy"):
+        raise BayespsfInputError(
+            f"decrement={decrement:g} is the NumPy stack engine's test; engine={engine!r} and "
+            f"backend={backend!r} converge by their own (use engine='stack', backend='numpy')"
+        )
     stack = model.check_shape(stack)
     if stack.ndim != 3:
         raise BayespsfInputError(f"stack must have shape (n, roi, roi), got {stack.shape}")

@@ -131,6 +131,10 @@ def test_posteriors_per_frame_cover_the_truth(tmp_path):
     assert record["run"]["draws"] == "not kept"
     with pytest.raises(SystemExit, match="--no-draws goes with --per-frame"):
         cli.main([*base, "--out", str(tmp_path / "c")])
+    with pytest.raises(BayespsfInputError, match="keep_draws"):  # not a bool
+        localize_frames(
+            made.files["movie"], Model.from_scene(scene), out=tmp_path / "e", keep_draws="no"
+        )
     with pytest.raises(BayespsfInputError, match="keep_draws"):
         localize_frames(
             made.files["movie"],

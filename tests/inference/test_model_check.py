@@ -165,6 +165,9 @@ def test_replicates_refitted_to_a_looser_decrement_give_the_same_test(monkeypatc
     reference = bootstrap_check(counts, MODEL, replicates=19, seed=7, fits=fits)
     assert (found["gof_p"] == reference["gof_p"]).all()
     assert (found["gof_replicates"] == reference["gof_replicates"]).all()
+    for bad, words in (({"decrement": 0.0}, "decrement must be in"), ({"engine": "scipy"}, "own")):
+        with pytest.raises(BayespsfInputError, match=words):
+            fit_screened(images[:1], MODEL, None, **({"decrement": 1e-6} | bad))
 
 
 def test_pearson_is_the_sum_of_squared_standardised_residuals():
