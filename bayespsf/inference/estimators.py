@@ -20,7 +20,7 @@ import pandas as pd
 from numpy.typing import ArrayLike
 
 from bayespsf._runtime import one_blas_thread
-from bayespsf._validate import finite_array, scalar_in_range
+from bayespsf._validate import finite_array
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference import diagnostics, solver
 from bayespsf.inference.backends import check_backend
@@ -318,12 +318,7 @@ def fit_screened(
     fit_mle : the same fit of counts not yet judged.
     """
     _check_options(engine, backend, model, laplace=laplace, crlb=crlb)
-    decrement = scalar_in_range("decrement", decrement, 0.0, low_inclusive=False)
-    if decrement != solver.DECREMENT and (engine != "stack" or backend != "numpy"):
-        raise BayespsfInputError(
-            f"decrement={decrement:g} is the NumPy stack engine's test; engine={engine!r} and "
-            f"backend={backend!r} converge by their own (use engine='stack', backend='numpy')"
-        )
+    decrement = solver.checked_decrement(decrement, engine == "stack" and backend == "numpy")
     stack = model.check_shape(stack)
     if stack.ndim != 3:
         raise BayespsfInputError(f"stack must have shape (n, roi, roi), got {stack.shape}")

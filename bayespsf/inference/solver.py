@@ -35,6 +35,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import optimize
 
+from bayespsf._validate import scalar_in_range
+from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.separable import expected_counts, hessian_sums, jacobian_sums
 from bayespsf.psf.gaussian import axis_curvature, axis_factor, axis_factors
 
@@ -45,6 +47,18 @@ MAX_ITERATIONS = 200
 METRIC_FLOOR = 1e-6  # expected photons per pixel (the EMCCD Fisher table's lower end)
 BLOCK = 1024  # ROIs per array pass: the Jacobian of a block of 15 x 15 ROIs is 11 MB
 BLOCK_PIXELS = 2**20  # ... and at most this many pixels per pass (its Jacobian: 48 MB)
+
+
+def checked_decrement(decrement, own: bool) -> float:
+    """``decrement`` as a float > 0, refused where it is not ``DECREMENT`` and the fit is not
+    this engine's (``own`` False: the scipy engine or the JAX backend, which ignore it)."""
+    decrement = scalar_in_range("decrement", decrement, 0.0, low_inclusive=False)
+    if decrement != DECREMENT and not own:
+        raise BayespsfInputError(
+            f"decrement={decrement:g} is the NumPy stack engine's test; the scipy engine and "
+            "the JAX backend converge by their own (use engine='stack', backend='numpy')"
+        )
+    return decrement
 
 
 def block_rois(roi: int) -> int:
