@@ -92,13 +92,13 @@ def _moments(px, py, c, a, xp):
     """Centroid, widths (0 where the second moment less the pixel's ``a^2/12`` is not
     positive) and total of a signal whose marginals along x and y are ``px``, ``py``
     (n, roi); the centroid 0 where the total is not positive. ``c``: the pixel centres
-    (roi,)."""
+    (roi,). Sums by einsum: BLAS's ``@`` rounds a row by its place in the stack."""
     total = px.sum(axis=1)
     weight = xp.where(total > 0, total, 1.0)
-    x0 = xp.where(total > 0, px @ c / weight, 0.0)
-    y0 = xp.where(total > 0, py @ c / weight, 0.0)
-    vx = px @ c**2 / weight - x0**2 - a * a / 12
-    vy = py @ c**2 / weight - y0**2 - a * a / 12
+    x0 = xp.where(total > 0, xp.einsum("nj,j->n", px, c) / weight, 0.0)
+    y0 = xp.where(total > 0, xp.einsum("nj,j->n", py, c) / weight, 0.0)
+    vx = xp.einsum("nj,j->n", px, c**2) / weight - x0**2 - a * a / 12
+    vy = xp.einsum("nj,j->n", py, c**2) / weight - y0**2 - a * a / 12
     return x0, y0, xp.sqrt(xp.maximum(vx, 0.0)), xp.sqrt(xp.maximum(vy, 0.0)), total
 
 
