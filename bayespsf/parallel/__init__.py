@@ -2,7 +2,13 @@
 ``Store`` written molecule by molecule), on local processes or a Dask cluster."""
 
 from bayespsf.parallel.batch import sample_many
-from bayespsf.parallel.executors import local_executor, parallelism, run_tasks, task_runner
+from bayespsf.parallel.executors import (
+    local_executor,
+    parallelism,
+    run_in_order,
+    run_tasks,
+    task_runner,
+)
 from bayespsf.parallel.joint import joint_posteriors
 from bayespsf.parallel.seeds import molecule_seed, molecule_seeds
 from bayespsf.parallel.store import Store
@@ -14,6 +20,7 @@ __all__ = [
     "molecule_seed",
     "molecule_seeds",
     "parallelism",
+    "run_in_order",
     "run_tasks",
     "sample_many",
     "task_runner",

@@ -9,6 +9,7 @@ import multiprocessing
 import os
 import sys
 import threading
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
@@ -93,7 +94,9 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     run (a Dask client, a progress monitor, a Jupyter kernel, or JAX, whose runtime threads
     Python does not count), where a fork is unsafe, they start from a forkserver, which
     imports the main module and ``bayespsf.parallel`` once, then forks the workers. The
-    choice is made here, when the pool is made: for ``sample_many(..., backend="jax")`` make
+    choice is made here, when the pool is made, and forked workers start here too (a pool
+    forks them all at its first task): a pool made before a progress bar's thread starts
+    stays safe to use after it. For ``sample_many(..., backend="jax")`` make
     the pool after importing JAX.
     """
     workers = os.cpu_count() if workers is None else int(workers)
@@ -108,9 +111,12 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
         context.set_forkserver_preload(["__main__", "bayespsf.parallel"])
     # a forkserver's workers are its children: they die with it, and it ends with this process
     parent = os.getpid() if method == "fork" else None
-    return cf.ProcessPoolExecutor(
+    pool = cf.ProcessPoolExecutor(
         workers, mp_context=context, initializer=_die_with_parent_of, initargs=(parent,)
     )
+    if method == "fork":  # every worker forked now, while this process runs one thread
+        pool.submit(os.getpid).result()
+    return pool
 
 
 def _die_with_parent_of(parent: int | None) -> None:
@@ -185,8 +191,9 @@ def task_runner(
             runner.shutdown(wait=True, cancel_futures=True)
 
 
-class _AddressExecutor:
-    """The executor of a Client that sample_many made from a scheduler address (and closes)."""
+class _AddressExecutor(cf.Executor):
+    """The executor of a Client made from a scheduler address (and closed with it): an
+    executor, so that the runner can be passed on as one."""
 
     def __init__(self, client):
         self.client, self.inner = client, client.get_executor()
@@ -230,10 +237,54 @@ def run_tasks[T, R](
     return (f.result() for f in cf.as_completed(futures))
 
 
+def run_in_order[T, R](
+    function: Callable[[T], R],
+    tasks: Iterable[T],
+    runner: cf.Executor | None,
+    ahead: int | None = None,
+) -> Iterator[R]:
+    """``function`` over ``tasks``, the results in the tasks' order, a few tasks sent ahead.
+
+    Parameters
+    ----------
+    function : callable
+        One task to its result (picklable, with its tasks and results, for a process pool
+        or Dask).
+    tasks : iterable
+        The tasks, read lazily (blocks of a movie: memory holds ``ahead`` of them).
+    runner : concurrent.futures.Executor or None
+        From ``task_runner``; None runs each task here when its result is asked for.
+    ahead : int, optional
+        Tasks sent and not yet returned, at most; default twice the runner's
+        ``parallelism``, so that each worker has its next task waiting.
+
+    Returns
+    -------
+    iterator
+        The results, in the order of ``tasks``.
+
+    See Also
+    --------
+    run_tasks : the results as they finish, every task sent at once.
+    """
+    if runner is None:
+        yield from map(function, tasks)
+        return
+    ahead = 2 * parallelism(runner) if ahead is None else ahead
+    pending = deque()
+    for task in tasks:
+        pending.append(runner.submit(function, task))
+        if len(pending) >= ahead:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
+
+
 __all__ = [
     "SCHEDULER_TIMEOUT",
     "local_executor",
     "parallelism",
+    "run_in_order",
     "run_tasks",
     "task_runner",
 ]

@@ -259,9 +259,11 @@ def test_workers_and_the_order_tasks_finish_in_change_no_result(movie, tmp_path,
     with local_executor(2) as pool:
         processes = run("processes", executor=pool)
     distributed = pytest.importorskip("distributed")  # a dependency: installed by pyproject
+    # ":0": the scheduler's HTTP server on a free port (None still binds 8787, which another
+    # test's cluster may hold when the tests run in parallel: a warning, an error here)
     with (
         distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, dashboard_address=None, processes=True
+            n_workers=2, threads_per_worker=1, dashboard_address=":0", processes=True
         ) as cluster,
         distributed.Client(cluster) as client,
     ):

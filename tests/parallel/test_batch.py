@@ -63,9 +63,11 @@ def test_two_processes_give_identical_results(serial, stack):
 def test_dask_local_cluster_gives_identical_results(serial, stack):
     distributed = pytest.importorskip("distributed")  # a dependency: installed by pyproject
     counts, truths, model = stack
+    # ":0": the scheduler's HTTP server on a free port (None still binds 8787, which another
+    # test's cluster may hold when the tests run in parallel: a warning, an error here)
     with (
         distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, dashboard_address=None, processes=True
+            n_workers=2, threads_per_worker=1, dashboard_address=":0", processes=True
         ) as cluster,
         distributed.Client(cluster) as client,
     ):

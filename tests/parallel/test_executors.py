@@ -1,0 +1,63 @@
+"""What runs the tasks (bayespsf.parallel.executors): results in order with a bounded number of
+tasks sent ahead, and local worker processes that are forked while the caller runs one thread."""
+
+import concurrent.futures as cf
+import subprocess
+import sys
+import time
+
+import pytest
+
+from bayespsf.parallel import run_in_order
+
+
+def _slow_first(i: int) -> int:
+    time.sleep(0.02 * (5 - i) if i < 5 else 0.0)  # the first tasks finish last
+    return i * i
+
+
+@pytest.mark.parametrize("ahead", [1, 2, 3])
+def test_results_come_in_the_tasks_order_with_at_most_ahead_sent(ahead):
+    drawn = []
+
+    def tasks():
+        for i in range(8):
+            drawn.append(i)
+            yield i
+
+    with cf.ThreadPoolExecutor(3) as threads:
+        for k, result in enumerate(run_in_order(_slow_first, tasks(), threads, ahead=ahead)):
+            assert result == k * k
+            assert max(drawn) <= k + ahead  # task k + ahead + 1 is not read before result k
+    assert drawn == list(range(8))
+
+
+def test_in_this_process_each_task_runs_when_its_result_is_asked_for():
+    drawn = []
+
+    def tasks():
+        for i in range(3):
+            drawn.append(i)
+            yield i
+
+    results = run_in_order(_slow_first, tasks(), None)
+    assert drawn == []
+    assert next(results) == 0 and drawn == [0]
+    assert list(results) == [1, 4] and drawn == [0, 1, 2]
+
+
+def test_forked_workers_start_with_the_pool():
+    # in a process that runs one thread the pool forks its workers when it is made, not at its
+    # first task (when a progress bar's monitor thread may run: a fork is unsafe then); a
+    # fresh interpreter, since the test runner's own threads make the pool use a forkserver
+    script = (
+        "import multiprocessing, threading\n"
+        "from bayespsf.parallel import local_executor\n"
+        "assert threading.active_count() == 1\n"
+        "with local_executor(2) as pool:\n"
+        "    print(len(multiprocessing.active_children()))\n"
+        "    print(sum(pool.map(abs, [-1, -2, -3])))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["2", "6"]
