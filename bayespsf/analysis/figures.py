@@ -182,13 +182,13 @@ def width_precision(spread: pd.DataFrame, path) -> Path:
     return path
 
 
-def report_figures(movie, found, frame_z, spread, gof_p, residuals, out: Path) -> dict[str, Path]:
+def report_figures(image, found, frame_z, spread, gof_p, residuals, out: Path) -> dict[str, Path]:
     """Every figure of the report, into one folder.
 
     Parameters
     ----------
-    movie : Movie
-        For the mean projection.
+    image : numpy.ndarray
+        The movie's mean projection (``bayespsf.movie.project``).
     found : FoundMolecules
         Its molecules and per-frame table.
     frame_z : pandas.DataFrame
@@ -208,10 +208,9 @@ def report_figures(movie, found, frame_z, spread, gof_p, residuals, out: Path) -
         The files' paths by name.
     """
     from bayespsf.analysis.consistency import PARAMETERS
-    from bayespsf.movie import project
 
     made = [
-        detections(project(movie, "mean"), found.molecules, out / "detections.png"),
+        detections(image, found.molecules, out / "detections.png"),
         traces(found.frames, found.molecules, out / "traces.png"),
         zscores(frame_z, PARAMETERS, out / "zscores.png"),
         width_precision(spread, out / "width_precision.png"),

@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 
 from bayespsf.analysis.localizations import PLACE_COLUMNS
-from bayespsf.analysis.pipeline import _estimates
+from bayespsf.analysis.molecule_tasks import estimates
 from bayespsf.model import Model
 from bayespsf.movie import detect_frame
 from bayespsf.parallel import molecule_seed, parallelism, sample_many
@@ -79,7 +79,7 @@ def localize_chunk(k: int, place: pd.DataFrame, counts: np.ndarray, work: ChunkW
     """Chunk ``k``'s rows: ``place``, the MLE with its Cramér-Rao bound and, with the
     posterior, ``sample_many``'s summary (seed ``molecule_seed(seed, k)``, store
     ``posteriors/chunk-k``) and the least squares; the task of a worker."""
-    parts = [place, _estimates(counts, work.fitting, lsq=work.posterior)]
+    parts = [place, estimates(counts, work.fitting, lsq=work.posterior)]
     if work.posterior:
         store = work.out / "posteriors" / f"chunk-{k:05d}"
         seed = molecule_seed(work.seed, k)

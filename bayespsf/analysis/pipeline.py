@@ -33,22 +33,23 @@ import pandas as pd
 
 from bayespsf.analysis.consistency import PARAMETERS, frame_consistency
 from bayespsf.analysis.localizations import localizations, locs_info
-from bayespsf.analysis.misfit import mean_residuals, width_by_window
+from bayespsf.analysis.misfit import mean_residuals
+from bayespsf.analysis.molecule_tasks import send_estimates, send_figures
 from bayespsf.analysis.report import report_markdown
 from bayespsf.analysis.width_spread import width_spread
 from bayespsf.axial import check_calibration
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import fit_lsq, fit_mle
+from bayespsf.inference.backends import check_backend
 from bayespsf.inference.gof import check_discrepancy
 from bayespsf.inference.settings import check_settings
 from bayespsf.io import write_locs
 from bayespsf.io.run_record import check_folder, claim_folder, read_copies
 from bayespsf.model import Model
-from bayespsf.movie import FoundMolecules, Movie, Rules, find_molecules, iter_rois
+from bayespsf.movie import FoundMolecules, Movie, Rules, find_molecules, iter_rois, project
 from bayespsf.movie.extract import open_movie
 from bayespsf.movie.found import SELECTION_FILES, write_tables
 from bayespsf.movie.pipeline import selection_run
-from bayespsf.parallel import joint_posteriors, sample_many
+from bayespsf.parallel import joint_posteriors, sample_many, task_runner
 from bayespsf.psf import PARAMETER_NAMES, DefocusCalibration
 
 if TYPE_CHECKING:
@@ -122,7 +123,8 @@ def valid_rois(
     Returns
     -------
     counts : numpy.ndarray, shape (n, fit, fit)
-        The ROIs in ADU, float64, ordered by molecule, then frame.
+        The ROIs in ADU, float64, in ``iter_rois``' order: by block of ``block`` frames,
+        then by molecule, then frame.
     table : pandas.DataFrame
         One row per ROI: ``molecule``, ``frame``, ``row``, ``col`` (the movie pixel at the
         ROI's centre).
@@ -148,24 +150,6 @@ def _check_sampler(method: str, ess, seed: int, max_seconds) -> dict:
     given = {} if ess is None else {"ess": ess}
     checked = check_settings(method=method, seed=seed, max_seconds=max_seconds, **given)
     return {} if max_seconds is None else {"max_seconds": checked.max_seconds}
-
-
-def _estimates(counts, model: Model, lsq: bool = True) -> pd.DataFrame:
-    """The MLE (``<p>_mle``, ``crlb_<p>``, ``mle_converged``, and ``fit_mle``'s ``status`` and
-    ``message`` as ``mle_status`` and ``mle_message``) and, with ``lsq``, the paper's least
-    squares (``<p>_lsq``)."""
-    mle = fit_mle(counts, model, laplace=False)
-    squares = fit_lsq(counts, model) if lsq else None
-    out = pd.DataFrame(index=mle.index)
-    for p in PARAMETER_NAMES:
-        out[f"{p}_mle"] = mle[p].to_numpy()
-        out[f"crlb_{p}"] = mle[f"crlb_{p}"].to_numpy()
-        if squares is not None:
-            out[f"{p}_lsq"] = squares[p].where(squares["converged"]).to_numpy()
-    out["mle_converged"] = mle["converged"].to_numpy(bool)
-    out["mle_status"] = mle["status"].to_numpy(object)
-    out["mle_message"] = mle["message"].to_numpy(object)
-    return out
 
 
 def _per_molecule(found: FoundMolecules, molecules: pd.DataFrame) -> pd.DataFrame:
@@ -379,6 +363,7 @@ def analyze(
     True
     """
     check_discrepancy("gof_discrepancy", gof_discrepancy)
+    check_backend(backend)  # JAX imported before the workers start (``local_executor``)
     budget = _check_sampler(method, ess, seed, max_seconds)
     if gof_discrepancy != "likelihood":
         provenance = {**(provenance or {}), "goodness-of-fit discrepancy": gof_discrepancy}
@@ -395,81 +380,78 @@ def analyze(
         run.update({"z calibration": terms, "z range": list(z_range)})
     check_folder(out, run, ANALYSIS_FILES, force=force, copies=copied)  # before the work
     about = {"movie": str(movie.path)}  # recorded, not compared: a moved movie is the same
-    found = find_molecules(movie, model, s0=s0, roi=roi, fit=fit, rules=rules, progress=progress)
-    about["psf sd"] = found.psf_width.record()  # an estimate is a result: recorded, not compared
-    about["geometry"] = found.geometry
-    roi, fit = found.geometry["roi"], found.geometry["fit"]
-    provenance = {**(provenance or {}), "psf sd": found.psf_width.summary()}
-    claimed = claim_folder(out, run, ANALYSIS_FILES, force=force, copies=copied, about=about)
-    paths = {**(files or {}), **claimed}
-    paths.update(write_tables(found, out))
-    if not found.molecules["selected"].any():
-        raise BayespsfInputError(
-            "no molecule passed the selection rules: nothing to analyse (see "
-            f"{paths['selection.md']})"
+    with task_runner(executor, workers) as runner:  # one set of workers for every stage
+        where = {"workers": 1} if runner is None else {"executor": runner}
+        found = find_molecules(
+            movie, model, s0=s0, roi=roi, fit=fit, rules=rules, progress=progress, executor=runner
         )
-    counts, place = valid_rois(movie, found, fit)
-    fitting = model.for_roi(fit)
-    effective = {} if ess is None else {"ess": ess}  # else each sampler's default
-    posteriors = sample_many(
-        counts,
-        fitting,
-        seed=seed,
-        executor=executor,
-        workers=workers,
-        store=out / "posteriors",
-        progress=progress,
-        check=gof_discrepancy,
-        method=method,
-        backend=backend,
-        **effective,
-        **budget,
-    )
-    frames = pd.concat(
-        [place, posteriors.drop(columns="molecule"), _estimates(counts, fitting)], axis=1
-    )
-    frames["selected"] = True
-    if z_calibration is not None:
-        from bayespsf.axial import z_posteriors
-
-        z_rows = z_posteriors(
+        about["psf sd"] = found.psf_width.record()  # a result: recorded, not compared
+        about["geometry"] = found.geometry
+        roi, fit = found.geometry["roi"], found.geometry["fit"]
+        provenance = {**(provenance or {}), "psf sd": found.psf_width.summary()}
+        claimed = claim_folder(out, run, ANALYSIS_FILES, force=force, copies=copied, about=about)
+        paths = {**(files or {}), **claimed}
+        paths.update(write_tables(found, out))
+        if not found.molecules["selected"].any():
+            raise BayespsfInputError(
+                "no molecule passed the selection rules: nothing to analyse (see "
+                f"{paths['selection.md']})"
+            )
+        counts, place = valid_rois(movie, found, fit)
+        fitting = model.for_roi(fit)
+        effective = {} if ess is None else {"ess": ess}  # else each sampler's default
+        beside = send_estimates(counts, fitting, place["molecule"].to_numpy(), runner)
+        posteriors = sample_many(
             counts,
             fitting,
-            z_calibration,
             seed=seed,
-            z_range=z_range,
-            workers=workers,
-            executor=executor,
+            store=out / "posteriors",
             progress=progress,
+            check=gof_discrepancy,
+            method=method,
+            backend=backend,
+            **where,
             **effective,
+            **budget,
         )
-        frames = pd.concat([frames, z_rows], axis=1)
-        provenance = {**(provenance or {}), "z calibration": z_calibration.record()}
-    frame_z, per_molecule, overall = frame_consistency(frames, PARAMETERS)
-    joint = joint_posteriors(
-        counts,
-        frames,
-        fitting,
-        seed=seed,
-        workers=workers,
-        executor=executor,
-        progress=progress,
-        **effective,
-    )
+        fits, windows = beside()
+        frames = pd.concat([place, posteriors.drop(columns="molecule"), fits], axis=1)
+        frames["selected"] = True
+        if z_calibration is not None:
+            from bayespsf.axial import z_posteriors
+
+            z_rows = z_posteriors(
+                counts,
+                fitting,
+                z_calibration,
+                seed=seed,
+                z_range=z_range,
+                progress=progress,
+                **where,
+                **effective,
+            )
+            frames = pd.concat([frames, z_rows], axis=1)
+            provenance = {**(provenance or {}), "z calibration": z_calibration.record()}
+        frame_z, per_molecule, overall = frame_consistency(frames, PARAMETERS)
+        scale = fitting.photoelectrons_per_photon  # Eq. sigma2dp3 is stated in detected photons
+        detected = frames.assign(
+            N_mean=frames["N_mean"] * scale,
+            b_mean=frames["b_mean"] * scale,
+            photon_unit="photoelectrons",
+        )
+        spread = width_spread(detected, fitting.pixel_size)
+        mle = frames[[f"{p}_mle" for p in PARAMETER_NAMES]].where(frames["mle_converged"], axis=0)
+        residuals = mean_residuals(counts, fitting, mle.to_numpy(float), frames["molecule"])
+        image = project(movie, "mean")
+        figures = send_figures(runner, image, found, frame_z, spread, frames["gof_p"], residuals)
+        settings = {"method": method, "roi": roi, "fit": fit, **(provenance or {})}
+        info = locs_info(movie, fitting, "bayespsf analyze", settings)
+        paths.update(write_locs(localizations(frames, fitting.pixel_size), out, info))
+        joint = joint_posteriors(
+            counts, frames, fitting, seed=seed, progress=progress, **where, **effective
+        )
+        paths.update(figures(out))
     molecules = _per_molecule(found, per_molecule).merge(joint, on="molecule", how="left")
-    scale = fitting.photoelectrons_per_photon  # Eq. sigma2dp3 is stated in detected photons
-    detected = frames.assign(
-        N_mean=frames["N_mean"] * scale,
-        b_mean=frames["b_mean"] * scale,
-        photon_unit="photoelectrons",
-    )
-    spread = width_spread(detected, fitting.pixel_size)
-    windows = width_by_window(counts, fitting, frames["molecule"].to_numpy())
-    mle = frames[[f"{p}_mle" for p in PARAMETER_NAMES]].where(frames["mle_converged"], axis=0)
-    residuals = mean_residuals(counts, fitting, mle.to_numpy(float), frames["molecule"])
-    settings = {"method": method, "roi": roi, "fit": fit, **(provenance or {})}
-    info = locs_info(movie, fitting, "bayespsf analyze", settings)
-    paths.update(write_locs(localizations(frames, fitting.pixel_size), out, info))
     tables = {
         "molecules.csv": molecules,
         "consistency.csv": overall,
@@ -479,9 +461,6 @@ def analyze(
     for name, table in tables.items():
         paths[name] = out / name
         table.to_csv(paths[name], index=False)
-    from bayespsf.analysis.figures import report_figures  # matplotlib only when drawn
-
-    paths.update(report_figures(movie, found, frame_z, spread, frames["gof_p"], residuals, out))
     result = Analysis(found, frames, molecules, overall, spread, windows, paths)
     paths["report.md"] = out / "report.md"
     paths["report.md"].write_text(report_markdown(result, provenance))

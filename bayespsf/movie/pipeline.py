@@ -9,14 +9,15 @@ bleaching (``frame_fits``: widths for the selection rules), and the paper's sele
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import fit_mle
 from bayespsf.io import run_record
 from bayespsf.model import Model
 from bayespsf.movie._metadata import resolve_pixel_size
@@ -27,7 +28,12 @@ from bayespsf.movie.geometry import movie_geometry, periphery_background, periph
 from bayespsf.movie.psf_width import resolve_psf_sd
 from bayespsf.movie.read import Movie
 from bayespsf.movie.select import Rules, select
+from bayespsf.movie.tasks import fit_stacks
 from bayespsf.movie.traces import molecules_over_time
+from bayespsf.parallel import task_runner
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 
 def fit_model(model: Model, fit: int) -> Model:
@@ -49,6 +55,7 @@ def frame_fits(
     until: pd.Series | None = None,
     progress: bool | None = None,
     periphery: np.ndarray | None = None,
+    executor: Executor | None = None,
 ) -> pd.DataFrame:
     """Per (molecule, frame): the maximum-likelihood fit of the central ROI and its SNR terms.
 
@@ -74,6 +81,10 @@ def frame_fits(
     periphery : numpy.ndarray of bool, shape (molecules, roi, roi), optional
         Each molecule's periphery pixels for the background (``periphery_masks``); default
         the whole ring outside ``fit``.
+    executor : concurrent.futures.Executor, optional
+        Where the fits run (``bayespsf.parallel.task_runner``'s runner, a
+        ``local_executor()`` or a Dask ``Client``'s executor); default this process. The
+        results do not depend on it.
 
     Returns
     -------
@@ -85,7 +96,7 @@ def frame_fits(
 
     See Also
     --------
-    bayespsf.fit_mle : the fit (its stack engine, one block of frames at a time).
+    bayespsf.fit_mle : the fit (its stack engine, in pieces of ``movie.tasks.PIECE`` ROIs).
     select : uses ``peak`` and ``background_var`` for the SNR rule.
 
     Notes
@@ -95,28 +106,32 @@ def frame_fits(
     """
     fitting = fit_model(model, fit)
     order = pd.Index(molecules["molecule"])
-    parts = []
     cut = dict(roi=roi, fit=fit, frames=frames, block=block, progress=progress, desc="fits")
-    for stack in iter_rois(movie, molecules, **cut):
-        keep = np.ones(len(stack), dtype=bool)
-        if until is not None:
-            end = stack.table["molecule"].map(until)
-            keep = (end.isna() | (stack.table["frame"] < end)).to_numpy(bool)
-        if not keep.any():
-            continue
-        stack = RoiStack(stack.counts[keep], stack.table[keep].reset_index(drop=True), fit)
-        fits = fit_mle(stack.central(), fitting, laplace=False, crlb=False)
-        ring = periphery_background(
-            stack, model, periphery, order.get_indexer(stack.table["molecule"])
-        )
-        central = fitting.to_photons(stack.central())
-        part = stack.table.copy()
-        part["s_x"], part["s_y"] = fits["s_x"].to_numpy(), fits["s_y"].to_numpy()
-        part["N_fit"], part["b_fit"] = fits["N"].to_numpy(), fits["b"].to_numpy()
-        part["fit_converged"] = fits["converged"].to_numpy(bool)
-        part["peak"] = central.max(axis=(-2, -1)) - ring["b"].to_numpy()
-        part["background_var"] = ring["b_se"].to_numpy() ** 2 * ring["pixels"].to_numpy()
-        parts.append(part)
+
+    def stacks():  # each block's ROIs before bleaching, with their centres to fit
+        for stack in iter_rois(movie, molecules, **cut):
+            keep = np.ones(len(stack), dtype=bool)
+            if until is not None:
+                end = stack.table["molecule"].map(until)
+                keep = (end.isna() | (stack.table["frame"] < end)).to_numpy(bool)
+            if keep.any():
+                stack = RoiStack(stack.counts[keep], stack.table[keep].reset_index(drop=True), fit)
+                yield stack, stack.central()
+
+    parts = []
+    with task_runner(executor, None if executor is not None else 1) as runner:
+        for stack, fits in fit_stacks(stacks(), fitting, runner):
+            ring = periphery_background(
+                stack, model, periphery, order.get_indexer(stack.table["molecule"])
+            )
+            central = fitting.to_photons(stack.central())
+            part = stack.table.copy()
+            part["s_x"], part["s_y"] = fits["s_x"].to_numpy(), fits["s_y"].to_numpy()
+            part["N_fit"], part["b_fit"] = fits["N"].to_numpy(), fits["b"].to_numpy()
+            part["fit_converged"] = fits["converged"].to_numpy(bool)
+            part["peak"] = central.max(axis=(-2, -1)) - ring["b"].to_numpy()
+            part["background_var"] = ring["b_se"].to_numpy() ** 2 * ring["pixels"].to_numpy()
+            parts.append(part)
     return pd.concat(parts, ignore_index=True)
 
 
@@ -188,6 +203,7 @@ def find_molecules(
     rules: Rules | None = None,
     block: int = 64,
     progress: bool | None = None,
+    executor: Executor | Client | str | None = None,
 ) -> FoundMolecules:
     """Detect, trace, fit and select the molecules of an immobile-molecule movie.
 
@@ -215,6 +231,11 @@ def find_molecules(
         Frames read at a time.
     progress : bool, optional
         Progress bars of the traces and the fits on stderr (default: when it is a terminal).
+    executor : concurrent.futures.Executor, distributed.Client or str, optional
+        Where the fits (the spot's SD, the widths) and the bleaching steps run, as
+        ``sample_many``'s ``executor`` (a ``local_executor()``, a Dask ``Client`` or a
+        scheduler's address); default this process. This process reads the movie, detects
+        and traces; the results do not depend on where the rest runs.
 
     Returns
     -------
@@ -296,38 +317,46 @@ def find_molecules(
             "photon_window or --rules none on the command line; Rules(min_valid_frames=...) or "
             "skip=('photon_window',) in Python)"
         )
-    sides = {} if fit is None else {"fit": fit}
-    width = resolve_psf_sd(movie, model, s0, false_positives=false_positives, **sides)
-    roi, fit, source = movie_geometry(movie, model, roi, fit, width.sd)
-    if roi > min(movie.shape[1:]):
-        raise BayespsfInputError(
-            f"roi ({roi}) is larger than the movie's frames ({movie.shape[1]} x "
-            f"{movie.shape[2]}): every candidate would lie too close to an edge (geometry "
-            f"{source}; roi= or --roi states a smaller one)"
+    with task_runner(executor, None if executor is not None else 1) as runner:
+        sides = {} if fit is None else {"fit": fit}
+        width = resolve_psf_sd(
+            movie, model, s0, false_positives=false_positives, executor=runner, **sides
         )
-    rules = rules.for_psf(width.sd)  # the width range follows the spot's SD
-    options = dict(camera=model, projection=projection, false_positives=false_positives)
-    candidates = detect_movie(movie, psf_sd=width.sd, roi=roi, fit=fit, **options)
-    accepted = candidates[candidates["status"] == "accepted"].reset_index(drop=True)
-    if accepted.empty:
-        per_molecule = accepted[["molecule", "x", "y"]].assign(
-            bleach_frame=pd.Series(dtype=float), selected=pd.Series(dtype=bool), rejected_by=""
-        )
-        frames = pd.DataFrame(columns=["molecule", "frame"])
-        report = pd.DataFrame([{"rule": "no molecule accepted by detection"}])
-    else:
-        a = resolve_pixel_size(None, model, movie)
-        kept = periphery_masks(accepted, candidates, s0=width.sd, pixel_size=a, roi=roi, fit=fit)
-        cut = dict(roi=roi, fit=fit, block=block, progress=progress, periphery=kept)
-        per_molecule, per_frame = molecules_over_time(movie, accepted, model, s0=width.sd, **cut)
-        until = per_molecule.set_index("molecule")["bleach_frame"]
-        fitted = frame_fits(movie, accepted, model, until=until, **cut)
-        frames = per_frame.merge(
-            fitted, on=["molecule", "frame"], how="left", suffixes=("", "_roi")
-        )
-        bleach = frames["molecule"].map(until)
-        frames["before_bleach"] = (bleach.isna() | (frames["frame"] < bleach)).to_numpy(bool)
-        per_molecule, frames, report = select(per_molecule, frames, rules)
+        roi, fit, source = movie_geometry(movie, model, roi, fit, width.sd)
+        if roi > min(movie.shape[1:]):
+            raise BayespsfInputError(
+                f"roi ({roi}) is larger than the movie's frames ({movie.shape[1]} x "
+                f"{movie.shape[2]}): every candidate would lie too close to an edge (geometry "
+                f"{source}; roi= or --roi states a smaller one)"
+            )
+        rules = rules.for_psf(width.sd)  # the width range follows the spot's SD
+        options = dict(camera=model, projection=projection, false_positives=false_positives)
+        candidates = detect_movie(movie, psf_sd=width.sd, roi=roi, fit=fit, **options)
+        accepted = candidates[candidates["status"] == "accepted"].reset_index(drop=True)
+        if accepted.empty:
+            per_molecule = accepted[["molecule", "x", "y"]].assign(
+                bleach_frame=pd.Series(dtype=float), selected=pd.Series(dtype=bool), rejected_by=""
+            )
+            frames = pd.DataFrame(columns=["molecule", "frame"])
+            report = pd.DataFrame([{"rule": "no molecule accepted by detection"}])
+        else:
+            a = resolve_pixel_size(None, model, movie)
+            kept = periphery_masks(
+                accepted, candidates, s0=width.sd, pixel_size=a, roi=roi, fit=fit
+            )
+            cut = dict(roi=roi, fit=fit, block=block, progress=progress, periphery=kept)
+            cut["executor"] = runner
+            per_molecule, per_frame = molecules_over_time(
+                movie, accepted, model, s0=width.sd, **cut
+            )
+            until = per_molecule.set_index("molecule")["bleach_frame"]
+            fitted = frame_fits(movie, accepted, model, until=until, **cut)
+            frames = per_frame.merge(
+                fitted, on=["molecule", "frame"], how="left", suffixes=("", "_roi")
+            )
+            bleach = frames["molecule"].map(until)
+            frames["before_bleach"] = (bleach.isna() | (frames["frame"] < bleach)).to_numpy(bool)
+            per_molecule, frames, report = select(per_molecule, frames, rules)
     rejected = candidates[candidates["status"] != "accepted"]
     reason = "detection: " + rejected["status"].str.replace("rejected: ", "")
     others = rejected[["molecule", "x", "y"]].assign(selected=False, rejected_by=reason)

@@ -27,6 +27,7 @@ the run's records and the commands' output report.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -37,12 +38,13 @@ from scipy import optimize
 
 from bayespsf import psf
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference import fit_mle
 from bayespsf.model import Model
 from bayespsf.movie._metadata import resolve_pixel_size
 from bayespsf.movie.detect import detect_movie
 from bayespsf.movie.extract import check_sizes, frame_span, iter_rois, open_movie, photon_model
 from bayespsf.movie.project import project
+from bayespsf.movie.tasks import fit_stacks
+from bayespsf.parallel import task_runner
 
 if TYPE_CHECKING:
     from bayespsf.cameras import Camera
@@ -117,6 +119,7 @@ def estimate_psf_sd(
     frames: int = 50,
     spots: int = 30,
     false_positives: float = 0.01,
+    executor: Executor | None = None,
 ) -> PsfWidth:
     """The spot's SD (nm) from the movie's brightest isolated spots, with its standard error.
 
@@ -142,6 +145,9 @@ def estimate_psf_sd(
         The brightest spots fitted.
     false_positives : float, default 0.01
         Expected false detections in the projection (``detect``).
+    executor : concurrent.futures.Executor, optional
+        Where the fits run (``bayespsf.parallel.task_runner``'s runner, a
+        ``local_executor()`` or a Dask ``Client``'s executor); default this process.
 
     Returns
     -------
@@ -189,11 +195,12 @@ def estimate_psf_sd(
     pixel_size = resolve_pixel_size(pixel_size, camera, movie)
     start = PROVISIONAL_PIXELS * pixel_size if provisional is None else float(provisional)
     span = frame_span(movie, range(0, min(frames, len(movie))))
-    options = (camera, pixel_size, fit, span, spots, false_positives)
-    sd, se, n = _one_pass(movie, start, *options)
-    if abs(sd / start - 1.0) > REDO:  # far from the provisional SD: detect again with it
-        start = sd
+    with task_runner(executor, None if executor is not None else 1) as runner:
+        options = (camera, pixel_size, fit, span, spots, false_positives, runner)
         sd, se, n = _one_pass(movie, start, *options)
+        if abs(sd / start - 1.0) > REDO:  # far from the provisional SD: detect again with it
+            start = sd
+            sd, se, n = _one_pass(movie, start, *options)
     return PsfWidth(sd, se, n, "estimated", start)
 
 
@@ -205,7 +212,7 @@ def resolve_psf_sd(movie: Movie | str | Path, camera, s0: float | None, **option
     return PsfWidth(float(s0), provisional=float(s0))
 
 
-def _one_pass(movie, provisional, camera, pixel_size, fit, span, spots, false_positives):
+def _one_pass(movie, provisional, camera, pixel_size, fit, span, spots, false_positives, runner):
     """Steps 1-4 of the module docstring: (SD, its SE, spots) in nm."""
     found = detect_movie(
         movie,
@@ -225,7 +232,7 @@ def _one_pass(movie, provisional, camera, pixel_size, fit, span, spots, false_po
     elif camera is None:
         widths = _projection_widths(movie, chosen, pixel_size, fit, span, provisional)
     else:
-        widths = _frame_widths(movie, chosen, camera, pixel_size, fit, span)
+        widths = _frame_widths(movie, chosen, camera, pixel_size, fit, span, runner)
     widths = widths[np.isfinite(widths)]
     if len(widths) < MIN_SPOTS:
         raise BayespsfInputError(
@@ -240,7 +247,7 @@ def _one_pass(movie, provisional, camera, pixel_size, fit, span, spots, false_po
     return sd, _SE_MEDIAN * mad / math.sqrt(len(widths)), len(widths)
 
 
-def _frame_widths(movie, chosen, camera, pixel_size, fit, span) -> np.ndarray:
+def _frame_widths(movie, chosen, camera, pixel_size, fit, span, runner) -> np.ndarray:
     """Per spot, the median of ``s_x`` and ``s_y`` pooled over its frames with signal (NaN
     where none): maximum-likelihood fits under the camera law."""
     model = photon_model(camera)
@@ -256,8 +263,8 @@ def _frame_widths(movie, chosen, camera, pixel_size, fit, span) -> np.ndarray:
         model.photon_unit,
     )
     parts = []
-    for stack in iter_rois(movie, chosen, roi=fit, fit=fit, frames=span, progress=False):
-        fits = fit_mle(stack.counts, fitting, laplace=False, crlb=False)
+    stacks = iter_rois(movie, chosen, roi=fit, fit=fit, frames=span, progress=False)
+    for stack, fits in fit_stacks(((s, s.counts) for s in stacks), fitting, runner):
         part = stack.table[["molecule"]].copy()
         part[["s_x", "s_y", "N"]] = fits[["s_x", "s_y", "N"]].to_numpy(float)
         part["ok"] = fits["converged"].to_numpy(bool)

@@ -17,6 +17,7 @@ step inside its frame by the exact least-squares scan.
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -29,7 +30,9 @@ from bayespsf.model import Model
 from bayespsf.movie._metadata import resolve_pixel_size
 from bayespsf.movie.extract import iter_rois, molecule_pixels, open_movie, photon_model
 from bayespsf.movie.geometry import periphery_background
-from bayespsf.movie.steps import PENALTY, bleach_steps
+from bayespsf.movie.steps import PENALTY
+from bayespsf.movie.tasks import trace_steps
+from bayespsf.parallel import task_runner
 
 if TYPE_CHECKING:
     from bayespsf.cameras import Camera
@@ -210,6 +213,7 @@ def molecules_over_time(
     *,
     s0: float,
     penalty: float = PENALTY,
+    executor: Executor | None = None,
     **options,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``traces`` and, per molecule, its bleaching steps and drift.
@@ -220,6 +224,9 @@ def molecules_over_time(
         As ``traces`` (``model`` a Model or Camera).
     penalty : float, default ``PENALTY`` (4.0)
         ``bleach_steps``'s ``c``.
+    executor : concurrent.futures.Executor, optional
+        Where the steps are found (``bayespsf.parallel.task_runner``'s runner, a
+        ``local_executor()`` or a Dask ``Client``'s executor); default this process.
     **options
         Go to ``traces``: ``pixel_size``, ``roi``, ``fit``, ``aperture``, ``frames``,
         ``block``, ``progress``, ``periphery``.
@@ -251,12 +258,13 @@ def molecules_over_time(
     per_frame = traces(movie, molecules, model, s0=s0, **options)
     a = _pixel_size(model, options.get("pixel_size"), movie)
     rows = []
-    for (molecule, x, y), (_, one) in zip(
-        molecules[["molecule", "x", "y"]].itertuples(index=False),
-        per_frame.groupby("molecule", sort=False),
-        strict=True,
+    each = [one for _, one in per_frame.groupby("molecule", sort=False)]
+    with task_runner(executor, None if executor is not None else 1) as runner:
+        traced = [(one["photons_psf"].to_numpy(), one["frame"].to_numpy()) for one in each]
+        steps = list(trace_steps(traced, penalty, runner))
+    for (molecule, x, y), one, found in zip(
+        molecules[["molecule", "x", "y"]].itertuples(index=False), each, steps, strict=True
     ):
-        found = bleach_steps(one["photons_psf"], frames=one["frame"], penalty=penalty)
         before = one.iloc[: found.frames_before]
         slope_x, se_x = drift(before["frame"], before["x"] * a)
         slope_y, se_y = drift(before["frame"], before["y"] * a)

@@ -28,8 +28,8 @@ saturation = 65535.0
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A 96 x 96 paper-movie of 60 frames (4 immobile single molecules bleaching after 60
-    frames on average), analysed with the simulator's own camera, Laplace posteriors on two
-    workers and 25 valid frames per molecule (each posterior file costs ~0.13 s to write)."""
+    frames on average), analysed with the simulator's own camera, Laplace posteriors, two
+    worker processes and 25 valid frames per molecule (a posterior file: ~0.13 s to write)."""
     folder = tmp_path_factory.mktemp("analyze")
     table = load_scene("paper-movie").to_dict()
     table["movie"].update(
@@ -57,6 +57,8 @@ def run(tmp_path_factory):
             "25",
             "--method",
             "laplace",
+            "--workers",
+            "2",
             "--out",
             str(out),
         ]
@@ -212,3 +214,30 @@ def test_nothing_selected_is_named_after_the_selection_files(run, tmp_path):
             rules=Rules(min_snr=1e6, min_valid_frames=25),
         )
     assert (tmp_path / "none" / "selection.md").exists()
+
+
+def test_the_tables_do_not_depend_on_the_workers(run, tmp_path):
+    # the fixture's run sent the fits, the steps, the estimates beside the posteriors and the
+    # figures to two workers; in one process every table is the same, to the last bit
+    out, made = run
+    command = ["analyze", str(made.files["movie"]), "--camera", str(out / "camera.toml")]
+    command += ["--psf-sd", "120", "--min-valid-frames", "25", "--method", "laplace"]
+    assert cli.main([*command, "--workers", "1", "--out", str(tmp_path / "one")]) == 0
+    for name in ("frames.csv", "molecules.csv", "width_by_window.csv", "locs.parquet"):
+        read = pd.read_parquet if name.endswith(".parquet") else pd.read_csv
+        two, one = read(out / name), read(tmp_path / "one" / name)
+        timing = [c for c in two.columns if c.endswith("seconds")]
+        pd.testing.assert_frame_equal(one.drop(columns=timing), two.drop(columns=timing))
+    assert {p.name for p in out.glob("*.png")} == {p.name for p in (tmp_path / "one").glob("*.png")}
+
+
+def test_chunks_hold_whole_molecules_in_order():
+    from bayespsf.analysis.molecule_tasks import molecule_chunks
+
+    molecules = np.array([1, 1, 2, 2, 1, 3, 3, 3, 2, 7])  # a block of frames at a time
+    chunks = molecule_chunks(molecules, size=3)  # a chunk closes at a molecule past 3 ROIs
+    assert [c.tolist() for c in chunks] == [[0, 1, 4], [2, 3, 8], [5, 6, 7], [9]]
+    assert [c.tolist() for c in molecule_chunks(molecules, size=100)] == [
+        [0, 1, 4, 2, 3, 8, 5, 6, 7, 9]
+    ]
+    assert molecule_chunks(np.array([], dtype=int)) == []

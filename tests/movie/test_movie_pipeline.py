@@ -183,3 +183,22 @@ def test_progress_bars_only_when_asked_or_on_a_terminal(movie, capsys):
     assert "traces" in err and "fits" in err and "frame" in err
     find_molecules(stem.with_suffix(".ome.tif"), model, s0=120.0)  # stderr is not a terminal
     assert capsys.readouterr().err == ""
+
+
+def test_the_tables_do_not_depend_on_where_the_fits_and_steps_run(movie):
+    # the spot's SD estimated, its fits, the selection's fits and the bleaching steps sent to
+    # two worker processes (in pieces, a few ahead, back in order): every table as in this
+    # process, to the last bit
+    from bayespsf.movie.tasks import PIECE
+    from bayespsf.parallel import local_executor
+
+    scene, stem, _, _ = movie
+    model = Model.from_scene(scene)
+    path = stem.with_suffix(".ome.tif")
+    here = find_molecules(path, model)
+    with local_executor(2) as pool:
+        there = find_molecules(path, model, executor=pool)
+    assert here.psf_width.source == "estimated" and here.psf_width == there.psf_width
+    assert here.frames["fit_converged"].notna().sum() > PIECE  # several pieces of fits
+    for name in ("candidates", "molecules", "frames", "report"):
+        pd.testing.assert_frame_equal(getattr(here, name), getattr(there, name))

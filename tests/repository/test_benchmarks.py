@@ -215,14 +215,19 @@ def test_parallel_benchmark_quick():
     # one process, two workers, a Dask LocalCluster (with Dask's worker environment, then with
     # its malloc trim threshold unset) and a small dataset: all finish, and two workers and
     # both clusters give the one process's posteriors (rows do not depend on the workers); the
-    # per-frame movie on one process and on two workers gives one table
+    # per-frame movie and the immobile one on one process and on two workers give one table
     import parallel
 
-    table, movie = parallel.main(["--quick"])
+    table, movie, still = parallel.main(["--quick"])
     assert movie["workers"].tolist() == [1, 2] and (movie["windows"] > 0).all()
     assert movie["same table as one process"].iloc[1] == True  # noqa: E712 (a numpy bool)
-    share = movie["calling process CPU / one process's"]
-    assert share.iloc[0] == 1.0 and 0.0 < share.iloc[1] < 1.0
+    assert still["workers"].tolist() == [1, 2] and (still["analysed frames"] > 0).all()
+    assert still["same tables as one process"].iloc[1] == True  # noqa: E712 (a numpy bool)
+    for run in (movie, still):
+        share = run["calling process CPU / one process's"]
+        assert share.iloc[0] == 1.0 and 0.0 < share.iloc[1] < 1.0
+        bound = run["16 workers at most (Amdahl)"].iloc[1]
+        assert np.isclose(bound, 1 / (share.iloc[1] + (1 - share.iloc[1]) / 16))
     assert len(table) == 5 and np.all(table["ROIs/s"] > 0)
     assert table["how"].str.contains("malloc trim unset").sum() == 1
     assert table["same posteriors as one process"].iloc[1:4].tolist() == [True, True, True]
@@ -230,14 +235,13 @@ def test_parallel_benchmark_quick():
     cpu = table["calling process CPU per ROI (µs)"]
     assert np.all(np.isfinite(cpu) & (cpu > 0)), cpu
     # a list of workers: one row per local run and per Dask run, the dataset on the most
-    table, movie = parallel.main(
-        ["--quick", "--workers", "3,1", "--no-dask", "--dataset", "0", "--frames", "0"]
-    )
-    assert movie is None
+    flags = ["--quick", "--workers", "3,1", "--no-dask", "--dataset", "0", "--frames", "0"]
+    table, movie, still = parallel.main([*flags, "--immobile", "0"])
+    assert movie is None and still is None
     assert table["workers"].tolist() == [1, 3]
     assert table["same posteriors as one process"].iloc[1:].tolist() == [True]
     # no ROIs, or a negative dataset, is refused by name before any run
-    for flags in (["--rois", "0"], ["--dataset", "-5"], ["--frames", "-1"]):
+    for flags in (["--rois", "0"], ["--dataset", "-5"], ["--frames", "-1"], ["--immobile", "-1"]):
         with pytest.raises(SystemExit):
             parallel.main(flags)
 
