@@ -3,8 +3,9 @@ cluster of as many one-thread workers, for each number of workers asked, and a d
 ROIs on the most workers (targets: two workers >= 1.8x one; on 16 cores, 16 local workers >=
 14x one and a 16-worker Dask cluster >= 12x; 10^5 emccd-typical posteriors in <= 10 minutes on
 2 cores). Then ``bayespsf analyze --per-frame`` (``localize_frames``: detection, the fits and
-the posteriors of every spot of every frame) on a simulated movie, for each number of local
-workers.
+the posteriors of every spot of every frame) and ``bayespsf analyze`` (``analyze``: immobile
+molecules, from the movie to the selection, the posteriors, each molecule's joint posterior, the
+checks and the files) on simulated movies, for each number of local workers.
 
 Every timing runs on the same ROIs, 2 000 per worker of the largest count (4 000 for 1 and 2
 workers, 32 000 up to 16), so that starting a pool counts little and each worker gets many
@@ -17,7 +18,7 @@ that the calling process spends per ROI while workers run (its own share of the 
     python benchmarks/parallel.py --workers 1,2,4,8,16   # the scaling table on a bigger machine
                                                          # (printed; --publish writes it too)
     python benchmarks/parallel.py --quick                # a small run that prints only (tests)
-    python benchmarks/parallel.py --frames 0             # without the movie
+    python benchmarks/parallel.py --frames 0 --immobile 0  # without the movies
 """
 
 from __future__ import annotations
@@ -38,8 +39,9 @@ import pandas as pd  # noqa: E402
 from _report import machine, publish  # noqa: E402
 
 from bayespsf import load_scene, simulate, simulate_movie  # noqa: E402
-from bayespsf.analysis import localize_frames  # noqa: E402
+from bayespsf.analysis import analyze, localize_frames  # noqa: E402
 from bayespsf.model import Model  # noqa: E402
+from bayespsf.movie import Rules  # noqa: E402
 from bayespsf.parallel import sample_many  # noqa: E402
 
 
@@ -181,10 +183,61 @@ def per_frame(frames: int, workers, side: int = 256, molecules: int = 50) -> pd.
                     "calling process CPU / one process's": cpu / alone,
                 }
             )
-    table = pd.DataFrame(rows)
-    table["speed-up vs one process"] = table["windows/s"] / table["windows/s"].iloc[0]
+    return _shares(pd.DataFrame(rows), "windows/s")
+
+
+def _shares(table: pd.DataFrame, speed: str) -> pd.DataFrame:
+    """The speed-up over the one-process row, per worker, and the most that 16 workers could
+    give if nothing of the calling process's work overlapped theirs (Amdahl)."""
+    table["speed-up vs one process"] = table[speed] / table[speed].iloc[0]
     table["per worker"] = table["speed-up vs one process"] / table["workers"]
+    share = table["calling process CPU / one process's"]
+    table["16 workers at most (Amdahl)"] = 1.0 / (share + (1.0 - share) / 16)
+    table.loc[0, "16 workers at most (Amdahl)"] = np.nan
     return table
+
+
+def immobile(frames: int, workers, side: int = 256, molecules: int = 40) -> pd.DataFrame:
+    """``analyze`` (``bayespsf analyze``: immobile molecules) on a simulated paper-movie of
+    ``frames`` frames of ``side`` x ``side`` pixels with ``molecules`` molecules (the shipped
+    scene's 300, 256 and 40 by default: ~2 400 valid frames), the spot's SD estimated, on each
+    number of local ``workers`` (1: this process): seconds, analysed frames per second,
+    whether the tables are the one process's (all but the timing columns), and the calling
+    process's CPU time as a share of the one-process run's (reading the movie, detecting,
+    tracing, the tables, the files: the part that does not run on the workers)."""
+    scene = load_scene("paper-movie").replace(
+        movie={"frames": frames, "height": side, "width": side, "molecules": molecules}
+        | {"dark_frames": 0}
+    )
+    model, rows, first, alone = Model.from_scene(scene), [], None, None
+    rules = Rules(min_valid_frames=min(75, frames // 3))  # the paper's 75 on a long movie
+    with tempfile.TemporaryDirectory() as folder:
+        movie = simulate_movie(scene, seed=0, out=f"{folder}/m").files["movie"]
+        for w in workers:
+            result, seconds, cpu = _timed(
+                lambda w=w: analyze(
+                    movie, model, out=f"{folder}/w{w}", rules=rules, workers=w, progress=False
+                )
+            )
+            tables = [
+                t.drop(columns=[c for c in t.columns if c.endswith("seconds")])
+                for t in (result.frames, result.molecules, result.width_by_window)
+            ]
+            first, alone = (tables, cpu) if first is None else (first, alone)
+            same = all(a.equals(b) for a, b in zip(tables, first, strict=True))
+            rows.append(
+                {
+                    "how": "one process" if w == 1 else "local worker processes",
+                    "workers": w,
+                    "frames": frames,
+                    "analysed frames": len(result.frames),
+                    "seconds": seconds,
+                    "analysed frames/s": len(result.frames) / seconds,
+                    "same tables as one process": np.nan if w == 1 else same,
+                    "calling process CPU / one process's": cpu / alone,
+                }
+            )
+    return _shares(pd.DataFrame(rows), "analysed frames/s")
 
 
 def main(argv=None):
@@ -212,6 +265,12 @@ def main(argv=None):
         help="frames of the per-frame movie, 256 x 256 pixels (default 200; 0: none)",
     )
     parser.add_argument(
+        "--immobile",
+        type=int,
+        default=300,
+        help="frames of the immobile-molecule movie, 256 x 256 pixels (default 300; 0: none)",
+    )
+    parser.add_argument(
         "--publish", action="store_true", help="write the table into README.md with --workers"
     )
     args = parser.parse_args(argv)
@@ -224,6 +283,8 @@ def main(argv=None):
         parser.error(f"--dataset: a whole number >= 0 (0: no dataset run), got {args.dataset}")
     if args.frames < 0:
         parser.error(f"--frames: a whole number >= 0 (0: no movie), got {args.frames}")
+    if args.immobile < 0:
+        parser.error(f"--immobile: a whole number >= 0 (0: no movie), got {args.immobile}")
     # enough ROIs that starting the workers counts little and every worker gets many chunks
     rois = 2000 * workers[-1] if args.rois is None else args.rois
     n, dataset = (16, min(32, args.dataset)) if args.quick else (rois, args.dataset)
@@ -240,13 +301,24 @@ def main(argv=None):
             f"{64 if args.quick else 256} pixels:\n\n"
             f"{movie.to_markdown(index=False, floatfmt='.3g')}\n\n"
         )
+    still = None
+    if args.immobile:
+        frames = 40 if args.quick else args.immobile
+        side = 96 if args.quick else 256  # the spot's SD is estimated from >= 5 spots
+        still = immobile(frames, workers, side, **(dict(molecules=6) if args.quick else {}))
+        text += (
+            f"`bayespsf analyze` (`analyze`, immobile molecules) on {frames} simulated "
+            f"paper-movie frames of {side} x {side} pixels:\n\n"
+            f"{still.to_markdown(index=False, floatfmt='.3g')}\n\n"
+        )
     flags = [] if argv is None else list(argv)
     flags = sys.argv[1:] if argv is None else flags
     command = " ".join(["python benchmarks/parallel.py", *flags])
     text += f"Command: `{command}` on {machine()}."
     default = args.workers == "1,2" and not args.no_dask and args.frames == 200
+    default = default and args.immobile == 300
     publish("parallel", text, args.quick or not (default or args.publish))
-    return table, movie
+    return table, movie, still
 
 
 if __name__ == "__main__":
