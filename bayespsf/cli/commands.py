@@ -219,6 +219,7 @@ def _detect(args) -> int:
     from bayespsf.io.run_record import check_folder, read_copies
     from bayespsf.movie.found import SELECTION_FILES, write
     from bayespsf.movie.pipeline import find_molecules, selection_run
+    from bayespsf.parallel import task_runner
 
     out = output_folder(args.out)
     movie, model, s0 = movie_model(args)
@@ -231,7 +232,8 @@ def _detect(args) -> int:
     with one_run():  # refused before the work, as write would refuse it after it
         run = selection_run(movie, model, **settings)  # what write records: found.run
         check_folder(out, run, SELECTION_FILES, force=args.force, copies=read_copies(copies))
-    found = find_molecules(movie, model, **settings)
+    with task_runner(args.scheduler, None if args.scheduler else args.workers) as runner:
+        found = find_molecules(movie, model, **settings, executor=runner)
     with one_run():
         paths = write(found, out, force=args.force, copies=copies, about={"movie": args.movie})
     selected = int(found.molecules["selected"].sum())

@@ -38,9 +38,9 @@ def per_frame(args, out: Path, movie, model, s0: float | None, fit: int) -> int:
         options.update(method=args.method, backend=args.backend, ess=args.ess, seed=args.seed)
         options.update(gof_discrepancy=args.gof_discrepancy, max_seconds=args.max_seconds)
         options["keep_draws"] = not args.no_draws
-        options.update(workers=None if args.scheduler else args.workers, executor=args.scheduler)
     else:
         options["false_positives"] = args.false_positives
+    options.update(workers=None if args.scheduler else args.workers, executor=args.scheduler)
     with one_run():  # a folder of another run is refused before anything is written
         result = localize_frames(movie, model, copies={"camera.toml": args.camera}, **options)
     print(result.psf_width.summary() + (" (--psf-sd states it)" if s0 is None else ""))

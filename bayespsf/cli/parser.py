@@ -197,6 +197,7 @@ def _add_detect(commands) -> None:
     )
     detect.add_argument("--projection", choices=("mean", "median"), default="mean")
     add_per_frame(detect, "the MLE and its Cramér-Rao bound; writes candidates.csv, locs.*")
+    add_workers(detect, scheduler=True)
     add_out(detect, "bayespsf-detect")
     add_force(detect)
 

@@ -132,8 +132,14 @@ def test_detect_command_writes_the_tables_and_report(movie, tmp_path, capsys):
     # without s0x, s0y and --psf-sd the spot's SD is estimated from the movie, and said so
     camera.write_text(camera.read_text().split("[emitter]")[0])
     command = ["detect", str(stem.with_suffix(".ome.tif")), "--camera", str(camera)]
-    assert cli.main([*command, "--out", str(tmp_path / "estimated")]) == 0
+    assert cli.main([*command, "--workers", "1", "--out", str(tmp_path / "estimated")]) == 0
     assert "estimated from" in capsys.readouterr().out
+    # on two workers (the SD's fits, the widths and the steps there): the same tables
+    assert cli.main([*command, "--workers", "2", "--out", str(tmp_path / "two")]) == 0
+    for name in ("candidates.csv", "molecules.csv", "frames.csv", "selection.md"):
+        assert (tmp_path / "two" / name).read_bytes() == (
+            tmp_path / "estimated" / name
+        ).read_bytes()
 
 
 def test_movies_the_rules_cannot_use_are_named(tmp_path):
