@@ -127,7 +127,7 @@ def send_estimates(
         Returns ``(estimates, windows)``: ``estimates``' rows in the order of ``counts``,
         and ``width_by_window``'s rows by window, then molecule.
     """
-    chunks = molecule_chunks(molecules)
+    chunks = molecule_chunks(molecules) or [np.arange(0)]  # no ROI: the empty tables
     tasks = [(counts[c], model, molecules[c]) for c in chunks]
     if runner is None:
         return lambda: _gather(map(estimates_task, tasks), chunks)

@@ -241,3 +241,9 @@ def test_chunks_hold_whole_molecules_in_order():
         [0, 1, 4, 2, 3, 8, 5, 6, 7, 9]
     ]
     assert molecule_chunks(np.array([], dtype=int)) == []
+    # no ROI: the empty tables, with their columns, as the fits of an empty stack give them
+    from bayespsf.analysis.molecule_tasks import send_estimates
+
+    model = Model.from_scene(load_scene("paper-movie"))
+    fits, windows = send_estimates(np.zeros((0, 15, 15)), model, np.zeros(0, int), None)()
+    assert len(fits) == len(windows) == 0 and "s_x_mle" in fits and "s_x_se" in windows
