@@ -18,7 +18,7 @@ truth (``match_truth``: a candidate within 1.5 pixels of a molecule, 10 of a mov
   molecule that bleaches within a few frames has a noisy slope); and moving molecules selected
   (should be none).
 
-    python validation/movie_detection.py            # 20 movies (about 5 minutes)
+    python validation/movie_detection.py            # 20 movies (about 1.5 minutes on 2 cores)
     python validation/movie_detection.py --quick    # 2 small movies
 """
 

@@ -10,7 +10,7 @@ Beside it, the paper's Eq. photonConv without the fluctuation term (``calibrate_
 selected molecule's ROI frames before bleaching, averaged over the molecules), to show what the
 fluctuation does to it.
 
-    python validation/movie_gain.py            # 40 paper-movies (about 8 minutes)
+    python validation/movie_gain.py            # 40 paper-movies (about 9 minutes on 2 cores)
     python validation/movie_gain.py --quick    # 2 small movies (150 frames of 128 x 128)
 """
 
