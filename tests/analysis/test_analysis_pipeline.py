@@ -247,3 +247,24 @@ def test_chunks_hold_whole_molecules_in_order():
     model = Model.from_scene(load_scene("paper-movie"))
     fits, windows = send_estimates(np.zeros((0, 15, 15)), model, np.zeros(0, int), None)()
     assert len(fits) == len(windows) == 0 and "s_x_mle" in fits and "s_x_se" in windows
+
+
+def test_a_dask_scheduler_gives_the_same_tables(run, tmp_path):
+    # --scheduler: one client for the run, its executor passed to every stage (the selection's
+    # fits and steps, the posteriors, the estimates, the joint posteriors, the figures, whose
+    # PNG bytes come back to this process): the tables of the fixture's two local workers
+    distributed = pytest.importorskip("distributed")  # a dependency: installed by pyproject
+    out, made = run
+    command = ["analyze", str(made.files["movie"]), "--camera", str(out / "camera.toml")]
+    command += ["--psf-sd", "120", "--min-valid-frames", "25", "--method", "laplace"]
+    # ":0": the scheduler's HTTP server on a free port (another test's cluster may hold 8787)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, dashboard_address=":0", processes=True
+    ) as cluster:
+        address = cluster.scheduler_address
+        assert cli.main([*command, "--scheduler", address, "--out", str(tmp_path / "d")]) == 0
+    for name in ("frames.csv", "molecules.csv", "width_by_window.csv"):
+        two, dask = pd.read_csv(out / name), pd.read_csv(tmp_path / "d" / name)
+        timing = [c for c in two.columns if c.endswith("seconds")]
+        pd.testing.assert_frame_equal(dask.drop(columns=timing), two.drop(columns=timing))
+    assert (tmp_path / "d" / "residuals.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
