@@ -232,10 +232,14 @@ def analyze(
         results do not depend on the number of workers.
     workers : int, optional
         Local processes when ``executor`` is None (default: all cores; 1 runs in this
-        process).
+        process), made once for the run.
     executor : concurrent.futures.Executor, distributed.Client or str, optional
-        Where the posteriors run: an executor, a Dask ``Client`` or a scheduler address such
-        as ``"tcp://10.0.0.5:8786"`` (not together with ``workers``).
+        Where the work runs: an executor, a Dask ``Client`` or a scheduler address such as
+        ``"tcp://10.0.0.5:8786"`` (not together with ``workers``). The workers fit the spot's
+        SD and the selection's widths, find the bleaching steps, sample the posteriors with
+        each frame's MLE, least squares and widths by window beside them, the joint
+        posteriors and the figures; this process reads the movie, detects, traces and
+        writes the files (``bayespsf.analysis.molecule_tasks``).
     progress : bool, optional
         Progress bars on stderr (default: when stderr is a terminal).
     provenance : dict, optional
