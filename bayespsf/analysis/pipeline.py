@@ -354,15 +354,15 @@ def analyze(
     ... )
     >>> result.found.molecules[["molecule", "selected", "valid_frames"]]
        molecule  selected  valid_frames
-    0         0      True            16
+    0         0      True            15
     >>> result.frames["status"].value_counts().to_dict()
-    {'converged': 16}
+    {'converged': 15}
     >>> result.consistency[["parameter", "frames", "molecules"]]
       parameter  frames  molecules
-    0        x0      16          1
-    1        y0      16          1
-    2       s_x      16          1
-    3       s_y      16          1
+    0        x0      15          1
+    1        y0      15          1
+    2       s_x      15          1
+    3       s_y      15          1
     >>> (folder / "out" / "locs.hdf5").exists()
     True
     """
