@@ -28,9 +28,8 @@ from bayespsf.movie.geometry import movie_geometry, periphery_background, periph
 from bayespsf.movie.psf_width import resolve_psf_sd
 from bayespsf.movie.read import Movie
 from bayespsf.movie.select import Rules, select
-from bayespsf.movie.tasks import fit_stacks
+from bayespsf.movie.tasks import fit_stacks, movie_runner
 from bayespsf.movie.traces import molecules_over_time
-from bayespsf.parallel import task_runner
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -119,7 +118,7 @@ def frame_fits(
                 yield stack, stack.central()
 
     parts = []
-    with task_runner(executor, None if executor is not None else 1) as runner:
+    with movie_runner(executor) as runner:
         for stack, fits in fit_stacks(stacks(), fitting, runner):
             ring = periphery_background(
                 stack, model, periphery, order.get_indexer(stack.table["molecule"])
@@ -317,7 +316,7 @@ def find_molecules(
             "photon_window or --rules none on the command line; Rules(min_valid_frames=...) or "
             "skip=('photon_window',) in Python)"
         )
-    with task_runner(executor, None if executor is not None else 1) as runner:
+    with movie_runner(executor) as runner:
         sides = {} if fit is None else {"fit": fit}
         width = resolve_psf_sd(
             movie, model, s0, false_positives=false_positives, executor=runner, **sides

@@ -43,8 +43,7 @@ from bayespsf.movie._metadata import resolve_pixel_size
 from bayespsf.movie.detect import detect_movie
 from bayespsf.movie.extract import check_sizes, frame_span, iter_rois, open_movie, photon_model
 from bayespsf.movie.project import project
-from bayespsf.movie.tasks import fit_stacks
-from bayespsf.parallel import task_runner
+from bayespsf.movie.tasks import fit_stacks, movie_runner
 
 if TYPE_CHECKING:
     from bayespsf.cameras import Camera
@@ -195,7 +194,7 @@ def estimate_psf_sd(
     pixel_size = resolve_pixel_size(pixel_size, camera, movie)
     start = PROVISIONAL_PIXELS * pixel_size if provisional is None else float(provisional)
     span = frame_span(movie, range(0, min(frames, len(movie))))
-    with task_runner(executor, None if executor is not None else 1) as runner:
+    with movie_runner(executor) as runner:
         options = (camera, pixel_size, fit, span, spots, false_positives, runner)
         sd, se, n = _one_pass(movie, start, *options)
         if abs(sd / start - 1.0) > REDO:  # far from the provisional SD: detect again with it

@@ -21,10 +21,27 @@ from bayespsf._runtime import one_blas_thread
 from bayespsf.inference import fit_mle
 from bayespsf.model import Model
 from bayespsf.movie.steps import BleachSteps, bleach_steps
-from bayespsf.parallel import run_in_order
+from bayespsf.parallel import run_in_order, task_runner
 
 #: ROIs per fitted piece of a stack: one task.
 PIECE = 512
+
+
+def movie_runner(executor):
+    """``task_runner`` for a movie function's ``executor``: that executor, client or address
+    (shut down on leaving only where made here), or None (the default) for this process.
+
+    Parameters
+    ----------
+    executor : concurrent.futures.Executor, distributed.Client, str or None
+        As ``find_molecules``' ``executor``.
+
+    Returns
+    -------
+    contextlib.AbstractContextManager
+        Yields the runner to pass to ``fit_stacks`` and ``trace_steps``.
+    """
+    return task_runner(executor, 1 if executor is None else None)
 
 
 @one_blas_thread
@@ -101,4 +118,4 @@ def trace_steps(
     return run_in_order(steps_task, tasks, runner)
 
 
-__all__ = ["PIECE", "fit_stacks", "fit_task", "steps_task", "trace_steps"]
+__all__ = ["PIECE", "fit_stacks", "fit_task", "movie_runner", "steps_task", "trace_steps"]

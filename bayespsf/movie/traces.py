@@ -31,8 +31,7 @@ from bayespsf.movie._metadata import resolve_pixel_size
 from bayespsf.movie.extract import iter_rois, molecule_pixels, open_movie, photon_model
 from bayespsf.movie.geometry import periphery_background
 from bayespsf.movie.steps import PENALTY
-from bayespsf.movie.tasks import trace_steps
-from bayespsf.parallel import task_runner
+from bayespsf.movie.tasks import movie_runner, trace_steps
 
 if TYPE_CHECKING:
     from bayespsf.cameras import Camera
@@ -259,7 +258,7 @@ def molecules_over_time(
     a = _pixel_size(model, options.get("pixel_size"), movie)
     rows = []
     each = [one for _, one in per_frame.groupby("molecule", sort=False)]
-    with task_runner(executor, None if executor is not None else 1) as runner:
+    with movie_runner(executor) as runner:
         traced = [(one["photons_psf"].to_numpy(), one["frame"].to_numpy()) for one in each]
         steps = list(trace_steps(traced, penalty, runner))
     for (molecule, x, y), one, found in zip(
