@@ -2,10 +2,13 @@
 cluster of as many one-thread workers, for each number of workers asked, and a dataset of 10^5
 ROIs on the most workers (targets: two workers >= 1.8x one; on 16 cores, 16 local workers >=
 14x one and a 16-worker Dask cluster >= 12x; 10^5 emccd-typical posteriors in <= 10 minutes on
-2 cores). Then ``bayespsf analyze --per-frame`` (``localize_frames``: detection, the fits and
+2 cores). Also ``bayespsf analyze --per-frame`` (``localize_frames``: detection, the fits and
 the posteriors of every spot of every frame) and ``bayespsf analyze`` (``analyze``: immobile
 molecules, from the movie to the selection, the posteriors, each molecule's joint posterior, the
-checks and the files) on simulated movies, for each number of local workers.
+checks and the files) on simulated movies, for each number of local workers. The movies and the
+local pools run before the Dask clusters, whose closing leaves a thread in this process: after
+it, a pool starts its workers from a forkserver, not by the fork of a command-line run (each
+table says how its workers started).
 
 Every timing runs on the same ROIs, 2 000 per worker of the largest count (4 000 for 1 and 2
 workers, 32 000 up to 16), so that starting a pool counts little and each worker gets many
@@ -42,7 +45,7 @@ from bayespsf import load_scene, simulate, simulate_movie  # noqa: E402
 from bayespsf.analysis import analyze, localize_frames  # noqa: E402
 from bayespsf.model import Model  # noqa: E402
 from bayespsf.movie import Rules  # noqa: E402
-from bayespsf.parallel import sample_many  # noqa: E402
+from bayespsf.parallel import sample_many, worker_start  # noqa: E402
 
 
 def _cpu() -> float:
@@ -94,17 +97,19 @@ def _on_dask(counts, model, workers: int, trim: bool):
 
 def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.DataFrame:
     """``sample_many(method="auto")`` on ``n`` emccd-typical ROIs (N = 1000) in this process,
-    then for each number ``w`` > 1 of ``workers`` on ``w`` local worker processes and on a Dask
-    ``LocalCluster`` of ``w`` one-thread workers; then a ``dataset`` of ROIs (0: none) on the
-    most local workers. Each Dask cluster runs twice: with Dask's default worker environment
-    and with its malloc trim threshold unset (``_on_dask``)."""
+    then for each number ``w`` > 1 of ``workers`` on ``w`` local worker processes, then a
+    ``dataset`` of ROIs (0: none) on the most local workers, then for each ``w`` > 1 on a Dask
+    ``LocalCluster`` of ``w`` one-thread workers, twice: with Dask's default worker environment
+    and with its malloc trim threshold unset (``_on_dask``). The clusters run last: a closed
+    cluster leaves a thread in this process, after which local pools start their workers from
+    a forkserver, not by the fork that a command-line run uses (``worker_start``)."""
     scene = load_scene("emccd-typical")
     model = Model.from_scene(scene)
     counts, _ = simulate(scene, max(n, dataset), seed=3)
     sample_many(counts[:4], model, workers=1)  # warm-up
     rows = []
 
-    def row(how, w, result, seconds, cpu, reference=None):
+    def row(how, w, start, result, seconds, cpu, reference=None):
         count = len(result)
         same = (
             np.nan
@@ -117,6 +122,7 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
             {
                 "how": how,
                 "workers": w,
+                "workers start by": start,
                 "ROIs": count,
                 "seconds": seconds,
                 "ROIs/s": count / seconds,
@@ -126,20 +132,20 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
         )
 
     one, *times = _timed(lambda: sample_many(counts[:n], model, workers=1))
-    row("one process", 1, one, *times)
+    row("one process", 1, "", one, *times)
     for w in (w for w in workers if w > 1):
+        start = worker_start()
         local, *times = _timed(lambda w=w: sample_many(counts[:n], model, workers=w))
-        row("local worker processes", w, local, *times, one)
-        if not dask:
-            continue
+        row("local worker processes", w, start, local, *times, one)
+    if dataset:
+        most, start = max(workers), worker_start()
+        data, *times = _timed(lambda: sample_many(counts[:dataset], model, workers=most))
+        row("local worker processes (dataset)", most, start, data, *times)
+    for w in (w for w in workers if w > 1 and dask):
         for trim in (True, False):
             result, *times = _on_dask(counts[:n], model, w, trim)
             how = "Dask LocalCluster, 1 thread per worker" + ("" if trim else ", malloc trim unset")
-            row(how, w, result, *times, one)
-    if dataset:
-        most = max(workers)
-        data, *times = _timed(lambda: sample_many(counts[:dataset], model, workers=most))
-        row("local worker processes (dataset)", most, data, *times)
+            row(how, w, "Dask nanny", result, *times, one)
     table = pd.DataFrame(rows)
     table["speed-up vs one process"] = table["ROIs/s"] / table["ROIs/s"].iloc[0]
     table["per worker"] = table["speed-up vs one process"] / table["workers"]
@@ -164,6 +170,7 @@ def per_frame(frames: int, workers, side: int = 256, molecules: int = 50) -> pd.
     with tempfile.TemporaryDirectory() as folder:
         movie = simulate_movie(scene, seed=0, out=f"{folder}/m").files["movie"]
         for w in workers:
+            start = "" if w == 1 else worker_start()
             found, seconds, cpu = _timed(
                 lambda w=w: localize_frames(
                     movie, model, s0=130.0, out=f"{folder}/w{w}", workers=w, progress=False
@@ -175,6 +182,7 @@ def per_frame(frames: int, workers, side: int = 256, molecules: int = 50) -> pd.
                 {
                     "how": "one process" if w == 1 else "local worker processes",
                     "workers": w,
+                    "workers start by": start,
                     "frames": frames,
                     "windows": len(locs),
                     "seconds": seconds,
@@ -214,6 +222,7 @@ def immobile(frames: int, workers, side: int = 256, molecules: int = 40) -> pd.D
     with tempfile.TemporaryDirectory() as folder:
         movie = simulate_movie(scene, seed=0, out=f"{folder}/m").files["movie"]
         for w in workers:
+            start = "" if w == 1 else worker_start()
             result, seconds, cpu = _timed(
                 lambda w=w: analyze(
                     movie, model, out=f"{folder}/w{w}", rules=rules, workers=w, progress=False
@@ -229,6 +238,7 @@ def immobile(frames: int, workers, side: int = 256, molecules: int = 40) -> pd.D
                 {
                     "how": "one process" if w == 1 else "local worker processes",
                     "workers": w,
+                    "workers start by": start,
                     "frames": frames,
                     "analysed frames": len(result.frames),
                     "seconds": seconds,
@@ -288,14 +298,12 @@ def main(argv=None):
     # enough ROIs that starting the workers counts little and every worker gets many chunks
     rois = 2000 * workers[-1] if args.rois is None else args.rois
     n, dataset = (16, min(32, args.dataset)) if args.quick else (rois, args.dataset)
-    table = parallel(n, dataset, workers, dask=not args.no_dask)
-    intro = '`sample_many` (default `method="auto"`, emccd-typical, N = 1000):'
-    text = f"{intro}\n\n{table.to_markdown(index=False, floatfmt='.3g')}\n\n"
-    movie = None
+    # the movies first: the Dask clusters of parallel() leave a thread behind (its docstring)
+    movie, sections = None, []
     if args.frames:
         frames = 2 if args.quick else args.frames
         movie = per_frame(frames, workers, **(dict(side=64, molecules=3) if args.quick else {}))
-        text += (
+        sections.append(
             f'`bayespsf analyze --per-frame` (`localize_frames`, `method="auto"`) on '
             f"{frames} simulated emccd-typical frames of {64 if args.quick else 256} x "
             f"{64 if args.quick else 256} pixels:\n\n"
@@ -306,11 +314,15 @@ def main(argv=None):
         frames = 40 if args.quick else args.immobile
         side = 96 if args.quick else 256  # the spot's SD is estimated from >= 5 spots
         still = immobile(frames, workers, side, **(dict(molecules=6) if args.quick else {}))
-        text += (
+        sections.append(
             f"`bayespsf analyze` (`analyze`, immobile molecules) on {frames} simulated "
             f"paper-movie frames of {side} x {side} pixels:\n\n"
             f"{still.to_markdown(index=False, floatfmt='.3g')}\n\n"
         )
+    table = parallel(n, dataset, workers, dask=not args.no_dask)
+    intro = '`sample_many` (default `method="auto"`, emccd-typical, N = 1000):'
+    text = f"{intro}\n\n{table.to_markdown(index=False, floatfmt='.3g')}\n\n"
+    text += "".join(sections)
     flags = [] if argv is None else list(argv)
     flags = sys.argv[1:] if argv is None else flags
     command = " ".join(["python benchmarks/parallel.py", *flags])

@@ -8,6 +8,7 @@ from bayespsf.parallel.executors import (
     run_in_order,
     run_tasks,
     task_runner,
+    worker_start,
 )
 from bayespsf.parallel.joint import joint_posteriors
 from bayespsf.parallel.seeds import molecule_seed, molecule_seeds
@@ -24,4 +25,5 @@ __all__ = [
     "run_tasks",
     "sample_many",
     "task_runner",
+    "worker_start",
 ]

@@ -65,6 +65,30 @@ def _die_with_parent(parent: int) -> None:
         os._exit(1)
 
 
+def worker_start() -> str:
+    """How a pool of local workers made now starts them: ``"fork"`` or ``"forkserver"``.
+
+    Returns
+    -------
+    str
+        ``"fork"`` (the fastest start) while this process runs one thread and has not
+        imported JAX; ``"forkserver"`` once other threads run (a Dask client, a progress
+        monitor, a Jupyter kernel, a thread a closed Dask cluster leaves behind) or JAX is
+        imported (its runtime threads, which Python does not count), where a fork is unsafe.
+
+    See Also
+    --------
+    local_executor : the pool, which starts its workers this way.
+
+    Examples
+    --------
+    >>> from bayespsf.parallel import worker_start
+    >>> worker_start() in ("fork", "forkserver")
+    True
+    """
+    return "fork" if threading.active_count() == 1 and not jax_imported() else "forkserver"
+
+
 def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     """A pool of local worker processes to pass to several ``sample_many`` runs.
 
@@ -87,6 +111,7 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     See Also
     --------
     task_runner : what ``sample_many`` runs its tasks on.
+    worker_start : how the workers of a pool made now start.
 
     Notes
     -----
@@ -104,8 +129,7 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
         raise BayespsfInputError(f"workers must be >= 1, got {workers!r}")
     # fork is fastest and needs no __main__ guard, but is unsafe once threads run (a Dask
     # client, a progress monitor, JAX's runtime): then forkserver (Notes)
-    alone = threading.active_count() == 1 and not jax_imported()
-    method = "fork" if alone else "forkserver"
+    method = worker_start()
     context = multiprocessing.get_context(method)
     if method == "forkserver":  # the server imports what the workers run, once
         context.set_forkserver_preload(["__main__", "bayespsf.parallel"])

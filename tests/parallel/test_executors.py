@@ -61,3 +61,25 @@ def test_forked_workers_start_with_the_pool():
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["2", "6"]
+
+
+def test_workers_start_by_fork_until_a_thread_runs_then_from_a_forkserver():
+    # worker_start says what local_executor does: a fresh interpreter forks; once another
+    # thread runs (here one that waits, as a closed Dask cluster's does) the pool's context is
+    # a forkserver, and its workers are the server's children, not this process's
+    script = (
+        "import os, threading\n"
+        "from bayespsf.parallel import local_executor, worker_start\n"
+        "print(worker_start())\n"
+        "stop = threading.Event()\n"
+        "thread = threading.Thread(target=stop.wait)\n"
+        "thread.start()\n"
+        "print(worker_start())\n"
+        "with local_executor(1) as pool:\n"
+        "    print(pool.submit(os.getppid).result() == os.getpid())\n"
+        "stop.set()\n"
+        "thread.join()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["fork", "forkserver", "False"]
