@@ -74,6 +74,30 @@ def jax_imported() -> bool:
     return "jaxlib" in sys.modules
 
 
+def jax_running() -> bool:
+    """Whether JAX's runtime has started in this process (its backends, whose threads make a
+    fork unsafe).
+
+    Importing JAX starts no threads; its first computation (or ``jax.devices()``) starts its
+    backends. matplotlib imports JAX when it plots after arviz-base has registered a lazy
+    ``jax`` module (``matplotlib.cbook._is_jax_array`` reads ``jax.Array``), so a process that
+    draws a figure has imported JAX without running it.
+
+    Returns
+    -------
+    bool
+        False where JAX is not imported; where this JAX does not say whether its backends
+        started (``jax._src.xla_bridge.backends_are_initialized``, not public), True.
+    """
+    if not jax_imported():
+        return False
+    try:
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:
+        return True
+    return bool(backends_are_initialized())
+
+
 def start_jax() -> None:
     """Set JAX up for the backend (idempotent): float64, and compiled programs kept on disk
     in the machine's cache folder (``bayespsf._runtime.cache_folder``, its ``jax`` folder)
@@ -156,6 +180,7 @@ __all__ = [
     "device_name",
     "jax_imported",
     "jax_modules",
+    "jax_running",
     "release_programs",
     "start_jax",
 ]

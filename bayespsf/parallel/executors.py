@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
 from bayespsf.errors import BayespsfInputError
-from bayespsf.inference.backends import jax_imported
+from bayespsf.inference.backends import jax_running
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -71,10 +71,12 @@ def worker_start() -> str:
     Returns
     -------
     str
-        ``"fork"`` (the fastest start) while this process runs one thread and has not
-        imported JAX; ``"forkserver"`` once other threads run (a Dask client, a progress
-        monitor, a Jupyter kernel, a thread a closed Dask cluster leaves behind) or JAX is
-        imported (its runtime threads, which Python does not count), where a fork is unsafe.
+        ``"fork"`` (the fastest start) while this process runs one thread and JAX's runtime
+        has not started; ``"forkserver"`` once other threads run (a Dask client, a progress
+        monitor, a Jupyter kernel, a thread a closed Dask cluster leaves behind) or JAX has
+        computed (its runtime threads, which Python does not count), where a fork is unsafe.
+        JAX imported without computing (matplotlib imports it when it plots after arviz:
+        ``bayespsf.inference.backends.jax_running``) runs no threads and allows a fork.
 
     See Also
     --------
@@ -86,7 +88,7 @@ def worker_start() -> str:
     >>> worker_start() in ("fork", "forkserver")
     True
     """
-    return "fork" if threading.active_count() == 1 and not jax_imported() else "forkserver"
+    return "fork" if threading.active_count() == 1 and not jax_running() else "forkserver"
 
 
 def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
@@ -116,13 +118,12 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
     Notes
     -----
     Workers are forked, the fastest start, while this process runs one thread; once threads
-    run (a Dask client, a progress monitor, a Jupyter kernel, or JAX, whose runtime threads
-    Python does not count), where a fork is unsafe, they start from a forkserver, which
-    imports the main module and ``bayespsf.parallel`` once, then forks the workers. The
-    choice is made here, when the pool is made, and forked workers start here too (a pool
-    forks them all at its first task): a pool made before a progress bar's thread starts
-    stays safe to use after it. For ``sample_many(..., backend="jax")`` make
-    the pool after importing JAX.
+    run (a Dask client, a progress monitor, a Jupyter kernel, or a JAX that has computed,
+    whose runtime threads Python does not count), where a fork is unsafe, they start from a
+    forkserver, which imports the main module and ``bayespsf.parallel`` once, then forks the
+    workers (``worker_start`` says which). The choice is made here, when the pool is made,
+    and forked workers start here too (a pool forks them all at its first task): a pool made
+    before a progress bar's thread starts, or before JAX computes, stays safe to use after.
     """
     workers = os.cpu_count() if workers is None else int(workers)
     if workers < 1:

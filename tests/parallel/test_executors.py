@@ -83,3 +83,28 @@ def test_workers_start_by_fork_until_a_thread_runs_then_from_a_forkserver():
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["fork", "forkserver", "False"]
+
+
+def test_a_figure_imports_jax_without_running_it_and_pools_still_fork():
+    # matplotlib reads jax.Array where arviz-base registered a lazy jax module, so drawing a
+    # figure imports JAX: no threads start until JAX computes, and a pool made in between is
+    # forked (it went to a forkserver, slower: two workers of sample_many 1.3x one, not 1.8x)
+    script = (
+        "import os\n"
+        "import arviz_base\n"
+        "import matplotlib\n"
+        "matplotlib.use('Agg')\n"
+        "import matplotlib.pyplot as plt\n"
+        "from bayespsf.inference.backends import jax_imported, jax_running\n"
+        "from bayespsf.parallel import local_executor, worker_start\n"
+        "plt.figure().gca().axvline(1.0)\n"
+        "print(jax_imported(), jax_running(), worker_start())\n"
+        "with local_executor(1) as pool:\n"
+        "    print(pool.submit(os.getppid).result() == os.getpid())\n"
+        "import jax.numpy as jnp\n"
+        "float(jnp.ones(2).sum())\n"
+        "print(jax_running(), worker_start())\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["True", "False", "fork", "True", "True", "forkserver"]
