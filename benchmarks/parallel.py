@@ -68,16 +68,27 @@ def _warm(counts, model) -> int:
     return os.getpid()
 
 
-def _on_dask(counts, model, workers: int, trim: bool):
+#: Dask's configuration for a cluster that runs bayespsf alone (docs/scale.md): glibc's malloc
+#: trim threshold left to glibc, no statistical profiler in the workers, the event loop's health
+#: checked every 200 ms (not 20) and the system monitor read every 5 s (not 0.5)
+TUNED = {
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "200ms",
+    "distributed.admin.system-monitor.interval": "5s",
+}
+
+
+def _on_dask(counts, model, workers: int, tuned: bool):
     """``sample_many`` on a ``LocalCluster`` of ``workers`` one-thread workers, each warmed
-    first, with its seconds and this process's CPU seconds (``_timed``). ``trim``: Dask's
-    default worker environment, whose ``MALLOC_TRIM_THRESHOLD_=65536`` makes glibc hand every
-    freed working array back to the system; else that variable unset (``docs/scale.md``)."""
+    first, with its seconds and this process's CPU seconds (``_timed``). ``tuned``: Dask's
+    configuration ``TUNED`` (docs/scale.md), else Dask's defaults, whose worker environment
+    sets ``MALLOC_TRIM_THRESHOLD_=65536``, which makes glibc hand every freed working array
+    back to the system."""
     import dask
     from distributed import Client, LocalCluster
 
-    key = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
-    config = {} if trim else {key: None}
+    config = TUNED if tuned else {}
     saved = os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)  # a nanny leaves it set here
     try:
         with (
@@ -99,8 +110,8 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
     """``sample_many(method="auto")`` on ``n`` emccd-typical ROIs (N = 1000) in this process,
     then for each number ``w`` > 1 of ``workers`` on ``w`` local worker processes, then a
     ``dataset`` of ROIs (0: none) on the most local workers, then for each ``w`` > 1 on a Dask
-    ``LocalCluster`` of ``w`` one-thread workers, twice: with Dask's default worker environment
-    and with its malloc trim threshold unset (``_on_dask``). The clusters run last: a closed
+    ``LocalCluster`` of ``w`` one-thread workers, twice: with Dask's defaults and with the
+    configuration ``TUNED`` (``_on_dask``). The clusters run last: a closed
     cluster leaves a thread in this process, after which local pools start their workers from
     a forkserver, not by the fork that a command-line run uses (``worker_start``)."""
     scene = load_scene("emccd-typical")
@@ -142,9 +153,9 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
         data, *times = _timed(lambda: sample_many(counts[:dataset], model, workers=most))
         row("local worker processes (dataset)", most, start, data, *times)
     for w in (w for w in workers if w > 1 and dask):
-        for trim in (True, False):
-            result, *times = _on_dask(counts[:n], model, w, trim)
-            how = "Dask LocalCluster, 1 thread per worker" + ("" if trim else ", malloc trim unset")
+        for tuned in (False, True):
+            result, *times = _on_dask(counts[:n], model, w, tuned)
+            how = "Dask LocalCluster, 1 thread per worker" + (", tuned" if tuned else "")
             row(how, w, "Dask nanny", result, *times, one)
     table = pd.DataFrame(rows)
     table["speed-up vs one process"] = table["ROIs/s"] / table["ROIs/s"].iloc[0]

@@ -22,4 +22,5 @@ def test_example_runs(name, index, code, tmp_path, monkeypatch):
 
         for stem in ("my-experiment", "my"):
             load_scene("paper-fig3").save(tmp_path / f"{stem}.toml")
-    exec(compile(code, f"{name} example {index}", "exec"), {"__name__": "__example__"})
+    # run as a user's script runs: as __main__, so that an example's guard runs its body
+    exec(compile(code, f"{name} example {index}", "exec"), {"__name__": "__main__"})
