@@ -45,7 +45,7 @@ from bayespsf import load_scene, simulate, simulate_movie  # noqa: E402
 from bayespsf.analysis import analyze, localize_frames  # noqa: E402
 from bayespsf.model import Model  # noqa: E402
 from bayespsf.movie import Rules  # noqa: E402
-from bayespsf.parallel import sample_many, worker_start  # noqa: E402
+from bayespsf.parallel import dask_settings, sample_many, worker_start  # noqa: E402
 
 
 def _cpu() -> float:
@@ -68,27 +68,16 @@ def _warm(counts, model) -> int:
     return os.getpid()
 
 
-#: Dask's configuration for a cluster that runs bayespsf alone (docs/scale.md): glibc's malloc
-#: trim threshold left to glibc, no statistical profiler in the workers, the event loop's health
-#: checked every 200 ms (not 20) and the system monitor read every 5 s (not 0.5)
-TUNED = {
-    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
-    "distributed.worker.profile.enabled": False,
-    "distributed.admin.tick.interval": "200ms",
-    "distributed.admin.system-monitor.interval": "5s",
-}
-
-
 def _on_dask(counts, model, workers: int, tuned: bool):
     """``sample_many`` on a ``LocalCluster`` of ``workers`` one-thread workers, each warmed
-    first, with its seconds and this process's CPU seconds (``_timed``). ``tuned``: Dask's
-    configuration ``TUNED`` (docs/scale.md), else Dask's defaults, whose worker environment
-    sets ``MALLOC_TRIM_THRESHOLD_=65536``, which makes glibc hand every freed working array
-    back to the system."""
+    first, with its seconds and this process's CPU seconds (``_timed``). ``tuned``:
+    ``bayespsf.parallel.dask_settings()`` (docs/scale.md), else Dask's defaults, whose worker
+    environment sets ``MALLOC_TRIM_THRESHOLD_=65536``, which makes glibc hand every freed
+    working array back to the system."""
     import dask
     from distributed import Client, LocalCluster
 
-    config = TUNED if tuned else {}
+    config = dask_settings() if tuned else {}
     saved = os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)  # a nanny leaves it set here
     try:
         with (
@@ -110,8 +99,8 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
     """``sample_many(method="auto")`` on ``n`` emccd-typical ROIs (N = 1000) in this process,
     then for each number ``w`` > 1 of ``workers`` on ``w`` local worker processes, then a
     ``dataset`` of ROIs (0: none) on the most local workers, then for each ``w`` > 1 on a Dask
-    ``LocalCluster`` of ``w`` one-thread workers, twice: with Dask's defaults and with the
-    configuration ``TUNED`` (``_on_dask``). The clusters run last: a closed
+    ``LocalCluster`` of ``w`` one-thread workers, twice: with Dask's defaults and with
+    ``dask_settings()`` (``_on_dask``). The clusters run last: a closed
     cluster leaves a thread in this process, after which local pools start their workers from
     a forkserver, not by the fork that a command-line run uses (``worker_start``)."""
     scene = load_scene("emccd-typical")

@@ -3,6 +3,7 @@
 
 from bayespsf.parallel.batch import sample_many
 from bayespsf.parallel.executors import (
+    dask_settings,
     local_executor,
     parallelism,
     run_in_order,
@@ -16,6 +17,7 @@ from bayespsf.parallel.store import Store
 
 __all__ = [
     "Store",
+    "dask_settings",
     "joint_posteriors",
     "local_executor",
     "molecule_seed",
