@@ -145,7 +145,7 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
         for tuned in (False, True):
             result, *times = _on_dask(counts[:n], model, w, tuned)
             how = "Dask LocalCluster, 1 thread per worker" + (", tuned" if tuned else "")
-            row(how, w, "Dask nanny", result, *times, one)
+            row(how, w, "spawn (Dask nanny)", result, *times, one)
     table = pd.DataFrame(rows)
     table["speed-up vs one process"] = table["ROIs/s"] / table["ROIs/s"].iloc[0]
     table["per worker"] = table["speed-up vs one process"] / table["workers"]

@@ -162,8 +162,6 @@ class Runner:
         from bayespsf.parallel.executors import local_executor
 
         self.args, self.study = args, study
-        if getattr(args, "backend", "numpy") == "jax":  # before the pool, which then starts
-            import jax  # noqa: F401  # its workers from a forkserver: JAX runs threads
         if args.scheduler is not None:
             self.executor = args.scheduler
             self.pool = None

@@ -367,7 +367,7 @@ def analyze(
     True
     """
     check_discrepancy("gof_discrepancy", gof_discrepancy)
-    check_backend(backend)  # JAX imported before the workers start (``local_executor``)
+    check_backend(backend)  # a backend that cannot run is refused before any work
     budget = _check_sampler(method, ess, seed, max_seconds)
     if gof_discrepancy != "likelihood":
         provenance = {**(provenance or {}), "goodness-of-fit discrepancy": gof_discrepancy}

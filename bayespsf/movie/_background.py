@@ -24,9 +24,10 @@ fit's own noise, about twice the quadratic's in variance. Spots above the thresh
 out and lose nothing.
 
 The spots left out: first none; then, twice, the pixels beyond ``PIXEL_CLIP`` noise SDs of the
-previous fit (a spot's bright pixels, which would bend the first fits); then, twice, those
-``background_pixels`` finds from the matched filter's score against the previous fit: pixels
-above the threshold, and within the template's reach (4 SDs) of a local maximum above it.
+previous fit (a spot's bright pixels, which would bend the first fits); then, twice (once where
+the second pass finds the first's pixels), those ``background_pixels`` finds from the matched
+filter's score against the previous fit: pixels above the threshold, and within the template's
+reach (4 SDs) of a local maximum above it.
 
 The fits are solved on a grid of anchor pixels ``size // 8`` apart in rows and columns (every
 pixel for a window under 16 pixels) and evaluated at each pixel from its nearest
@@ -83,10 +84,10 @@ def estimate_background(
     from the spots, found by their matched-filter score against ``mask_score`` (detection
     passes its threshold, so that the background's own noise excursions are not left out,
     which would bias it low). Where the second mask is the first, its fit would be the first's
-    to the last bit (a fit depends on the image and its mask; the previous surface fills only
-    the windows that it leaves empty, and there the first fit took the same), so it is not
-    made: in 21 of 24 emccd-typical frames of 256 x 256 pixels. ``variance``: the noise
-    variance that scores the pixels (a number or a map).
+    to the last bit, so it is not made (in 21 of 24 emccd-typical frames of 256 x 256 pixels):
+    a fit depends on the image and its mask, and the previous surface only fills the windows
+    with under ``_KEPT_SHARE`` of their pixels kept, which the first fit filled with the same.
+    ``variance``: the noise variance that scores the pixels (a number or a map).
     """
     image = np.asarray(image, dtype=np.float64)
     window = _Window(image.shape, size, len(spot[0]))

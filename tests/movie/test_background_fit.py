@@ -126,6 +126,23 @@ def _fits_by_hand(image, spot, size, level, variance):
     return back, keep
 
 
+def test_a_fit_repeated_on_its_own_mask_and_result_is_itself():
+    """What skipping a repeated mask's fit rests on: ``fit(image, keep, fit(image, keep, p))``
+    is ``fit(image, keep, p)`` to the last bit, also where windows keep under a tenth of their
+    pixels and take the previous surface (a hole of radius 45 pixels in 128 x 128, with an
+    arbitrary previous surface ``p``)."""
+    rng = np.random.default_rng(4)
+    shape = (128, 128)
+    image = rng.poisson(_surface(shape, 2, rng)).astype(float)
+    rr, cc = np.indices(shape)
+    keep = (rr - 64) ** 2 + (cc - 64) ** 2 > 45**2
+    previous = rng.uniform(0.0, 50.0, shape)
+    window = _background._Window(shape, 63, 13)
+    once = window.fit(image, keep, previous)
+    assert np.sum(once == previous) > 100  # windows that fell back to the previous surface
+    assert np.array_equal(window.fit(image, keep, once), once)
+
+
 def test_a_second_mask_like_the_first_is_not_fitted_again_and_changes_nothing(monkeypatch):
     """Where the second mask pass keeps the pixels the first kept, its fit is skipped, and the
     background and the mask are the ones that making it gives, to the last bit; where it

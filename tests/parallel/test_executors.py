@@ -2,6 +2,7 @@
 tasks sent ahead, and local worker processes that are forked while the caller runs one thread."""
 
 import concurrent.futures as cf
+import os
 import subprocess
 import sys
 import time
@@ -85,19 +86,28 @@ def test_workers_start_by_fork_until_a_thread_runs_then_from_a_forkserver():
     assert done.stdout.split() == ["fork", "forkserver", "False"]
 
 
-def test_a_figure_imports_jax_without_running_it_and_pools_still_fork():
-    # matplotlib reads jax.Array where arviz-base registered a lazy jax module, so drawing a
-    # figure imports JAX: no threads start until JAX computes, and a pool made in between is
-    # forked (it went to a forkserver, slower: two workers of sample_many 1.3x one, not 1.8x)
-    script = (
-        "import os\n"
-        "import arviz_base\n"
-        "import matplotlib\n"
+@pytest.mark.parametrize(
+    "imports",
+    [
+        "import jax\n",
+        # matplotlib reads jax.Array where arviz-base registered a lazy jax module, so drawing
+        # a figure after arviz imports JAX
+        "import arviz_base, matplotlib\n"
         "matplotlib.use('Agg')\n"
         "import matplotlib.pyplot as plt\n"
+        "plt.figure().gca().axvline(1.0)\n",
+    ],
+    ids=["import", "figure"],
+)
+def test_jax_imported_but_not_computing_leaves_pools_forking(imports):
+    # importing JAX starts no threads; its first computation does. A pool made in between is
+    # forked (a forkserver's workers start cold: two workers of sample_many ran 1.30x one
+    # process where forked ones run 1.72x); one made after starts from a forkserver
+    script = (
+        "import os\n"
         "from bayespsf.inference.backends import jax_imported, jax_running\n"
         "from bayespsf.parallel import local_executor, worker_start\n"
-        "plt.figure().gca().axvline(1.0)\n"
+        f"{imports}"
         "print(jax_imported(), jax_running(), worker_start())\n"
         "with local_executor(1) as pool:\n"
         "    print(pool.submit(os.getppid).result() == os.getpid())\n"
@@ -108,3 +118,33 @@ def test_a_figure_imports_jax_without_running_it_and_pools_still_fork():
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["True", "False", "fork", "True", "True", "forkserver"]
+
+
+def test_dask_settings_reach_the_workers_of_a_local_cluster():
+    # made under dask_settings(), a LocalCluster's worker has no malloc trim threshold in its
+    # environment and each of the other settings in its configuration (a fresh interpreter
+    # without the variable: a nanny of an earlier cluster, in an earlier test, leaves it set in
+    # the process that made it, and a later cluster's workers inherit it, as docs/scale.md says)
+    script = (
+        "import os, dask\n"
+        "from distributed import Client, LocalCluster\n"
+        "from bayespsf.parallel import dask_settings\n"
+        "def seen(keys):\n"
+        "    return os.environ.get('MALLOC_TRIM_THRESHOLD_'), [dask.config.get(k) for k in keys]\n"
+        "if __name__ == '__main__':\n"
+        "    settings = dask_settings()\n"
+        "    keys = [k for k in settings if 'pre-spawn-environ' not in k]\n"
+        "    with (\n"
+        "        dask.config.set(settings),\n"
+        "        LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None) as c,\n"
+        "        Client(c) as client,\n"
+        "    ):\n"
+        "        ((trim, values),) = client.run(seen, keys).values()\n"
+        "    print(trim, values == [settings[k] for k in keys], values)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[:2] == ["None", "True"], done.stdout
