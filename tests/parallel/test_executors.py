@@ -12,6 +12,15 @@ import pytest
 from bayespsf.parallel import run_in_order
 
 
+def _printed(script: str, env=None) -> list[str]:
+    """What ``script`` prints, word by word, run in a fresh interpreter (which must succeed)."""
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout.split()
+
+
 def _slow_first(i: int) -> int:
     time.sleep(0.02 * (5 - i) if i < 5 else 0.0)  # the first tasks finish last
     return i * i
@@ -59,9 +68,7 @@ def test_forked_workers_start_with_the_pool():
         "    print(len(multiprocessing.active_children()))\n"
         "    print(sum(pool.map(abs, [-1, -2, -3])))\n"
     )
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["2", "6"]
+    assert _printed(script) == ["2", "6"]
 
 
 def test_workers_start_by_fork_until_a_thread_runs_then_from_a_forkserver():
@@ -81,9 +88,7 @@ def test_workers_start_by_fork_until_a_thread_runs_then_from_a_forkserver():
         "stop.set()\n"
         "thread.join()\n"
     )
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["fork", "forkserver", "False"]
+    assert _printed(script) == ["fork", "forkserver", "False"]
 
 
 @pytest.mark.parametrize(
@@ -115,9 +120,7 @@ def test_jax_imported_but_not_computing_leaves_pools_forking(imports):
         "float(jnp.ones(2).sum())\n"
         "print(jax_running(), worker_start())\n"
     )
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["True", "False", "fork", "True", "True", "forkserver"]
+    assert _printed(script) == ["True", "False", "fork", "True", "True", "forkserver"]
 
 
 def test_dask_settings_reach_the_workers_of_a_local_cluster():
@@ -143,8 +146,5 @@ def test_dask_settings_reach_the_workers_of_a_local_cluster():
         "    print(trim, values == [settings[k] for k in keys], values)\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.split()[:2] == ["None", "True"], done.stdout
+    printed = _printed(script, env)
+    assert printed[:2] == ["None", "True"], printed
