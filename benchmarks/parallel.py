@@ -152,6 +152,37 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
     return table
 
 
+def _on_movie(scene, workers, run, unit: str, same: str) -> pd.DataFrame:
+    """``run(movie, out, w)`` on a movie simulated from ``scene``, for each number of local
+    ``workers`` (1: this process); ``run`` gives the tables to compare and the count of
+    ``unit`` it made. One row per number of workers: seconds, ``unit`` per second, whether
+    the tables are the one process's (the column ``same``), and the calling process's CPU
+    time as a share of the one-process run's, with the shares that follow (``_shares``)."""
+    rows, first, alone = [], None, None
+    frames = scene.movie["frames"]
+    with tempfile.TemporaryDirectory() as folder:
+        movie = simulate_movie(scene, seed=0, out=f"{folder}/m").files["movie"]
+        for w in workers:
+            start = "" if w == 1 else worker_start()
+            (tables, count), seconds, cpu = _timed(lambda w=w: run(movie, f"{folder}/w{w}", w))
+            first, alone = (tables, cpu) if first is None else (first, alone)
+            equal = all(a.equals(b) for a, b in zip(tables, first, strict=True))
+            rows.append(
+                {
+                    "how": "one process" if w == 1 else "local worker processes",
+                    "workers": w,
+                    "workers start by": start,
+                    "frames": frames,
+                    unit: count,
+                    "seconds": seconds,
+                    f"{unit}/s": count / seconds,
+                    same: np.nan if w == 1 else equal,
+                    "calling process CPU / one process's": cpu / alone,
+                }
+            )
+    return _shares(pd.DataFrame(rows), f"{unit}/s")
+
+
 def per_frame(frames: int, workers, side: int = 256, molecules: int = 50) -> pd.DataFrame:
     """``localize_frames`` (``bayespsf analyze --per-frame``, default ``method="auto"``) on a
     simulated emccd-typical movie of ``frames`` frames of ``side`` x ``side`` pixels with
@@ -166,32 +197,14 @@ def per_frame(frames: int, workers, side: int = 256, molecules: int = 50) -> pd.
         movie={"frames": frames, "height": side, "width": side, "molecules": molecules}
         | {"dark_frames": 0, "bleach_mean": 1000.0, "two_fluorophores": 0.0, "moving": 0.0}
     )
-    model, rows, first, alone = Model.from_scene(scene), [], None, None
-    with tempfile.TemporaryDirectory() as folder:
-        movie = simulate_movie(scene, seed=0, out=f"{folder}/m").files["movie"]
-        for w in workers:
-            start = "" if w == 1 else worker_start()
-            found, seconds, cpu = _timed(
-                lambda w=w: localize_frames(
-                    movie, model, s0=130.0, out=f"{folder}/w{w}", workers=w, progress=False
-                )
-            )
-            locs = found.locs.drop(columns="seconds")
-            first, alone = (locs, cpu) if first is None else (first, alone)
-            rows.append(
-                {
-                    "how": "one process" if w == 1 else "local worker processes",
-                    "workers": w,
-                    "workers start by": start,
-                    "frames": frames,
-                    "windows": len(locs),
-                    "seconds": seconds,
-                    "windows/s": len(locs) / seconds,
-                    "same table as one process": np.nan if w == 1 else locs.equals(first),
-                    "calling process CPU / one process's": cpu / alone,
-                }
-            )
-    return _shares(pd.DataFrame(rows), "windows/s")
+    model = Model.from_scene(scene)
+
+    def run(movie, out, w):
+        found = localize_frames(movie, model, s0=130.0, out=out, workers=w, progress=False)
+        locs = found.locs.drop(columns="seconds")
+        return [locs], len(locs)
+
+    return _on_movie(scene, workers, run, "windows", "same table as one process")
 
 
 def _shares(table: pd.DataFrame, speed: str) -> pd.DataFrame:
@@ -217,37 +230,18 @@ def immobile(frames: int, workers, side: int = 256, molecules: int = 40) -> pd.D
         movie={"frames": frames, "height": side, "width": side, "molecules": molecules}
         | {"dark_frames": 0}
     )
-    model, rows, first, alone = Model.from_scene(scene), [], None, None
+    model = Model.from_scene(scene)
     rules = Rules(min_valid_frames=min(75, frames // 3))  # the paper's 75 on a long movie
-    with tempfile.TemporaryDirectory() as folder:
-        movie = simulate_movie(scene, seed=0, out=f"{folder}/m").files["movie"]
-        for w in workers:
-            start = "" if w == 1 else worker_start()
-            result, seconds, cpu = _timed(
-                lambda w=w: analyze(
-                    movie, model, out=f"{folder}/w{w}", rules=rules, workers=w, progress=False
-                )
-            )
-            tables = [
-                t.drop(columns=[c for c in t.columns if c.endswith("seconds")])
-                for t in (result.frames, result.molecules, result.width_by_window)
-            ]
-            first, alone = (tables, cpu) if first is None else (first, alone)
-            same = all(a.equals(b) for a, b in zip(tables, first, strict=True))
-            rows.append(
-                {
-                    "how": "one process" if w == 1 else "local worker processes",
-                    "workers": w,
-                    "workers start by": start,
-                    "frames": frames,
-                    "analysed frames": len(result.frames),
-                    "seconds": seconds,
-                    "analysed frames/s": len(result.frames) / seconds,
-                    "same tables as one process": np.nan if w == 1 else same,
-                    "calling process CPU / one process's": cpu / alone,
-                }
-            )
-    return _shares(pd.DataFrame(rows), "analysed frames/s")
+
+    def run(movie, out, w):
+        result = analyze(movie, model, out=out, rules=rules, workers=w, progress=False)
+        tables = [
+            t.drop(columns=[c for c in t.columns if c.endswith("seconds")])
+            for t in (result.frames, result.molecules, result.width_by_window)
+        ]
+        return tables, len(result.frames)
+
+    return _on_movie(scene, workers, run, "analysed frames", "same tables as one process")
 
 
 def main(argv=None):
