@@ -6,7 +6,7 @@ ROIs on the most workers (targets: two workers >= 1.8x one; on 16 cores, 16 loca
 the posteriors of every spot of every frame) and ``bayespsf analyze`` (``analyze``: immobile
 molecules, from the movie to the selection, the posteriors, each molecule's joint posterior, the
 checks and the files) on simulated movies, for each number of local workers. The movies and the
-local pools run before the Dask clusters, whose closing leaves a thread in this process: after
+local pools run before the Dask clusters, whose closing leaves threads in this process: after
 it, a pool starts its workers from a forkserver, not by the fork of a command-line run (each
 table says how its workers started).
 
@@ -101,7 +101,7 @@ def parallel(n: int, dataset: int, workers=(1, 2), dask: bool = True) -> pd.Data
     ``dataset`` of ROIs (0: none) on the most local workers, then for each ``w`` > 1 on a Dask
     ``LocalCluster`` of ``w`` one-thread workers, twice: with Dask's defaults and with
     ``dask_settings()`` (``_on_dask``). The clusters run last: a closed
-    cluster leaves a thread in this process, after which local pools start their workers from
+    cluster leaves threads in this process, after which local pools start their workers from
     a forkserver, not by the fork that a command-line run uses (``worker_start``)."""
     scene = load_scene("emccd-typical")
     model = Model.from_scene(scene)
