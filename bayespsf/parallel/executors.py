@@ -71,8 +71,8 @@ def worker_start() -> str:
     Returns
     -------
     str
-        ``"fork"`` (the fastest start) while this process runs one thread and JAX's runtime
-        has not started; ``"forkserver"`` once other threads run (a Dask client, a progress
+        ``"fork"`` (the fastest start) while this process runs one Python thread and JAX's
+        runtime has not started; ``"forkserver"`` once other threads run (a Dask client, a progress
         monitor, a Jupyter kernel, a thread a closed Dask cluster leaves behind) or JAX has
         computed (its runtime threads, which Python does not count), where a fork is unsafe.
         JAX imported without computing (matplotlib imports it when it plots after arviz:
@@ -117,8 +117,8 @@ def local_executor(workers: int | None = None) -> cf.ProcessPoolExecutor:
 
     Notes
     -----
-    Workers are forked, the fastest start, while this process runs one thread; once threads
-    run (a Dask client, a progress monitor, a Jupyter kernel, or a JAX that has computed,
+    Workers are forked, the fastest start, while this process runs one Python thread; once
+    threads run (a Dask client, a progress monitor, a Jupyter kernel, or a JAX that has computed,
     whose runtime threads Python does not count), where a fork is unsafe, they start from a
     forkserver, which imports the main module and ``bayespsf.parallel`` once, then forks the
     workers (``worker_start`` says which). The choice is made here, when the pool is made,
