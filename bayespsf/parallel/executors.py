@@ -259,8 +259,8 @@ class _AddressExecutor(cf.Executor):
     def __init__(self, client):
         self.client, self.inner = client, client.get_executor()
 
-    def submit(self, fn, *args):
-        return self.inner.submit(fn, *args)
+    def submit(self, fn, /, *args, **kwargs):
+        return self.inner.submit(fn, *args, **kwargs)
 
     def shutdown(self, wait=True, cancel_futures=False):
         self.inner.shutdown(wait=wait)

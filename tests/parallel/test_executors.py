@@ -148,3 +148,25 @@ def test_dask_settings_reach_the_workers_of_a_local_cluster():
     env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
     printed = _printed(script, env)
     assert printed[:2] == ["None", "True"], printed
+
+
+def test_a_runner_made_from_an_address_passes_keywords_on_as_an_executor_does():
+    # the executor that wraps a scheduler address's client takes submit's keywords, as every
+    # concurrent.futures.Executor does, and closes its client when shut down
+    from bayespsf.parallel.executors import _AddressExecutor
+
+    class Client:  # what the wrapper uses of a distributed.Client
+        closed = False
+
+        def get_executor(self):
+            return cf.ThreadPoolExecutor(1)
+
+        def close(self):
+            self.closed = True
+
+    client = Client()
+    runner = _AddressExecutor(client)
+    assert runner.submit(divmod, 7, 2).result() == (3, 1)
+    assert runner.submit(sorted, [3, 1, 2], reverse=True).result() == [3, 2, 1]
+    runner.shutdown()
+    assert client.closed
