@@ -111,10 +111,8 @@ def send_estimates(
 
     Parameters
     ----------
-    counts : numpy.ndarray, shape (n, roi, roi)
-        ROIs in ADU.
-    model : Model
-        Their model.
+    counts, model
+        As ``estimates``.
     molecules : numpy.ndarray, shape (n,)
         The molecule of each ROI.
     runner : concurrent.futures.Executor or None

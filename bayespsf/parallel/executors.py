@@ -309,8 +309,7 @@ def run_in_order[T, R](
     Parameters
     ----------
     function : callable
-        One task to its result (picklable, with its tasks and results, for a process pool
-        or Dask).
+        As ``run_tasks``.
     tasks : iterable
         The tasks, read lazily (blocks of a movie: memory holds ``ahead`` of them).
     runner : concurrent.futures.Executor or None
