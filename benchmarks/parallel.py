@@ -82,8 +82,10 @@ def _on_dask(counts, model, workers: int, tuned: bool):
     try:
         with (
             dask.config.set(config),
+            # ":0": the dashboard on a free port (None binds 8787, which another cluster, as
+            # in the test suite's parallel runs, may hold: a warning, an error under pytest)
             LocalCluster(
-                n_workers=workers, threads_per_worker=1, dashboard_address=None, processes=True
+                n_workers=workers, threads_per_worker=1, dashboard_address=":0", processes=True
             ) as cluster,
             Client(cluster) as client,
         ):

@@ -139,7 +139,7 @@ def test_dask_settings_reach_the_workers_of_a_local_cluster():
         "    keys = [k for k in settings if 'pre-spawn-environ' not in k]\n"
         "    with (\n"
         "        dask.config.set(settings),\n"
-        "        LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None) as c,\n"
+        "        LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=':0') as c,\n"
         "        Client(c) as client,\n"
         "    ):\n"
         "        ((trim, values),) = client.run(seen, keys).values()\n"

@@ -231,7 +231,7 @@ def test_parallel_benchmark_quick():
         bound = run["16 workers at most (Amdahl)"].iloc[1]
         assert np.isclose(bound, 1 / (share.iloc[1] + (1 - share.iloc[1]) / 16))
         assert run["workers start by"].tolist()[1] in ("fork", "forkserver")
-    # the local runs first, the dataset, then the clusters (which leave a thread behind)
+    # the local runs first, the dataset, then the clusters (which leave threads behind)
     assert len(table) == 5 and np.all(table["ROIs/s"] > 0)
     assert table["how"].tolist()[:3] == [
         "one process",
