@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from bayespsf.movie.read import Movie
 
 KINDS = ("mean", "median", "max", "std")
+MERGED = 16  # frames merged at a time into the mean and the squared deviations
 
 
 def project(
@@ -62,10 +63,12 @@ def project(
     Notes
     -----
     mean, max and std stream blocks of frames. The mean and the variance are combined across
-    blocks by the pairwise update of Chan, Golub & LeVeque, "Algorithms for computing the
-    sample variance: analysis and recommendations", Am. Stat. 37 (1983) 242: each block's mean
-    and sum of squared deviations (two passes over the block, in float64) merge as
-    ``M2 = M2_a + M2_b + δ² n_a n_b / n`` with ``δ`` the difference of the block means, which
+    groups of ``MERGED`` (16) consecutive frames, whatever ``block`` is read at a time (fewer
+    when ``block`` is smaller), so the image does not depend on the memory budget, by the
+    pairwise update of Chan, Golub & LeVeque, "Algorithms for computing the sample variance:
+    analysis and recommendations", Am. Stat. 37 (1983) 242: each group's mean and sum of
+    squared deviations (two passes over the group, in float64) merge as
+    ``M2 = M2_a + M2_b + δ² n_a n_b / n`` with ``δ`` the difference of the group means, which
     avoids the cancellation of a sum of squares. The median needs every frame of a pixel at
     once: it is taken over tiles of all (selected) frames of a band of rows, the band chosen
     so that a tile (and ``numpy.median``'s working copy) stays under ``budget``; the movie is
@@ -113,11 +116,25 @@ def mean_and_variance(
 
 
 def _moments(movie, span: range, block: int):
-    """The count, mean and summed squared deviations of every pixel over ``span``."""
+    """The count, mean and summed squared deviations of every pixel over ``span``: read
+    ``block`` frames at a time, merged ``min(MERGED, block)`` frames at a time through one
+    float64 buffer (a fresh float64 copy of each block read costs more in page faults than the
+    arithmetic)."""
     h, w = movie.shape[1:]
     count, mean, m2 = 0, np.zeros((h, w)), np.zeros((h, w))
+    work = np.empty((min(MERGED, block, len(span)), h, w))
+    held = 0
     for data in blocks(movie, span, block):
-        count, mean, m2 = _merge(count, mean, m2, data.astype(np.float64))
+        done = 0
+        while done < len(data):
+            part = data[done : done + len(work) - held]
+            work[held : held + len(part)] = part
+            done, held = done + len(part), held + len(part)
+            if held == len(work):
+                count, mean, m2 = _merge(count, mean, m2, work)
+                held = 0
+    if held:
+        count, mean, m2 = _merge(count, mean, m2, work[:held])
     return count, mean, m2
 
 

@@ -296,6 +296,20 @@ def test_projections_equal_numpy_on_the_whole_array(tmp_path, kind, frames):
     movie.close()
 
 
+@pytest.mark.parametrize("kind", ["mean", "std"])
+def test_mean_and_std_do_not_depend_on_the_frames_read_at_a_time(tmp_path, kind):
+    # Frames are merged 16 at a time whatever the block read (at least 16): the same image to
+    # the last bit, so detection on a projection does not move with the memory budget.
+    data = np.random.default_rng(3).integers(0, 60_000, (70, 9, 11)).astype(np.uint16)
+    movie = read_movie(_write(tmp_path / "long.tif", data))
+    images = [project(movie, kind, block=block) for block in (16, 17, 40, 70, None)]
+    for image in images[1:]:
+        np.testing.assert_array_equal(image, images[0])
+    expected = getattr(np, kind)(data.astype(np.float64), axis=0)
+    np.testing.assert_allclose(images[0], expected, rtol=1e-12)  # ~70 roundings of ~1e-16
+    movie.close()
+
+
 def test_projection_arguments_are_checked(tmp_path):
     movie = read_movie(_write(tmp_path / "m.tif", DATA))
     cases = [
