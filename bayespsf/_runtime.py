@@ -28,6 +28,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -106,11 +107,45 @@ def cache_folder():
 
 
 def machine() -> str:
-    """The machine a result was measured on, as one line."""
+    """The machine a result was measured on, as one line: the architecture and processor's
+    name, the cores, the physical cores where fewer (a core's hardware threads share its
+    arithmetic units, so workers beyond the physical cores add little), the cores this process
+    may use where fewer, Python and numpy."""
+    name = _cpu_name()
+    cores = os.cpu_count()
+    physical = physical_cores()
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else cores
     return (
-        f"{platform.machine()}, {os.cpu_count()} cores, "
+        f"{platform.machine()}{f' ({name})' if name else ''}, {cores} cores"
+        f"{f' ({physical} physical)' if physical and cores and physical < cores else ''}"
+        f"{f', {usable} usable' if cores and usable < cores else ''}, "
         f"Python {platform.python_version()}, numpy {np.__version__}"
     )
+
+
+def physical_cores(cpus: str | os.PathLike = "/sys/devices/system/cpu") -> int | None:
+    """The physical cores of the machine (hardware threads of one core counted once), from
+    Linux's CPU topology under ``cpus``; None where it is not there to read."""
+    found = set()
+    for folder in Path(cpus).glob("cpu[0-9]*/topology"):
+        try:
+            package = (folder / "physical_package_id").read_text().strip()
+            found.add((package, (folder / "core_id").read_text().strip()))
+        except OSError:
+            return None
+    return len(found) or None
+
+
+def _cpu_name(info: str | os.PathLike = "/proc/cpuinfo") -> str | None:
+    """The processor's model name from Linux's ``/proc/cpuinfo`` (None where not there)."""
+    try:
+        with open(info) as lines:
+            for line in lines:
+                if line.startswith("model name") and ":" in line:
+                    return line.split(":", 1)[1].strip() or None
+    except OSError:
+        return None
+    return None
 
 
 def physical_memory() -> int | None:
@@ -173,4 +208,4 @@ def in_bytes(size: float) -> str:
     return f"{size:.3g} {units[k]}"
 
 
-__all__ = ["in_bytes", "physical_memory", "refuse_beyond_memory"]
+__all__ = ["in_bytes", "machine", "physical_cores", "physical_memory", "refuse_beyond_memory"]
