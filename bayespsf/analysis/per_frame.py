@@ -55,6 +55,7 @@ from bayespsf.movie.extract import check_sizes, frame_span, open_movie
 from bayespsf.movie.pipeline import selection_run
 from bayespsf.movie.psf_width import PsfWidth, resolve_psf_sd
 from bayespsf.parallel import task_runner
+from bayespsf.parallel.tables import write_csv
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -305,21 +306,22 @@ def localize_frames(
         candidates, rows = run_frames(
             frames, settings, work, runner, chunks_here=device, done=bar.update
         )
-    candidates = pd.concat(candidates, ignore_index=True)
-    paths["candidates.csv"] = out / "candidates.csv"
-    candidates.to_csv(paths["candidates.csv"], index=False)
-    if not rows:
-        raise BayespsfInputError(
-            f"no spot was accepted in any of the {len(movie)} frames: nothing to localise (see "
-            f"{paths['candidates.csv']}; --false-positives raises the detector's rate, --fit "
-            "changes its window)"
-        )
-    table = concat_tables(rows)  # seeds kept whole
-    locs = localizations(table, fitting.pixel_size, estimate="posterior" if posterior else "mle")
-    estimate = f"posterior ({method})" if posterior else "MLE, Cramér-Rao bound"
-    settings = {"estimate": estimate, "fit": fit, **provenance}
-    info = locs_info(movie, fitting, f"bayespsf {run['command']} --per-frame", settings)
-    paths.update(write_locs(locs, out, info))
+        candidates = pd.concat(candidates, ignore_index=True)
+        paths["candidates.csv"] = out / "candidates.csv"
+        write_csv(candidates, paths["candidates.csv"], runner)  # rows formatted on the workers
+        if not rows:
+            raise BayespsfInputError(
+                f"no spot was accepted in any of the {len(movie)} frames: nothing to localise "
+                f"(see {paths['candidates.csv']}; --false-positives raises the detector's rate, "
+                "--fit changes its window)"
+            )
+        table = concat_tables(rows)  # seeds kept whole
+        kind = "posterior" if posterior else "mle"
+        locs = localizations(table, fitting.pixel_size, estimate=kind)
+        estimate = f"posterior ({method})" if posterior else "MLE, Cramér-Rao bound"
+        settings = {"estimate": estimate, "fit": fit, **provenance}
+        info = locs_info(movie, fitting, f"bayespsf {run['command']} --per-frame", settings)
+        paths.update(write_locs(locs, out, info, runner))
     result = FrameLocalizations(candidates, locs, width, paths)
     paths["report.md"] = out / "report.md"
     paths["report.md"].write_text(_report(result, len(movie), posterior, provenance))

@@ -450,7 +450,7 @@ def analyze(
         figures = send_figures(runner, image, found, frame_z, spread, frames["gof_p"], residuals)
         settings = {"method": method, "roi": roi, "fit": fit, **(provenance or {})}
         info = locs_info(movie, fitting, "bayespsf analyze", settings)
-        paths.update(write_locs(localizations(frames, fitting.pixel_size), out, info))
+        paths.update(write_locs(localizations(frames, fitting.pixel_size), out, info, runner))
         joint = joint_posteriors(
             counts, frames, fitting, seed=seed, progress=progress, **where, **effective
         )

@@ -38,6 +38,7 @@ ThunderSTORM's ``photon`` columns hold the same numbers).
 
 from __future__ import annotations
 
+import concurrent.futures
 import os
 from pathlib import Path
 
@@ -46,6 +47,7 @@ import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.io.z_calibration import plain_values
+from bayespsf.parallel.tables import write_csv
 
 PICASSO_COLUMNS = ("frame", "x", "y", "photons", "sx", "sy", "bg", "lpx", "lpy")
 PICASSO_Z_COLUMNS = ("z", "lpz")  # picasso's columns of a 3D localisation (nm)
@@ -218,7 +220,12 @@ def thunderstorm_table(locs: pd.DataFrame, pixel_size: float) -> pd.DataFrame:
     return table
 
 
-def write_locs(locs: pd.DataFrame, folder: str | os.PathLike, info: dict) -> dict[str, Path]:
+def write_locs(
+    locs: pd.DataFrame,
+    folder: str | os.PathLike,
+    info: dict,
+    runner: concurrent.futures.Executor | None = None,
+) -> dict[str, Path]:
     """Write a localisation table in the files the field's tools open.
 
     Parameters
@@ -231,6 +238,9 @@ def write_locs(locs: pd.DataFrame, folder: str | os.PathLike, info: dict) -> dic
     info : dict
         picasso's YAML content: ``Width``, ``Height``, ``Frames`` (camera pixels, frames),
         ``Pixelsize`` (nm; also ThunderSTORM's scale) and any provenance.
+    runner : concurrent.futures.Executor, optional
+        Workers that format the rows of ``locs.csv`` (``bayespsf.parallel.tables.write_csv``);
+        default this process.
 
     Returns
     -------
@@ -272,7 +282,7 @@ def write_locs(locs: pd.DataFrame, folder: str | os.PathLike, info: dict) -> dic
     folder.mkdir(parents=True, exist_ok=True)
     hdf5, yaml_path = write_picasso(locs, folder / "locs.hdf5", info)
     csv = folder / "locs.csv"
-    thunderstorm_table(locs, info["Pixelsize"]).to_csv(csv, index=False)
+    write_csv(thunderstorm_table(locs, info["Pixelsize"]), csv, runner)
     parquet = folder / "locs.parquet"
     locs.to_parquet(parquet, index=False)
     return {"locs.hdf5": hdf5, "locs.yaml": yaml_path, "locs.csv": csv, "locs.parquet": parquet}

@@ -368,10 +368,10 @@ def sample_many(
                 for i in todo
             )
             _run(tasks, runner, saver, rows, bar)
-        table = _table(pieces + ([] if made is None or not len(made) else [made]), rows)
-        table["photon_unit"] = model.photon_unit_label
-        if saver is not None:
-            saver.write_summary(table)
+            table = _table(pieces + ([] if made is None or not len(made) else [made]), rows)
+            table["photon_unit"] = model.photon_unit_label
+            if saver is not None:
+                saver.write_summary(table, runner)  # its rows formatted on the workers
     finally:
         if saver is not None:
             saver.unlock()

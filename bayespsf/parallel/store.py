@@ -19,6 +19,7 @@ molecule cost ~70 ms (h5netcdf writes each variable's dimensions one by one), an
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import json
 import numbers
 import os
@@ -39,6 +40,7 @@ from bayespsf.inference.result_file import (
     open_result_file,
     result_attributes,
 )
+from bayespsf.parallel.tables import write_csv
 from bayespsf.psf import PARAMETER_NAMES
 
 if TYPE_CHECKING:
@@ -376,16 +378,18 @@ class Store:
         counts = tree["observed_data"]["counts"].values[None]
         self.write([index], [draws], counts, attrs, [own])
 
-    def write_summary(self, table: pd.DataFrame) -> None:
+    def write_summary(self, table: pd.DataFrame, runner: cf.Executor | None = None) -> None:
         """Write ``summary.csv`` atomically.
 
         Parameters
         ----------
         table : pandas.DataFrame
             ``sample_many``'s summary table.
+        runner : concurrent.futures.Executor, optional
+            Workers that format its rows (``write_csv``); default this process.
         """
         partial = self.path / "summary.csv.partial"
-        table.to_csv(partial, index=False)
+        write_csv(table, partial, runner)
         os.replace(partial, self.path / "summary.csv")
 
     def _read(self, path: Path, group: str | None = None) -> xr.DataTree:
