@@ -182,8 +182,7 @@ def run_frames(
                 table["molecule"] = np.arange(numbered, numbered + len(table))
                 numbered += len(table)
                 tables.append(table)
-                place = table.loc[table["status"] == "accepted", list(PLACE_COLUMNS)]
-                pending.append((place.reset_index(drop=True), windows))
+                pending.append((_accepted_places(table), windows))
                 waiting += len(windows)
                 while waiting >= CHUNK:
                     chunk, pending = _split(pending, CHUNK)
@@ -191,6 +190,14 @@ def run_frames(
                     formed, waiting = formed + 1, waiting - CHUNK
             folded += 1
     return tables, [rows[k] for k in sorted(rows)]
+
+
+def _accepted_places(table: pd.DataFrame) -> pd.DataFrame:
+    """The ``PLACE_COLUMNS`` of a frame's accepted candidates, indexed from 0: as
+    ``table.loc[accepted, PLACE_COLUMNS].reset_index(drop=True)``, from the columns' arrays
+    (a tenth of the time: the calling process does this for every frame of the movie)."""
+    accepted = (table["status"] == "accepted").to_numpy()
+    return pd.DataFrame({c: table[c].to_numpy()[accepted] for c in PLACE_COLUMNS})
 
 
 def _split(pending, size):
