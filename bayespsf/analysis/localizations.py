@@ -150,22 +150,29 @@ def missing_values(locs: pd.DataFrame) -> pd.Series:
     ]
     with np.errstate(invalid="ignore"):
         absent = ~np.isfinite(locs[numeric].to_numpy(np.float64))
-    # rows alike in what is missing and in the columns the reasons come from share one text
-    context = [locs[c].astype(str).to_numpy() for c in _CONTEXT if c in locs]
-    packed = np.packbits(absent, axis=1)
-    texts: dict[tuple, str] = {}
     out = np.full(len(locs), "", dtype=object)
-    for i in np.flatnonzero(absent.any(axis=1)):
-        key = (packed[i].tobytes(), *(c[i] for c in context))
-        if key not in texts:
-            row, groups = locs.iloc[i], {}
-            for name in (numeric[j] for j in np.flatnonzero(absent[i])):
-                family = _family(name)
-                reasons = groups.setdefault(_why_missing(row, name), [])
-                if family not in reasons:
-                    reasons.append(family)
-            texts[key] = "; ".join(f"{', '.join(f)}: {why}" for why, f in groups.items())
-        out[i] = texts[key]
+    rows = np.flatnonzero(absent.any(axis=1))
+    if rows.size == 0:
+        return pd.Series(out, index=locs.index, dtype=object)
+    # rows alike in what is missing and in the columns the reasons come from share one text:
+    # grouped by pandas (in compiled code), each group's text made from its first row
+    keys = pd.DataFrame(np.packbits(absent[rows], axis=1))
+    for c in _CONTEXT:
+        if c in locs:
+            keys[c] = locs[c].iloc[rows].astype(str).to_numpy()
+    group = keys.groupby(list(keys.columns), sort=False).ngroup().to_numpy()
+    first = np.unique(group, return_index=True)[1]
+    texts = np.empty(len(first), dtype=object)
+    for g, k in enumerate(first):
+        i, groups = rows[k], {}
+        row = locs.iloc[i]
+        for name in (numeric[j] for j in np.flatnonzero(absent[i])):
+            family = _family(name)
+            reasons = groups.setdefault(_why_missing(row, name), [])
+            if family not in reasons:
+                reasons.append(family)
+        texts[g] = "; ".join(f"{', '.join(f)}: {why}" for why, f in groups.items())
+    out[rows] = texts[group]
     return pd.Series(out, index=locs.index, dtype=object)
 
 

@@ -128,6 +128,25 @@ def test_missing_columns_and_bad_pixel_size_are_named(posteriors):
         write_locs(localizations(rows, A), "unused", {"Width": 1, "Height": 1, "Pixelsize": A})
 
 
+def test_each_row_gets_its_own_reasons_in_any_order(posteriors):
+    # rows alike share one text (missing_values groups them): shuffled, repeated and with
+    # complete rows among them, each row still gets the text it has alone
+    from bayespsf.analysis.localizations import missing_values
+
+    rows, _, _ = posteriors
+    rows = rows.assign(mle_converged=True, crlb_x0=2.0, acceptance=0.3, method="mcmc")
+    rows.loc[1, "crlb_x0"] = np.nan
+    rows.loc[1, "mle_converged"] = False
+    rows.loc[2, "acceptance"] = np.nan
+    rows.loc[2, "method"] = "laplace"
+    rows.loc[4, ["x0_mean", "status", "message"]] = [np.nan, "failed", "no chain"]
+    alone = [missing_values(rows.iloc[[i]]).iloc[0] for i in range(len(rows))]
+    assert len(set(alone)) == 4 and "" in alone  # three reasons, and complete rows
+    order = np.random.default_rng(2).permutation(np.repeat(np.arange(len(rows)), 3))
+    mixed = rows.iloc[order].reset_index(drop=True)
+    assert missing_values(mixed).tolist() == [alone[i] for i in order]
+
+
 def test_a_row_without_some_values_keeps_every_column_for_every_row(posteriors, tmp_path):
     # one frame whose MLE did not converge (no crlb_x0, no x0_mle, no gof_p) and one refused
     # ROI (no posterior): locs.hdf5 still holds gof_p and crlb_x0 for every row, the missing
