@@ -306,7 +306,6 @@ def localize_frames(
         candidates, rows = run_frames(
             frames, settings, work, runner, chunks_here=device, done=bar.update
         )
-        candidates = pd.concat(candidates, ignore_index=True)
         paths["candidates.csv"] = out / "candidates.csv"
         write_csv(candidates, paths["candidates.csv"], runner)  # rows formatted on the workers
         if not rows:

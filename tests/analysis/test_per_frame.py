@@ -309,21 +309,21 @@ def test_a_frames_accepted_places_are_its_accepted_rows():
     from bayespsf.analysis.localizations import PLACE_COLUMNS
 
     rng = np.random.default_rng(0)
-    statuses = np.array(["accepted", "edge", "neighbour", "saturated"], dtype=object)
+    others = np.array(["edge", "neighbour", "saturated"], dtype=object)
     for n, accept in ((9, 0.5), (4, 0.0), (0, 0.0), (5, 1.0)):  # some, none, empty, all
+        status = np.where(rng.random(n) < accept, "accepted", others[np.arange(n) % 3])
         table = pd.DataFrame(
             {
                 "frame": np.full(n, 7),
                 "row": rng.integers(0, 99, n),
                 "col": rng.integers(0, 99, n),
-                "status": np.where(
-                    rng.random(n) < accept, "accepted", statuses[1 + np.arange(n) % 3]
-                ),
+                "status": status.astype(object),
                 "amplitude": rng.random(n),
             },
             index=np.arange(10, 10 + n),  # not from 0: the places are
-        ).assign(molecule=np.arange(40, 40 + n))
-        expected = table.loc[table["status"] == "accepted", list(PLACE_COLUMNS)]
+        )
+        numbered = table.assign(molecule=np.arange(40, 40 + n))  # the frame's from 40
+        expected = numbered.loc[numbered["status"] == "accepted", list(PLACE_COLUMNS)]
         pd.testing.assert_frame_equal(
-            _accepted_places(table), expected.reset_index(drop=True), check_exact=True
+            _accepted_places(table, 40), expected.reset_index(drop=True), check_exact=True
         )
