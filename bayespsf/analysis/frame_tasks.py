@@ -159,7 +159,7 @@ def run_frames(
                 except StopIteration:
                     exhausted = True
                     continue
-                futures[detector.submit(block_spots, first, frames, settings)] = ("block", sent)
+                futures[detector.submit(_block_found, first, frames, settings)] = ("block", sent)
                 sent += 1
             elif exhausted and folded == sent and waiting:  # the last chunk, shorter
                 ready.append((formed, pending))
@@ -178,26 +178,34 @@ def run_frames(
                 rows[k] = table
                 done(len(table))
         while folded in found:
-            for table, windows in found.pop(folded):
-                tables.append(table)  # numbered over the movie at the end, in one column
-                pending.append((_accepted_places(table, numbered), windows))
-                numbered += len(table)
-                waiting += len(windows)
-                while waiting >= CHUNK:
-                    chunk, pending = _split(pending, CHUNK)
-                    ready.append((formed, chunk))
-                    formed, waiting = formed + 1, waiting - CHUNK
+            table, windows = found.pop(folded)
+            tables.append(table)  # numbered over the movie at the end, in one column
+            pending.append((_accepted_places(table, numbered), windows))
+            numbered += len(table)
+            waiting += len(windows)
+            while waiting >= CHUNK:
+                chunk, pending = _split(pending, CHUNK)
+                ready.append((formed, chunk))
+                formed, waiting = formed + 1, waiting - CHUNK
             folded += 1
     candidates = pd.concat(tables, ignore_index=True)
     candidates["molecule"] = np.arange(len(candidates))
     return candidates, [rows[k] for k in sorted(rows)]
 
 
+def _block_found(first: int, frames: np.ndarray, settings: dict):
+    """``block_spots`` as one table of the block's candidates and one array of its windows,
+    in frame order: the task of a worker, whose result the calling process folds with a few
+    array operations per block rather than per frame."""
+    found = block_spots(first, frames, settings)
+    windows = [w for _, w in found]
+    return pd.concat([t for t, _ in found], ignore_index=True), np.concatenate(windows)
+
+
 def _accepted_places(table: pd.DataFrame, first: int) -> pd.DataFrame:
-    """The ``PLACE_COLUMNS`` of a frame's accepted candidates, indexed from 0, the
-    candidates numbered from ``first`` (``molecule``): from the columns' arrays, as the
-    calling process does this for every frame of the movie (``.loc`` and setting the column
-    in the table cost ~0.5 and ~1 ms per frame)."""
+    """The ``PLACE_COLUMNS`` of the accepted candidates of a block's table, indexed from 0,
+    the candidates numbered from ``first`` (``molecule``): from the columns' arrays (``.loc``
+    and setting the column in the table cost ~0.5 and ~1 ms per frame)."""
     accepted = (table["status"] == "accepted").to_numpy()
     numbers = first + np.flatnonzero(accepted)
     return pd.DataFrame(
