@@ -3,7 +3,8 @@ chunks of windows, run in this process, on local worker processes or on a Dask c
 
 This process reads the frames (the cheap part: ~0.15 ms per 512 x 512 frame), sends each block
 of frames to be detected (``block_spots``: each frame's candidates and the windows of the
-accepted ones), folds the blocks' windows in frame order into chunks of ``CHUNK`` windows and
+accepted ones, returned as one table and one array per block, which this process folds with a
+few array operations), folds the blocks' windows in frame order into chunks of ``CHUNK`` windows and
 sends each chunk to be localised (``localize_chunk``: the MLE and, for the posterior, the least
 squares and ``sample_many`` in the worker, one process per chunk). Detection of later frames
 runs beside the localisation of earlier chunks, and at most ``WAITING`` tasks per worker are
