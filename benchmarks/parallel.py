@@ -189,7 +189,8 @@ def per_frame(frames: int, workers, side: int = 256, molecules: int = 50) -> pd.
     """``localize_frames`` (``bayespsf analyze --per-frame``, default ``method="auto"``) on a
     simulated emccd-typical movie of ``frames`` frames of ``side`` x ``side`` pixels with
     ``molecules`` molecules (~47 windows per frame at 256 x 256; chunks of 512 windows, so 200
-    frames keep 16 workers busy for one round of chunks and part of a second), on each number
+    frames keep 16 workers busy for one round of chunks and part of a second, and blocks of
+    frames cut so that each worker detects two), on each number
     of local ``workers`` (1: this process):
     seconds, windows per second, whether the table is the one process's (all but the timing
     column), and the calling process's CPU time as a share of the one-process run's (all the

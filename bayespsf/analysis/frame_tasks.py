@@ -40,11 +40,19 @@ CHUNK = 512
 WAITING = 2
 #: Pixels per block of frames sent to be detected (8 MiB of uint16): 64 frames of 256 x 256.
 BLOCK_PIXELS = 2**22
+#: Fewest blocks of frames per worker, where a movie is short enough to be cut finer.
+BLOCKS_PER_WORKER = 2
 
 
-def block_frames(shape: tuple[int, int]) -> int:
-    """Frames per detection task for frames of ``shape``: ``BLOCK_PIXELS`` of them, 1 to 64."""
-    return int(min(64, max(1, BLOCK_PIXELS // (shape[0] * shape[1]))))
+def block_frames(shape: tuple[int, int], frames: int | None = None, workers: int = 1) -> int:
+    """Frames per detection task for frames of ``shape``: ``BLOCK_PIXELS`` of them, 1 to 64,
+    and no more than gives each of ``workers`` ``BLOCKS_PER_WORKER`` blocks of a movie of
+    ``frames`` frames. A block is detected in one worker (64 frames of 256 x 256: ~3.5 s), so
+    a short movie in blocks of 64 would leave most of 16 workers without detection to do."""
+    most = int(min(64, max(1, BLOCK_PIXELS // (shape[0] * shape[1]))))
+    if frames is None:
+        return most
+    return max(1, min(most, int(frames) // (BLOCKS_PER_WORKER * max(1, int(workers)))))
 
 
 def block_spots(first: int, frames: np.ndarray, settings: dict) -> list:

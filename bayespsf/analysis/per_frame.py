@@ -54,7 +54,7 @@ from bayespsf.movie import Movie, frame_settings, geometry_for_psf
 from bayespsf.movie.extract import check_sizes, frame_span, open_movie
 from bayespsf.movie.pipeline import selection_run
 from bayespsf.movie.psf_width import PsfWidth, resolve_psf_sd
-from bayespsf.parallel import task_runner
+from bayespsf.parallel import parallelism, task_runner
 from bayespsf.parallel.tables import write_csv
 
 if TYPE_CHECKING:
@@ -291,13 +291,14 @@ def localize_frames(
     sampler = dict(method=method, backend=backend, check=gof_discrepancy, progress=False)
     sampler.update({} if keep_draws else {"keep_draws": False})
     sampler.update(budget, **({} if ess is None else {"ess": ess}))
-    frames = movie.blocks(block_frames(movie.shape[1:]), 0, len(movie))
     settings = _detection(movie, fitting, width.sd, fit, false_positives)
     device = posterior and backend == "jax"  # its chunks here, beside the device
     with (
         task_runner(executor, workers) as runner,
         progress_bar(None, progress, unit="window") as bar,
     ):
+        block = block_frames(movie.shape[1:], len(movie), parallelism(runner))
+        frames = movie.blocks(block, 0, len(movie))
         if device and runner is not None:  # the device's chunks send their chains there
             sampler["executor"] = runner
         else:  # a worker's chunk runs in it alone

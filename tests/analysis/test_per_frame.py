@@ -233,7 +233,7 @@ def test_workers_and_the_order_tasks_finish_in_change_no_result(movie, tmp_path,
 
     path, _, model, _ = movie
     monkeypatch.setattr(frame_tasks, "CHUNK", 7)
-    monkeypatch.setattr(per_frame, "block_frames", lambda shape: 3)
+    monkeypatch.setattr(per_frame, "block_frames", lambda shape, frames, workers: 3)
     options = dict(s0=120.0, method="laplace", gof_discrepancy="pearson")
 
     def run(name, **where):
@@ -285,7 +285,7 @@ def test_the_device_localises_the_chunks_while_workers_detect(movie, tmp_path, m
 
     path, _, model, _ = movie
     monkeypatch.setattr(frame_tasks, "CHUNK", 20)
-    monkeypatch.setattr(per_frame, "block_frames", lambda shape: 2)
+    monkeypatch.setattr(per_frame, "block_frames", lambda shape, frames, workers: 2)
     options = dict(s0=120.0, method="laplace", backend="jax", gof_discrepancy="pearson")
     alone = localize_frames(path, model, out=tmp_path / "a", workers=1, **options)
     localized, localize = [], frame_tasks.localize_chunk
@@ -327,3 +327,17 @@ def test_a_frames_accepted_places_are_its_accepted_rows():
         pd.testing.assert_frame_equal(
             _accepted_places(table, 40), expected.reset_index(drop=True), check_exact=True
         )
+
+
+def test_a_short_movie_is_cut_into_blocks_that_every_worker_gets():
+    from bayespsf.analysis.frame_tasks import BLOCKS_PER_WORKER, block_frames
+
+    assert block_frames((256, 256)) == 64  # BLOCK_PIXELS of them
+    assert block_frames((2048, 2048)) == 1 and block_frames((64, 64)) == 64  # 1 to 64
+    assert block_frames((256, 256), 100_000, 16) == 64  # a long movie: the largest
+    for frames, workers in ((200, 16), (200, 2), (7, 4), (1, 16), (1000, 3)):
+        block = block_frames((256, 256), frames, workers)
+        blocks = -(-frames // block)
+        wanted = BLOCKS_PER_WORKER * workers
+        assert blocks >= min(frames, wanted), (frames, workers, block)  # every worker its own
+        assert block >= min(64, max(1, frames // wanted))  # no smaller than that needs
