@@ -395,7 +395,7 @@ def analyze(
         provenance = {**(provenance or {}), "psf sd": found.psf_width.summary()}
         claimed = claim_folder(out, run, ANALYSIS_FILES, force=force, copies=copied, about=about)
         paths = {**(files or {}), **claimed}
-        paths.update(write_tables(found, out))
+        paths.update(write_tables(found, out, runner))
         if not found.molecules["selected"].any():
             raise BayespsfInputError(
                 "no molecule passed the selection rules: nothing to analyse (see "

@@ -3,6 +3,7 @@ report, and the folder they are written to (``write``)."""
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,6 +13,7 @@ import pandas as pd
 from bayespsf.io import run_record
 from bayespsf.movie.psf_width import PsfWidth
 from bayespsf.movie.select import Rules, report_markdown
+from bayespsf.parallel.tables import write_csv
 
 
 @dataclass
@@ -82,7 +84,9 @@ class FoundMolecules:
 SELECTION_FILES = ("candidates.csv", "molecules.csv", "frames.csv", "selection.md")
 
 
-def write_tables(found: FoundMolecules, out: str | Path) -> dict[str, Path]:
+def write_tables(
+    found: FoundMolecules, out: str | Path, runner: cf.Executor | None = None
+) -> dict[str, Path]:
     """Write ``SELECTION_FILES``, without a run record (``write`` and ``bayespsf.analyze``
     claim the folder first).
 
@@ -92,6 +96,9 @@ def write_tables(found: FoundMolecules, out: str | Path) -> dict[str, Path]:
         From ``find_molecules``.
     out : str or Path
         The folder (made if missing).
+    runner : concurrent.futures.Executor, optional
+        Workers that format the tables' rows (``bayespsf.parallel.tables.write_csv``);
+        default this process.
 
     Returns
     -------
@@ -102,10 +109,10 @@ def write_tables(found: FoundMolecules, out: str | Path) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     first = ("molecule", "x", "y", "bleach_frame", "selected", "rejected_by")
     paths = {name: out / name for name in SELECTION_FILES}
-    found.candidates.to_csv(paths["candidates.csv"], index=False)
+    write_csv(found.candidates, paths["candidates.csv"], runner)
     columns = [*first, *(c for c in found.molecules.columns if c not in first)]
-    found.molecules[columns].to_csv(paths["molecules.csv"], index=False)
-    found.frames.to_csv(paths["frames.csv"], index=False)
+    write_csv(found.molecules[columns], paths["molecules.csv"], runner)
+    write_csv(found.frames, paths["frames.csv"], runner)
     paths["selection.md"].write_text(found.report_markdown())
     return paths
 
