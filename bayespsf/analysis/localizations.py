@@ -158,9 +158,9 @@ def missing_values(locs: pd.DataFrame) -> pd.Series:
     # grouped by pandas (in compiled code), each group's text made from its first row
     keys = pd.DataFrame(np.packbits(absent[rows], axis=1))
     for c in _CONTEXT:
-        if c in locs:
-            keys[c] = locs[c].iloc[rows].astype(str).to_numpy()
-    group = keys.groupby(list(keys.columns), sort=False).ngroup().to_numpy()
+        if c in locs:  # as text, a missing value too ('nan', 'None': pandas 3 keeps NaN)
+            keys[c] = np.asarray(locs[c].iloc[rows], dtype=object).astype(str)
+    group = keys.groupby(list(keys.columns), sort=False, dropna=False).ngroup().to_numpy()
     first = np.unique(group, return_index=True)[1]
     texts = np.empty(len(first), dtype=object)
     for g, k in enumerate(first):

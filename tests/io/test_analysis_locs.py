@@ -147,6 +147,29 @@ def test_each_row_gets_its_own_reasons_in_any_order(posteriors):
     assert missing_values(mixed).tolist() == [alone[i] for i in order]
 
 
+@pytest.mark.parametrize("strings", ["object", "pandas 3"])
+def test_a_missing_value_in_a_reasons_column_is_a_reason_too(strings):
+    # the columns the reasons come from may be missing themselves (no replicates, no
+    # message); pandas 3 keeps such a value NaN where pandas 2 made it 'nan' text
+    from bayespsf.analysis.localizations import missing_values
+
+    if strings == "pandas 3" and "infer_string" not in dir(pd.options.future):
+        pytest.skip("this pandas has no future.infer_string")  # pandas < 2.1
+    option = ("future.infer_string", strings == "pandas 3")
+    with pd.option_context(*option):
+        rows = pd.DataFrame(
+            {
+                "x0_mean": [np.nan, np.nan, 1.0, np.nan],
+                "gof_replicates": [100.0, np.nan, np.nan, 100.0],
+                "message": [None, "a", np.nan, None],
+            }
+        )
+        texts = missing_values(rows).tolist()
+    assert texts[0] == texts[3] == "*_mean: not computed for this row"
+    assert texts[1] == "*_mean, gof_replicates: not computed for this row"
+    assert texts[2] == "gof_replicates: not computed for this row"
+
+
 def test_a_row_without_some_values_keeps_every_column_for_every_row(posteriors, tmp_path):
     # one frame whose MLE did not converge (no crlb_x0, no x0_mle, no gof_p) and one refused
     # ROI (no posterior): locs.hdf5 still holds gof_p and crlb_x0 for every row, the missing
