@@ -5,8 +5,11 @@ pandas formats a float as text at about 1 µs (numpy's shortest round-trip digit
 costs per ROI on 16 workers, and all of it in the calling process after the workers are done.
 ``write_csv`` cuts the table into blocks of rows, has the runner's workers format each block
 (``DataFrame.to_csv``, no header) and writes the texts in order after the header. pandas
-formats a value from its column's type and the value alone, and every block is a slice of the
-one table, so the file is ``table.to_csv(path, index=False)``'s to the byte.
+formats a number, a bool or a string from its column's type and the value alone, and every
+block is a slice of the one table, so the file is ``table.to_csv(path, index=False)``'s to the
+byte. Dates and durations are the exception (pandas drops a column's time of day or its
+sub-second digits where every value of the column allows): a table with such a column, and a
+path that pandas would compress (``.gz``, ``.zip``, ...), are written by ``to_csv`` itself.
 """
 
 from __future__ import annotations
@@ -23,6 +26,11 @@ from bayespsf.parallel.executors import parallelism, run_in_order
 #: Fewest rows in a block formatted on a worker (a smaller table is written here): 512 rows
 #: of a summary take ~45 ms to format, sending them and their text back ~1 ms.
 MIN_BLOCK = 512
+#: Most rows in a block: the calling process holds a few blocks per worker, as frames and as
+#: text (4 096 summary rows: ~3 MB and ~7 MB).
+MAX_BLOCK = 4096
+#: Endings of a path that pandas writes compressed.
+COMPRESSED = (".gz", ".bz2", ".zip", ".xz", ".zst", ".tar")
 
 
 def write_csv(table: pd.DataFrame, path: str | os.PathLike, runner: cf.Executor | None) -> Path:
@@ -36,9 +44,10 @@ def write_csv(table: pd.DataFrame, path: str | os.PathLike, runner: cf.Executor 
     path : str or path-like
         The file, written in UTF-8 (replaced if it exists).
     runner : concurrent.futures.Executor or None
-        From ``task_runner``: blocks of at least ``MIN_BLOCK`` rows, about four per worker,
-        are formatted there, a few at a time (``run_in_order``); None, one worker, or a table
-        of fewer than two blocks: all of it here.
+        From ``task_runner``: blocks of ``MIN_BLOCK`` to ``MAX_BLOCK`` rows, about four per
+        worker, are formatted there, a few at a time (``run_in_order``); None, one worker, a
+        table of fewer than two blocks, a column of dates or durations, or a compressed
+        ``path``: all of it here, by ``to_csv``.
 
     Returns
     -------
@@ -63,8 +72,9 @@ def write_csv(table: pd.DataFrame, path: str | os.PathLike, runner: cf.Executor 
     """
     path = Path(path)
     workers = 1 if runner is None else parallelism(runner)
-    size = max(MIN_BLOCK, math.ceil(len(table) / (4 * workers)))
-    if workers == 1 or len(table) < 2 * size:
+    size = min(MAX_BLOCK, max(MIN_BLOCK, math.ceil(len(table) / (4 * workers))))
+    whole = workers == 1 or len(table) < 2 * size or path.suffix.lower() in COMPRESSED
+    if whole or any(_formatted_as_a_whole(dtype) for dtype in table.dtypes):
         table.to_csv(path, index=False)
         return path
     blocks = (table.iloc[first : first + size] for first in range(0, len(table), size))
@@ -75,9 +85,18 @@ def write_csv(table: pd.DataFrame, path: str | os.PathLike, runner: cf.Executor 
     return path
 
 
+def _formatted_as_a_whole(dtype) -> bool:
+    """Whether pandas formats the values of a column of ``dtype`` from all of them: dates and
+    durations (also as a categorical's categories)."""
+    if isinstance(dtype, pd.CategoricalDtype):
+        dtype = dtype.categories.dtype
+    dated = pd.api.types.is_datetime64_any_dtype(dtype)
+    return dated or pd.api.types.is_timedelta64_dtype(dtype)
+
+
 def _rows_as_text(block: pd.DataFrame) -> str:
     """Worker side: a block's rows as CSV text, without the header."""
     return block.to_csv(index=False, header=False)
 
 
-__all__ = ["MIN_BLOCK", "write_csv"]
+__all__ = ["COMPRESSED", "MAX_BLOCK", "MIN_BLOCK", "write_csv"]

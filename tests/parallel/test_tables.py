@@ -78,11 +78,34 @@ def test_a_small_table_or_one_worker_is_written_here(tmp_path):
         def submit(self, *args, **kwargs):
             raise AssertionError("a block was sent")
 
-    table = _awkward(2 * MIN_BLOCK - 1)
+    table, large = _awkward(2 * MIN_BLOCK - 1), _awkward(3 * MIN_BLOCK)
     with Refusing(max_workers=2) as two, Refusing(max_workers=1) as one:
         write_csv(table, tmp_path / "small.csv", two)
-        write_csv(_awkward(3 * MIN_BLOCK), tmp_path / "one.csv", one)
+        write_csv(large, tmp_path / "one.csv", one)
     assert (tmp_path / "small.csv").read_bytes() == table.to_csv(index=False).encode()
+    assert (tmp_path / "one.csv").read_bytes() == large.to_csv(index=False).encode()
+
+
+def test_dates_durations_and_compressed_files_are_written_whole_by_pandas(tmp_path):
+    # pandas writes a column of dates at midnight as bare dates, and durations of whole days
+    # without their time, only where every value of the column allows: a block would differ
+    class Refusing(cf.ThreadPoolExecutor):
+        def submit(self, *args, **kwargs):
+            raise AssertionError("a block was sent")
+
+    n = 3 * MIN_BLOCK
+    one_late = pd.to_timedelta(np.r_[np.zeros(n - 1), 1.5], unit="h")
+    tables = {
+        "dates": pd.DataFrame({"t": pd.Timestamp("2020-01-01") + one_late}),
+        "durations": pd.DataFrame({"d": pd.to_timedelta(np.r_[np.ones(n - 1), 1.5], unit="D")}),
+        "categories": pd.DataFrame({"c": pd.Categorical(pd.Timestamp("2020-01-01") + one_late)}),
+    }
+    with Refusing(max_workers=2) as runner:
+        for name, table in tables.items():
+            written = write_csv(table, tmp_path / f"{name}.csv", runner)
+            assert written.read_bytes() == table.to_csv(index=False).encode(), name
+        write_csv(_awkward(n), tmp_path / "t.csv.gz", runner)
+    assert pd.read_csv(tmp_path / "t.csv.gz").shape == (n, 7)  # pandas' own gzip
 
 
 def test_a_store_summary_written_on_workers_is_the_same_file(tmp_path, workers):
@@ -92,3 +115,20 @@ def test_a_store_summary_written_on_workers_is_the_same_file(tmp_path, workers):
     store.write_summary(table, workers)
     assert not (store.path / "summary.csv.partial").exists()
     assert (store.path / "summary.csv").read_bytes() == table.to_csv(index=False).encode()
+
+
+def test_rows_formatted_on_a_dask_cluster_give_the_same_file(tmp_path):
+    distributed = pytest.importorskip("distributed")  # a dependency: installed by pyproject
+    from bayespsf.parallel import task_runner
+
+    table = _awkward(3 * MIN_BLOCK)
+    # ":0": the dashboard on a free port (another test's cluster may hold 8787: a warning)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, dashboard_address=":0", processes=True
+        ) as cluster,
+        distributed.Client(cluster) as client,
+        task_runner(client, None) as runner,
+    ):
+        written = write_csv(table, tmp_path / "dask.csv", runner)
+    assert written.read_bytes() == table.to_csv(index=False).encode()
