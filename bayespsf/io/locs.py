@@ -47,7 +47,6 @@ import pandas as pd
 
 from bayespsf.errors import BayespsfInputError
 from bayespsf.io.z_calibration import plain_values
-from bayespsf.parallel.tables import write_csv
 
 PICASSO_COLUMNS = ("frame", "x", "y", "photons", "sx", "sy", "bg", "lpx", "lpy")
 PICASSO_Z_COLUMNS = ("z", "lpz")  # picasso's columns of a 3D localisation (nm)
@@ -278,6 +277,8 @@ def write_locs(
     >>> sorted(write_locs(locs, tempfile.mkdtemp(), info))
     ['locs.csv', 'locs.hdf5', 'locs.parquet', 'locs.yaml']
     """
+    from bayespsf.parallel.tables import write_csv  # here: bayespsf.parallel imports xarray
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     hdf5, yaml_path = write_picasso(locs, folder / "locs.hdf5", info)
