@@ -125,13 +125,18 @@ def machine() -> str:
 
 def physical_cores(cpus: str | os.PathLike = "/sys/devices/system/cpu") -> int | None:
     """The physical cores of the machine (hardware threads of one core counted once), from
-    Linux's CPU topology under ``cpus``; None where it is not there to read."""
+    Linux's CPU topology under ``cpus``: the distinct sets of hardware threads that share a
+    core (``core_cpus_list``, older kernels' ``thread_siblings_list``; ``core_id`` repeats
+    across a package's dies on some machines); None where it is not there to read."""
     found = set()
     for folder in Path(cpus).glob("cpu[0-9]*/topology"):
-        try:
-            package = (folder / "physical_package_id").read_text().strip()
-            found.add((package, (folder / "core_id").read_text().strip()))
-        except OSError:
+        for name in ("core_cpus_list", "thread_siblings_list"):
+            try:
+                found.add((folder / name).read_text().strip())
+                break
+            except OSError:
+                continue
+        else:
             return None
     return len(found) or None
 

@@ -8,30 +8,31 @@ import os
 from bayespsf._runtime import _cpu_name, machine, physical_cores
 
 
-def _topology(root, cores):
-    """A fake ``/sys/devices/system/cpu``: one folder per logical CPU, with its package and
-    core."""
-    for cpu, (package, core) in enumerate(cores):
+def _topology(root, siblings, name="core_cpus_list"):
+    """A fake ``/sys/devices/system/cpu``: one folder per logical CPU, with the list of the
+    hardware threads of its core (``siblings[cpu]``) in the file ``name``."""
+    for cpu, threads in enumerate(siblings):
         folder = root / f"cpu{cpu}" / "topology"
         folder.mkdir(parents=True)
-        (folder / "physical_package_id").write_text(f"{package}\n")
-        (folder / "core_id").write_text(f"{core}\n")
+        (folder / name).write_text(f"{threads}\n")
+        (folder / "core_id").write_text("0\n")  # repeats across dies: not used
     (root / "cpufreq").mkdir()  # not a CPU: not counted
     return root
 
 
-def test_physical_cores_count_each_core_of_each_package_once(tmp_path):
-    # two packages of two cores, two hardware threads each: 8 logical CPUs, 4 physical cores;
-    # core ids repeat across packages
-    cores = [(p, c) for p in (0, 1) for c in (0, 1)] * 2
-    assert physical_cores(_topology(tmp_path / "smt", cores)) == 4
-    assert physical_cores(_topology(tmp_path / "plain", [(0, 0), (0, 1), (0, 2)])) == 3
+def test_physical_cores_count_each_core_once(tmp_path):
+    # four cores of two hardware threads each (CPU k and k + 4 share a core): 4 physical
+    smt = [f"{k % 4},{k % 4 + 4}" for k in range(8)]
+    assert physical_cores(_topology(tmp_path / "smt", smt)) == 4
+    assert physical_cores(_topology(tmp_path / "plain", ["0", "1", "2"])) == 3
+    older = _topology(tmp_path / "older", ["0-1", "0-1", "2-3", "2-3"], "thread_siblings_list")
+    assert physical_cores(older) == 2
 
 
 def test_physical_cores_are_unknown_where_the_topology_is_not_there(tmp_path):
     assert physical_cores(tmp_path / "absent") is None
-    root = _topology(tmp_path / "part", [(0, 0), (0, 1)])
-    (root / "cpu1" / "topology" / "core_id").unlink()
+    root = _topology(tmp_path / "part", ["0", "1"])
+    (root / "cpu1" / "topology" / "core_cpus_list").unlink()
     assert physical_cores(root) is None
 
 
