@@ -149,7 +149,7 @@ def run_frames(
     limit = WAITING * parallelism(runner) if runner is not None else 1
     blocks = iter(blocks)
     futures: dict[cf.Future, tuple[str, int]] = {}
-    found: dict[int, list] = {}  # blocks detected, not yet folded (they finish out of order)
+    found: dict[int, tuple] = {}  # blocks detected, not yet folded (they finish out of order)
     ready: deque = deque()  # chunks formed, not yet sent
     tables, rows, pending = [], {}, []
     sent = folded = waiting = formed = 0  # blocks sent and folded; windows pending; chunks

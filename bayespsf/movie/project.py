@@ -64,7 +64,8 @@ def project(
     -----
     mean, max and std stream blocks of frames. The mean and the variance are combined across
     groups of ``MERGED`` (16) consecutive frames, whatever ``block`` is read at a time (fewer
-    when ``block`` is smaller), so the image does not depend on the memory budget, by the
+    when ``block`` is smaller), so the image does not depend on the memory budget while at
+    least 16 frames are read at a time, by the
     pairwise update of Chan, Golub & LeVeque, "Algorithms for computing the sample variance:
     analysis and recommendations", Am. Stat. 37 (1983) 242: each group's mean and sum of
     squared deviations (two passes over the group, in float64) merge as
@@ -86,7 +87,7 @@ def project(
     span = _span(movie, frames)
     w = movie.shape[2]
     itemsize = np.dtype(movie.dtype).itemsize
-    block = block_frames(movie, block, budget, 16)  # float64 copies of a block and deviations
+    block = block_frames(movie, block, budget, 16)  # room for float64 working copies
     if kind == "median":
         rows = max(1, budget // (2 * len(span) * w * itemsize))
         return _median(movie, span, int(block), int(rows))
