@@ -73,11 +73,14 @@ def test_the_blocks_go_to_the_runner_in_order(tmp_path):
     assert len(sizes) >= 4 and min(sizes[:-1]) >= MIN_BLOCK and sum(sizes) == len(table)
 
 
-def test_a_small_table_or_one_worker_is_written_here(tmp_path):
-    class Refusing(cf.ThreadPoolExecutor):
-        def submit(self, *args, **kwargs):
-            raise AssertionError("a block was sent")
+class Refusing(cf.ThreadPoolExecutor):
+    """A runner that fails the test if a block is sent to it."""
 
+    def submit(self, *args, **kwargs):
+        raise AssertionError("a block was sent")
+
+
+def test_a_small_table_or_one_worker_is_written_here(tmp_path):
     table, large = _awkward(2 * MIN_BLOCK - 1), _awkward(3 * MIN_BLOCK)
     with Refusing(max_workers=2) as two, Refusing(max_workers=1) as one:
         write_csv(table, tmp_path / "small.csv", two)
@@ -89,10 +92,6 @@ def test_a_small_table_or_one_worker_is_written_here(tmp_path):
 def test_dates_durations_and_compressed_files_are_written_whole_by_pandas(tmp_path):
     # pandas writes a column of dates at midnight as bare dates, and durations of whole days
     # without their time, only where every value of the column allows: a block would differ
-    class Refusing(cf.ThreadPoolExecutor):
-        def submit(self, *args, **kwargs):
-            raise AssertionError("a block was sent")
-
     n = 3 * MIN_BLOCK
     one_late = pd.to_timedelta(np.r_[np.zeros(n - 1), 1.5], unit="h")
     tables = {
