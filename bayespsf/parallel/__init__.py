@@ -14,6 +14,7 @@ from bayespsf.parallel.executors import (
 from bayespsf.parallel.joint import joint_posteriors
 from bayespsf.parallel.seeds import molecule_seed, molecule_seeds
 from bayespsf.parallel.store import Store
+from bayespsf.parallel.tables import write_csv
 
 __all__ = [
     "Store",
@@ -28,4 +29,5 @@ __all__ = [
     "sample_many",
     "task_runner",
     "worker_start",
+    "write_csv",
 ]
