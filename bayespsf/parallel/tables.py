@@ -90,8 +90,7 @@ def _formatted_as_a_whole(dtype) -> bool:
     durations (also as a categorical's categories)."""
     if isinstance(dtype, pd.CategoricalDtype):
         dtype = dtype.categories.dtype
-    dated = pd.api.types.is_datetime64_any_dtype(dtype)
-    return dated or pd.api.types.is_timedelta64_dtype(dtype)
+    return getattr(dtype, "kind", None) in ("M", "m")  # datetime64 (with a zone too), timedelta64
 
 
 def _rows_as_text(block: pd.DataFrame) -> str:
