@@ -158,8 +158,10 @@ def missing_values(locs: pd.DataFrame) -> pd.Series:
     # grouped by pandas (in compiled code), each group's text made from its first row
     keys = pd.DataFrame(np.packbits(absent[rows], axis=1))
     for c in _CONTEXT:
-        if c in locs:  # as text, a missing value too ('nan', 'None': pandas 3 keeps NaN)
-            keys[c] = np.asarray(locs[c].iloc[rows], dtype=object).astype(str)
+        if c in locs:  # numbers by value (NaN a group of its own: dropna=False), else as text
+            values = locs[c].iloc[rows]
+            by_value = isinstance(values.dtype, np.dtype) and values.dtype.kind in "biuf"
+            keys[c] = values.to_numpy() if by_value else np.asarray(values, object).astype(str)
     group = keys.groupby(list(keys.columns), sort=False, dropna=False).ngroup().to_numpy()
     first = np.unique(group, return_index=True)[1]
     texts = np.empty(len(first), dtype=object)
