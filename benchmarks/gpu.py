@@ -23,7 +23,10 @@ N = 1000, b = 10), in one run:
    (``program_seconds``): the fit's engine, the pilot, the Laplace, the Gaussian round, the
    Student-t rounds, the law's reruns, Pearson's statistic; and the Gaussian round's program
    in parts on ``--parts`` ROIs (``round_parts``: its draws, the spot's factors, the draws
-   scored, the weights smoothed and summarised).
+   scored, the weights smoothed and summarised), each with the work that XLA's cost model
+   counts in its compiled program (floating-point operations and bytes accessed per ROI) and
+   the rates its time gives them: on a GPU, whether a part is bound by arithmetic or by
+   memory bandwidth.
 3. **Streaming**: ``--stream`` ROIs through the fit and the posteriors in blocks of ``--rois``
    (the simulated block reused with each ROI's own seed, as a dataset's ROIs would be read
    block by block), with the peak resident memory of the process.
@@ -283,7 +286,10 @@ def round_parts(counts, model, fits, size: int = 374) -> dict:
     scored (the law interpolated per pixel, ``jax_programs.log_posterior``); the weights
     smoothed, resampled and summarised (``jax_programs._weighted``, on random log ratios);
     and the whole program. ``size`` is emccd-typical's usual round at ESS 400. The parts are
-    the backend's own internal functions, compiled here one by one."""
+    the backend's own internal functions, compiled here one by one. With each time, the work
+    that XLA's cost model counts in the compiled program (``cost``: floating-point operations
+    and bytes accessed per ROI, and the rates the time gives them), which says whether a part
+    is bound by arithmetic or by memory on the device that ran it."""
     import jax
     import jax.numpy as jnp
 
@@ -339,11 +345,27 @@ def round_parts(counts, model, fits, size: int = 374) -> dict:
     }  # fmt: skip
     out = {}
     for name, (function, args) in parts.items():
-        compiled = jax.jit(function)
-        jax.block_until_ready(compiled(*args))  # compiled and warmed
+        compiled = jax.jit(function).lower(*args).compile()
+        jax.block_until_ready(compiled(*args))  # warmed
         best = min(_timed(lambda c=compiled, a=args: jax.block_until_ready(c(*a)))[1] for _ in "12")
         out[f"Gaussian round of {size} draws: {name} (µs per ROI, {n} ROIs)"] = 1e6 * best / n
+        out[f"Gaussian round of {size} draws: {name} (XLA's cost model, per ROI)"] = cost(
+            compiled, n, best
+        )
     return out
+
+
+def cost(compiled, n: int, seconds: float) -> str:
+    """XLA's count of a compiled program's work (``Compiled.cost_analysis``) per ROI of its
+    ``n``, and the rates that ``seconds`` of it give: floating-point operations and bytes read
+    and written, as its fused kernels do them."""
+    counted = compiled.cost_analysis()
+    counted = counted[0] if isinstance(counted, list | tuple) else counted  # older JAX: a list
+    flops, moved = counted.get("flops", np.nan), counted.get("bytes accessed", np.nan)
+    return (
+        f"{flops / n / 1e6:.3g} MFLOP, {moved / n / 1e6:.3g} MB accessed "
+        f"({flops / seconds / 1e9:.3g} GFLOP/s, {moved / seconds / 1e9:.3g} GB/s)"
+    )
 
 
 def stream(counts, model, total: int) -> dict:

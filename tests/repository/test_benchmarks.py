@@ -1,5 +1,6 @@
 """The benchmark scripts run (quick mode) and measure what they claim; no timing is asserted."""
 
+import re
 import sys
 from pathlib import Path
 
@@ -172,13 +173,28 @@ def test_gpu_benchmark_quick():
     assert {"fit", "pilot", "gaussian", "pearson"} <= set(names)
     # the programs run inside the whole call, so their times are parts of its time
     assert all(v > 0 for v in programs.values()) and sum(programs.values()) < whole
-    # the Gaussian round in parts, each compiled alone and timed (no speed is asserted here)
-    parts = {k.split(": ")[1].split(" (")[0]: v for k, v in made.items() if "round of" in k}
+    # the Gaussian round in parts, each compiled alone and timed (no speed is asserted here),
+    # with XLA's count of its work: the draws scored do more arithmetic and move more bytes
+    # than the draws alone, and the whole program at least as much as its scoring
+    parts = {
+        k.split(": ")[1].split(" (")[0]: v
+        for k, v in made.items()
+        if "round of" in k and "(µs per ROI" in k
+    }
     assert set(parts) == {
         "draws", "draws and the spot's factors", "draws scored",
         "weights smoothed, resampled, summarised", "the whole program",
     }  # fmt: skip
     assert all(v > 0 for v in parts.values())
+    counted = {
+        k.split(": ")[1].split(" (")[0]: [float(x) for x in re.findall(r"([0-9.e+-]+) M", v)]
+        for k, v in made.items()
+        if "(XLA's cost model" in k
+    }
+    assert set(counted) == set(parts)
+    assert all(len(v) == 2 and np.all(np.isfinite(v)) for v in counted.values())
+    assert np.all(np.greater(counted["draws scored"], counted["draws"]))
+    assert np.all(np.greater_equal(counted["the whole program"], counted["draws scored"]))
 
 
 def test_movie_benchmark_quick():
