@@ -361,6 +361,8 @@ def cost(compiled, n: int, seconds: float) -> str:
     and written, as its fused kernels do them."""
     counted = compiled.cost_analysis()
     counted = counted[0] if isinstance(counted, list | tuple) else counted  # older JAX: a list
+    if not counted:  # a platform whose compiler does not count
+        return "not counted on this device"
     flops, moved = counted.get("flops", np.nan), counted.get("bytes accessed", np.nan)
     return (
         f"{flops / n / 1e6:.3g} MFLOP, {moved / n / 1e6:.3g} MB accessed "

@@ -175,7 +175,8 @@ def test_gpu_benchmark_quick():
     assert all(v > 0 for v in programs.values()) and sum(programs.values()) < whole
     # the Gaussian round in parts, each compiled alone and timed (no speed is asserted here),
     # with XLA's count of its work: the draws scored do more arithmetic and move more bytes
-    # than the draws alone, and the whole program at least as much as its scoring
+    # than the draws alone, and the whole program at least its scoring's arithmetic (not
+    # asserted of its bytes: fusing more of a program can move fewer)
     parts = {
         k.split(": ")[1].split(" (")[0]: v
         for k, v in made.items()
@@ -194,7 +195,7 @@ def test_gpu_benchmark_quick():
     assert set(counted) == set(parts)
     assert all(len(v) == 2 and np.all(np.isfinite(v)) for v in counted.values())
     assert np.all(np.greater(counted["draws scored"], counted["draws"]))
-    assert np.all(np.greater_equal(counted["the whole program"], counted["draws scored"]))
+    assert counted["the whole program"][0] >= counted["draws scored"][0]
 
 
 def test_movie_benchmark_quick():
