@@ -19,10 +19,6 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-import numpy as np
-
-from bayespsf.errors import BayespsfInputError
-from bayespsf.psf import Defocus
 from bayespsf.scene.key import SceneError
 from bayespsf.scene.schema import (
     _PRIOR_ARGS,
@@ -36,6 +32,7 @@ from bayespsf.scene.schema import (
     check_likelihood,
     default_prior,
 )
+from bayespsf.scene.sections import check_sections
 
 TOP_LEVEL = ("name", "description")
 MAX_SCENE_CHARACTERS = 65536  # tomllib's time grows with the square of a dotted key's depth
@@ -469,31 +466,4 @@ def _check_consistency(d: Mapping) -> None:
                 "the camera law gives them zero likelihood: declare the readout variance "
                 "(camera.variance > 0), whole-ADU gain and offset, or quantize = false"
             )
-    if "axial" in d:
-        _check_axial(d)
-
-
-def _check_axial(d: Mapping) -> None:
-    """The [axial] table needs the Gaussian PSF (its widths follow z) and a z range on which
-    both curves are defined (1 + u^2 + A u^3 + B u^4 > 0)."""
-    ax = d["axial"]
-    if d["optics"]["psf"] != "gaussian":
-        raise SceneError("[axial] needs optics.psf = 'gaussian': the Airy pattern is in focus only")
-    if ax["z"] == "uniform" and not ax["z_low"] < ax["z_high"]:
-        raise SceneError(
-            f"axial.z_low must be below axial.z_high, got {ax['z_low']:g} and {ax['z_high']:g}"
-        )
-    low, high = {
-        "fixed": (ax.get("z0"), ax.get("z0")),
-        "uniform": (ax.get("z_low"), ax.get("z_high")),
-        "normal": (
-            ax.get("z0", 0.0) - 6 * ax.get("z_sd", 0.0),
-            ax.get("z0", 0.0) + 6 * ax.get("z_sd", 0.0),
-        ),
-    }[ax["z"]]
-    e = d["emitter"]
-    defocus = Defocus.from_table(ax, e["s0x"], e["s0y"])
-    try:
-        defocus.widths(np.linspace(low, high, 2001))
-    except BayespsfInputError as exc:
-        raise SceneError(f"[axial]: {exc} (the z range the scene draws from)") from None
+    check_sections(d)

@@ -266,6 +266,10 @@ def scene_dicts(draw):
                 )
                 given.update(z_low=low, z_high=high)
                 normal.update(z_low=low, z_high=high)
+        if section == "movie":  # a photon range that runs forwards, both ends declared
+            low, high = sorted(draw(st.lists(st.floats(1e-9, 1e9), min_size=2, max_size=2)))
+            given.update(photons_low=low, photons_high=high)
+            normal.update(photons_low=low, photons_high=high)
         if given or optional or draw(st.booleans()):
             d[section] = given
         expected[section] = normal
@@ -547,6 +551,16 @@ NUMERIC = [
 ]
 
 
+def test_a_movie_photon_range_that_runs_backwards_is_refused():
+    # a 0 stands for emitter.photons (1 000 here): 1 500 to 0 runs backwards as 1 500 to 500
+    for movie in ({"photons_low": 6000.0, "photons_high": 5000.0}, {"photons_low": 1500.0}):
+        _raises(
+            {"movie": movie}, r"movie\.photons_low \(\d+\) must not be above movie\.photons_high"
+        )
+    for movie in ({"photons_low": 5000.0, "photons_high": 5000.0}, {"photons_high": 1500.0}):
+        Scene.from_dict({"movie": movie})  # one photon count, or emitter.photons up to 1 500
+
+
 @pytest.mark.parametrize(("section", "key"), NUMERIC, ids=[f"{s}.{k.name}" for s, k in NUMERIC])
 def test_every_numeric_key_checks_its_range(section, key):
     base = _context(section, key.name, applies=True)
@@ -556,6 +570,8 @@ def test_every_numeric_key_checks_its_range(section, key):
         base = {"kind": "scmos"}  # the EMCCD's own gain >= 1 rule is tested separately
     if section == "axial" and key.name in ("z_low", "z_high"):  # z_low < z_high is its own rule
         base.update({"z_low": -1e6, "z_high": 1e6})
+    if section == "movie" and key.name in ("photons_low", "photons_high"):  # so is low <= high
+        base.update({"photons_low": 1e-9, "photons_high": 1e9})
     for value in _outside(key):
         _raises({section: {**base, key.name: value}}, re.escape(f"{section}.{key.name} must be"))
         msg = _raises({section: {**base, key.name: value}}, re.escape(key.allowed()))
