@@ -37,7 +37,7 @@ from bayespsf.analysis.misfit import mean_residuals
 from bayespsf.analysis.molecule_tasks import send_estimates, send_figures
 from bayespsf.analysis.report import report_markdown
 from bayespsf.analysis.width_spread import width_spread
-from bayespsf.axial import check_calibration
+from bayespsf.axial import check_calibration, check_z_range
 from bayespsf.errors import BayespsfInputError
 from bayespsf.inference.backends import check_backend
 from bayespsf.inference.gof import check_discrepancy
@@ -380,6 +380,7 @@ def analyze(
     run.update({"max seconds": budget["max_seconds"]} if budget else {})  # only where given
     if z_calibration is not None:  # its terms, not the file it came from
         check_calibration(z_calibration, model)  # before any work: its pixels are the model's
+        z_range = check_z_range(z_range)
         terms = {k: v for k, v in z_calibration.record().items() if k != "source"}
         run.update({"z calibration": terms, "z range": list(z_range)})
     check_folder(out, run, ANALYSIS_FILES, force=force, copies=copied)  # before the work

@@ -11,7 +11,7 @@ from bayespsf.axial.bounds import crlb_z, first_order_z_sd, paper_delta_z
 from bayespsf.axial.calibrate import bead_rois, calibrate, fit_curve, step_widths
 from bayespsf.axial.match import calibration_setup, check_calibration
 from bayespsf.axial.posterior import ZPosterior, z_posterior
-from bayespsf.axial.push import nearest_z, z_draws
+from bayespsf.axial.push import check_z_range, nearest_z, z_draws
 from bayespsf.axial.table import z_posteriors
 from bayespsf.axial.unified import bounded_mean_interval, distance_from_focus
 
@@ -22,6 +22,7 @@ __all__ = [
     "calibrate",
     "calibration_setup",
     "check_calibration",
+    "check_z_range",
     "crlb_z",
     "distance_from_focus",
     "first_order_z_sd",

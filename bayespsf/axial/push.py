@@ -46,7 +46,23 @@ def widths(s_x: ArrayLike, s_y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def check_z_range(z_range: tuple[float, float]) -> tuple[float, float]:
-    """``z_range`` as ``(low, high)`` floats with low < high, or a named error."""
+    """The support of z's uniform prior, checked.
+
+    Parameters
+    ----------
+    z_range : (float, float)
+        ``(low, high)`` in nm.
+
+    Returns
+    -------
+    (float, float)
+        ``(low, high)`` as floats, finite, with low < high.
+
+    Raises
+    ------
+    BayespsfInputError
+        Naming ``z_range``: not two numbers, not finite, or not low < high.
+    """
     try:
         low, high = z_range
     except (TypeError, ValueError):

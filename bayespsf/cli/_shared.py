@@ -19,10 +19,10 @@ class CommandError(Exception):
 
 def output_folder(path: str, option: str = "--out", stem: bool = False) -> Path:
     """``path`` as a folder (or, with ``stem``, a path stem) to write into: ``output_folder``
-    of ``bayespsf.io.run_record``, named by the command's flag."""
-    from bayespsf.io import run_record
+    of ``bayespsf.io.folders``, named by the command's flag."""
+    from bayespsf.io import folders
 
-    return run_record.output_folder(path, option, stem=stem)
+    return folders.output_folder(path, option, stem=stem)
 
 
 @contextmanager

@@ -199,7 +199,7 @@ def _fit(args) -> int:
         model,
         seed=args.seed,
         executor=args.scheduler,
-        workers=None if args.scheduler else args.workers,
+        workers=args.workers,
         store=out,
         truths=truths,
         scene=scene,
@@ -232,7 +232,7 @@ def _detect(args) -> int:
     with one_run():  # refused before the work, as write would refuse it after it
         run = selection_run(movie, model, **settings)  # what write records: found.run
         check_folder(out, run, SELECTION_FILES, force=args.force, copies=read_copies(copies))
-    with task_runner(args.scheduler, None if args.scheduler else args.workers) as runner:
+    with task_runner(args.scheduler, args.workers) as runner:
         found = find_molecules(movie, model, **settings, executor=runner)
     with one_run():
         paths = write(found, out, force=args.force, copies=copies, about={"movie": args.movie})
@@ -249,6 +249,8 @@ def _analyze(args) -> int:
     from bayespsf.analysis.pipeline import analyze
     from bayespsf.io import read_z_calibration
 
+    if args.z_range is not None and args.z_calibration is None:
+        raise CommandError("--z-range is the prior of z: it goes with --z-calibration")
     out = output_folder(args.out)
     movie, model, s0 = movie_model(args)
     roi, fit = geometry(args)
@@ -276,11 +278,11 @@ def _analyze(args) -> int:
             ess=args.ess,
             max_seconds=args.max_seconds,
             seed=args.seed,
-            workers=None if args.scheduler else args.workers,
+            workers=args.workers,
             executor=args.scheduler,
             provenance={"command": command, "camera file": camera_text},
             z_calibration=z_calibration,
-            z_range=tuple(args.z_range),
+            z_range=(-800.0, 800.0) if args.z_range is None else tuple(args.z_range),
             copies={"camera.toml": args.camera},  # the camera file used, verbatim
             gof_discrepancy=args.gof_discrepancy,
             force=args.force,
@@ -438,8 +440,10 @@ def main(argv: list[str] | None = None) -> int:
     -------
     int
         The exit status: 0, or 130 when interrupted. Bad input (``CommandError`` or
-        ``bayespsf.errors.BayespsfInputError``) ends the command with one line
-        ``bayespsf: ...`` (``SystemExit``, exit status 1).
+        ``bayespsf.errors.BayespsfInputError``), a file that cannot be read or written (an
+        ``OSError``: a read-only or full disk, a path through a file) and input too large for
+        the machine's memory end the command with one line ``bayespsf: ...`` (``SystemExit``,
+        exit status 1).
     """
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
@@ -447,9 +451,25 @@ def main(argv: list[str] | None = None) -> int:
         _refuse_unknown(parser.subcommands[args.command], unknown)
     args.argv = None if argv is None else list(argv)[1:]
     try:
+        if getattr(args, "scheduler", None) and getattr(args, "workers", None) is not None:
+            raise CommandError(
+                "give --workers (local processes) or --scheduler (a Dask cluster, whose "
+                "workers run the tasks), not both"
+            )
         return COMMANDS[args.command](args)
     except (CommandError, BayespsfInputError) as exc:
         raise SystemExit(f"bayespsf: {exc}") from None
+    except OSError as exc:  # the disk's or the path's trouble, not bayespsf's: no traceback
+        where = exc.filename if exc.filename is not None else "a file"
+        raise SystemExit(
+            f"bayespsf: {where}: {exc.strerror or exc} (the disk, its permissions or the path; "
+            "for an output, give --out a folder that can be written)"
+        ) from None
+    except MemoryError as exc:
+        raise SystemExit(
+            f"bayespsf: out of memory ({exc or 'an allocation failed'}): the input or the "
+            "output asked for is larger than this machine's memory"
+        ) from None
     except KeyboardInterrupt:
         print("bayespsf: interrupted", file=sys.stderr)
         return 130

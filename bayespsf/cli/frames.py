@@ -40,7 +40,7 @@ def per_frame(args, out: Path, movie, model, s0: float | None, fit: int) -> int:
         options["keep_draws"] = not args.no_draws
     else:
         options["false_positives"] = args.false_positives
-    options.update(workers=None if args.scheduler else args.workers, executor=args.scheduler)
+    options.update(workers=args.workers, executor=args.scheduler)
     with one_run():  # a folder of another run is refused before anything is written
         result = localize_frames(movie, model, copies={"camera.toml": args.camera}, **options)
     print(result.psf_width.summary() + (" (--psf-sd states it)" if s0 is None else ""))

@@ -237,9 +237,9 @@ def _add_analyze(commands) -> None:
         "--z-range",
         type=float,
         nargs=2,
-        default=(-800.0, 800.0),
+        default=None,
         metavar=("LOW", "HIGH"),
-        help="support of z's uniform prior in nm (default -800 800)",
+        help="with --z-calibration, the support of z's uniform prior in nm (default -800 800)",
     )
     analyze.add_argument(
         "--gof-discrepancy",

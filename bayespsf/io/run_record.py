@@ -33,6 +33,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from bayespsf.errors import BayespsfInputError
+from bayespsf.io.folders import _named, output_folder
 
 #: The record's file name in the output folder.
 RECORD_NAME = "run.json"
@@ -266,11 +267,6 @@ class RunConflict(BayespsfInputError):
         return f"{where} holds results ({shown}) {self.reason}; {way}"
 
 
-def _named(option: str, folder: Path) -> str:
-    """``--out FOLDER`` for a command's flag, ``out='FOLDER'`` for a Python argument."""
-    return f"{option} {folder}" if option.startswith("-") else f"{option}={str(folder)!r}"
-
-
 def _names(names: Iterable[str]) -> list[str]:
     """Plain names of entries of the folder itself (a record edited by hand cannot name a
     path elsewhere)."""
@@ -279,44 +275,6 @@ def _names(names: Iterable[str]) -> list[str]:
         if isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name:
             plain.append(name)
     return list(dict.fromkeys(plain))
-
-
-def output_folder(folder: str | os.PathLike, option: str = "out", stem: bool = False) -> Path:
-    """``folder`` as a folder to write into: no file may stand at it or at any of its parents.
-
-    Parameters
-    ----------
-    folder : str or path-like
-        The output folder (it need not exist), or with ``stem`` a path stem (``OUT`` of
-        ``OUT.npy``, ``OUT.truth.csv``) whose folder is made.
-    option : str, default "out"
-        What names it in messages: a flag (``--out``) or a Python argument (``out``).
-    stem : bool, default False
-        Whether ``folder`` is a path stem rather than a folder.
-
-    Returns
-    -------
-    pathlib.Path
-        ``folder``.
-
-    Raises
-    ------
-    BayespsfInputError
-        If a file stands at ``folder`` or at one of its parents, or a stem is a folder.
-    """
-    folder = Path(folder)
-    if stem and folder.is_dir():
-        raise BayespsfInputError(
-            f"{_named(option, folder)} is a folder; give a path stem such as {folder}/sim"
-        )
-    for place in folder.parents if stem else (folder, *folder.parents):
-        if place.exists() and not place.is_dir():
-            what = "is" if place == folder else f"lies under {place}, which is"
-            raise BayespsfInputError(
-                f"{_named(option, folder)} {what} a file, not a folder; give {option} a "
-                "folder to write into"
-            )
-    return folder
 
 
 def _with_copies(run, files, copies) -> tuple[dict, list[str]]:
@@ -493,7 +451,6 @@ __all__ = [
     "check_folder",
     "claim_folder",
     "file_fingerprint",
-    "output_folder",
     "read_copies",
     "read_run_record",
     "run_differences",

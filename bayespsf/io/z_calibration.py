@@ -44,6 +44,8 @@ from bayespsf.psf import CURVES, TERMS, Defocus, DefocusCalibration
 
 FORMAT = "bayespsf z calibration 1"
 STEP_COLUMNS = ("z", "frames", "s_x", "s_x_sd", "s_y", "s_y_sd")
+#: The file's top-level keys (``calibration_dict``).
+KEYS = ("format", "curve", "created", "bayespsf", "source", "x", "y", "steps")
 
 
 def plain_values(value):
@@ -143,8 +145,9 @@ def read_z_calibration(path: str | os.PathLike) -> DefocusCalibration:
     Raises
     ------
     BayespsfInputError
-        If the file is missing or not TOML, or a key is missing or a value bad (a
-        ``[source] pixel_size`` that is not a number > 0 included), named with the file.
+        If the file is missing or not TOML, a key is unknown or missing or a value bad (a
+        ``[source] pixel_size`` that is not a number > 0, a covariance that is not finite, a
+        fit's ``chi2``, ``dof`` or ``p`` that is not a number), named with the file.
 
     See Also
     --------
@@ -158,6 +161,9 @@ def read_z_calibration(path: str | os.PathLike) -> DefocusCalibration:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise BayespsfInputError(f"{path} is not a calibration file (not TOML: {exc})") from None
     where = f"calibration file {path}"
+    unknown = sorted(set(doc) - set(KEYS))
+    if unknown:
+        raise BayespsfInputError(f"{where}: unknown key(s) {unknown}; a calibration has {KEYS}")
     if doc.get("format") != FORMAT:
         raise BayespsfInputError(f"{where}: format must be {FORMAT!r}, got {doc.get('format')!r}")
     curve = doc.get("curve")
@@ -176,8 +182,13 @@ def read_z_calibration(path: str | os.PathLike) -> DefocusCalibration:
             cov = np.array(table["covariance"], dtype=np.float64)
         except (BayespsfInputError, TypeError, ValueError) as exc:
             raise BayespsfInputError(f"{where}: [{axis}]: {exc}") from None
-        if cov.shape != (5, 5):
-            raise BayespsfInputError(f"{where}: [{axis}] covariance must be 5 x 5")
+        if cov.shape != (5, 5) or not np.all(np.isfinite(cov)):
+            raise BayespsfInputError(f"{where}: [{axis}] covariance must be 5 x 5 finite numbers")
+        for key in ("chi2", "dof", "p"):  # the fit's record: numbers (NaN where not defined)
+            if isinstance(table[key], bool) or not isinstance(table[key], int | float):
+                raise BayespsfInputError(
+                    f"{where}: [{axis}] {key} must be a number, got {table[key]!r}"
+                )
         covariance[axis] = cov
         sd = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
         rows.append(

@@ -197,6 +197,11 @@ def _executor(executor, workers):
 
         try:
             client = Client(executor, timeout=SCHEDULER_TIMEOUT)
+        except ValueError as exc:  # distributed's parse of the address
+            raise BayespsfInputError(
+                f"{executor!r} is not a Dask scheduler address ({exc}); give one such as "
+                "'tcp://10.0.0.5:8786'"
+            ) from None
         except (OSError, TimeoutError) as exc:
             raise BayespsfInputError(
                 f"no Dask scheduler answered at {executor!r} within {SCHEDULER_TIMEOUT:g} s "
@@ -237,8 +242,9 @@ def task_runner(
     Raises
     ------
     BayespsfInputError
-        If both ``executor`` and ``workers`` are given, ``executor`` is of another kind, or
-        no scheduler answers at the address within ``SCHEDULER_TIMEOUT`` seconds.
+        If both ``executor`` and ``workers`` are given, ``executor`` is of another kind, an
+        address is not one (no port), or no scheduler answers at the address within
+        ``SCHEDULER_TIMEOUT`` seconds.
 
     See Also
     --------

@@ -141,3 +141,46 @@ def test_picasso_opens_z(run):
     parquet = pd.read_parquet(out / "locs.parquet")
     np.testing.assert_array_equal(locs["z"].to_numpy(), parquet["z"].to_numpy())
     np.testing.assert_array_equal(locs["lpz"].to_numpy(), parquet["lpz"].to_numpy())
+
+
+def test_a_z_range_is_checked_before_the_detection_and_needs_a_calibration(run, tmp_path):
+    # a backwards range with a calibration is refused before anything is written (it was
+    # refused after the detection, its folder then holding a run that a corrected rerun could
+    # not resume); without a calibration the range has nothing to be the prior of
+    _, made, path = run
+    (tmp_path / "camera.toml").write_text(CAMERA)
+    given = [str(made.files["movie"]), "--camera", str(tmp_path / "camera.toml")]
+    given += ["--psf-sd", "150", "--workers", "1", "--out", str(tmp_path / "out")]
+    with pytest.raises(SystemExit, match=r"z_range must have low < high; got \(800\.0, -800\.0\)"):
+        cli.main(["analyze", *given, "--z-calibration", str(path), "--z-range", "800", "-800"])
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    with pytest.raises(SystemExit, match="--z-range is the prior of z: it goes with --z-cali"):
+        cli.main(["analyze", *given, "--z-range", "-500", "500"])
+
+
+@pytest.mark.parametrize(
+    ("edit", "named"),
+    [
+        (lambda d: d["x"].update(chi2="abc"), r"\[x\] chi2 must be a number, got 'abc'"),
+        (
+            lambda d: d["x"]["covariance"][2].__setitem__(2, float("nan")),
+            r"\[x\] covariance must be 5 x 5 finite",
+        ),
+        (lambda d: d.update(bogus=5), r"unknown key\(s\) \['bogus'\]"),
+    ],
+)
+def test_a_z_calibration_file_with_a_bad_value_is_refused_by_name(run, tmp_path, edit, named):
+    import tomllib
+
+    import tomli_w
+
+    from bayespsf.errors import BayespsfInputError
+    from bayespsf.io import read_z_calibration
+
+    _, _, path = run
+    content = tomllib.loads(Path(path).read_text())
+    edit(content)
+    bad = tmp_path / "z.toml"
+    bad.write_text(tomli_w.dumps(content))
+    with pytest.raises(BayespsfInputError, match=rf"calibration file {bad}: {named}"):
+        read_z_calibration(bad)

@@ -560,3 +560,57 @@ def test_the_fit_report_names_a_few_rois_and_counts_the_rest(tmp_path):
     assert lines[14] == "25 ROIs: converged 22, refused 3"
     assert lines[15] == "posteriors by importance 22"
     assert lines[16].startswith(f"wrote {tmp_path / 'summary.csv'} and the posteriors of 22 ROIs")
+
+
+def test_a_disk_or_path_error_ends_in_one_line_naming_the_file(monkeypatch):
+    # an OSError is the disk's or the path's (read-only, full, a path through a file): one line
+    # naming the file and what to check, no traceback; likewise input too large for memory
+    import errno
+
+    from bayespsf.cli import commands
+
+    def read_only(args):
+        raise OSError(errno.EROFS, "Read-only file system", "out/summary.csv")
+
+    def too_large(args):
+        raise MemoryError("Unable to allocate 74.5 GiB for an array")
+
+    monkeypatch.setitem(commands.COMMANDS, "simulate", read_only)
+    with pytest.raises(SystemExit, match=r"^bayespsf: out/summary.csv: Read-only file system \("):
+        cli.main(["simulate", "ideal"])
+    monkeypatch.setitem(commands.COMMANDS, "simulate", too_large)
+    with pytest.raises(SystemExit, match=r"^bayespsf: out of memory \(Unable to allocate 74.5"):
+        cli.main(["simulate", "ideal"])
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_the_work(tmp_path, monkeypatch):
+    # the nearest existing folder is asked, before any work (a read-only disk was found when
+    # the first file was written, after the work); root may write where permissions say no,
+    # so os.access is the one answer asked
+    from bayespsf.io import folders
+
+    asked = []
+
+    def access(path, mode):
+        asked.append(path)
+        return False
+
+    monkeypatch.setattr(folders.os, "access", access)
+    with pytest.raises(SystemExit, match=rf"--out {tmp_path}/a/b cannot be written: {tmp_path} is"):
+        cli.main(["simulate", "ideal", "-n", "1", "--out", str(tmp_path / "a" / "b")])
+    assert asked == [tmp_path] and not (tmp_path / "a").exists()
+
+
+def test_workers_and_a_scheduler_together_are_refused():
+    # --workers was dropped without a word where --scheduler was given
+    with pytest.raises(SystemExit, match=r"give --workers .* or --scheduler .*, not both"):
+        cli.main(["fit", "r.npy", "--scene", "ideal", "--workers", "2", "--scheduler", "tcp://h:1"])
+
+
+def test_a_scheduler_address_without_a_port_is_named():
+    from bayespsf.errors import BayespsfInputError
+    from bayespsf.parallel import task_runner
+
+    with pytest.raises(BayespsfInputError, match="'notanaddress' is not a Dask scheduler addr"):
+        with task_runner("notanaddress", None):
+            pass
