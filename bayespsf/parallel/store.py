@@ -57,6 +57,8 @@ FILE_MOLECULES = 4096
 #: The manifest's entry for a store that keeps no draws (``sample_many(keep_draws=False)``).
 NO_DRAWS = {"draws": "not kept: each molecule's summary row, sampler record and counts only"}
 _NAME = re.compile(r"posteriors-(\d+)-(\d+)\.nc")
+# a detect or analyze run's record (bayespsf.io.run_record.RECORD_NAME, a layer above this)
+RUN_RECORD = "run.json"
 
 
 class Store:
@@ -153,13 +155,19 @@ class Store:
         ------
         BayespsfInputError
             If the store's ``manifest.json`` differs, naming the keys that differ, or the
-            folder holds a store of an earlier layout (a file per molecule).
+            folder holds a store of an earlier layout (a file per molecule) or a detect or
+            analyze run's results (``run.json``).
 
         Notes
         -----
         With the lock held (``lock``), the ``.partial`` files of a killed run are removed.
         """
         manifest = {"store": STORE_FORMAT, **manifest}
+        if (self.path / RUN_RECORD).is_file():  # a detect or analyze run's folder
+            raise BayespsfInputError(
+                f"store {self.path} holds the results of a `bayespsf detect` or `analyze` run "
+                f"({RUN_RECORD}); use a new store folder"
+            )
         self.path.mkdir(parents=True, exist_ok=True)
         file = self.path / "manifest.json"
         if file.exists():

@@ -325,3 +325,25 @@ def test_the_record_is_generic_and_force_removes_only_the_runs_own_entries(tmp_p
         handle.write(b"\x01")
     assert file_fingerprint(big)["sha256"] != first["sha256"]
     assert file_fingerprint(big)["bytes"] == 10 << 20
+
+
+def test_a_store_and_a_detect_or_analyze_run_refuse_each_others_folders(tmp_path):
+    # `bayespsf fit` into a detect folder wrote its store beside the selection tables, and
+    # detect into a fit store its tables beside the posteriors: each kind of run now refuses
+    # the other's marker, and --force does not remove a run of the other kind
+    from bayespsf.io.run_record import check_folder
+    from bayespsf.parallel.store import RUN_RECORD
+
+    assert RUN_RECORD == RECORD_NAME  # the store names the record a layer below its home
+    run_folder, store_folder = tmp_path / "detected", tmp_path / "fitted"
+    run_folder.mkdir()
+    (run_folder / RECORD_NAME).write_text("{}")
+    with pytest.raises(BayespsfInputError, match=r"holds the results of a `bayespsf detect`"):
+        Store(run_folder).open({"molecules": 1})
+    assert sorted(p.name for p in run_folder.iterdir()) == [RECORD_NAME]
+    store_folder.mkdir()
+    Store(store_folder).open({"molecules": 1})  # writes its manifest.json
+    for force in (False, True):
+        with pytest.raises(BayespsfInputError, match=r"--out .*fitted holds a posterior store"):
+            check_folder(store_folder, {"run": 1}, SELECTION_FILES, force=force, option="--out")
+    assert sorted(p.name for p in store_folder.iterdir()) == ["manifest.json"]
