@@ -82,6 +82,7 @@ def _reader(path: Path, tif, pages, frame_shape, dtype):
     """A reader of ``pages`` (one per frame): memory-mapped if every page is stored
     uncompressed in final form, decoded page by page otherwise."""
     size = tif.filehandle.size
+    need = int(np.prod(frame_shape, dtype=np.int64)) * np.dtype(dtype).itemsize
     offsets, numbers, final = [], [], True
     for j, page in enumerate(pages):
         if page is None:
@@ -98,6 +99,12 @@ def _reader(path: Path, tif, pages, frame_shape, dtype):
             )
         ends = [o + c for o, c in zip(page.dataoffsets, page.databytecounts, strict=True)]
         _check_end(path, j, max(ends, default=0), size)
+        if page.compression == 1 and sum(page.databytecounts) < need:  # stored uncompressed
+            raise BayespsfInputError(
+                f"{path}: damaged or truncated TIFF (frame {j}'s page holds "
+                f"{sum(page.databytecounts)} bytes of image data, where its "
+                f"{' x '.join(map(str, frame_shape))} pixels of {np.dtype(dtype)} need {need})"
+            )
         numbers.append(page.index)
         final = final and page.is_final
         if final:

@@ -184,6 +184,22 @@ def _cut_npy(tmp_path):
     (tmp_path / "x.npy").write_bytes(raw[:-100])
 
 
+def _short_strip(tmp_path):
+    """One uncompressed page that declares 100 000 x 100 000 uint16 pixels and holds 8 bytes
+    (written by hand: the header, an IFD of 8 tags, then the data)."""
+    import struct
+
+    tags = [(256, 4, 100_000), (257, 4, 100_000), (258, 3, 16), (259, 3, 1), (262, 3, 1)]
+    tags += [(273, 4, 8 + 2 + 8 * 12 + 4), (277, 3, 1), (279, 4, 8)]  # offset, samples, bytes
+    ifd = struct.pack("<H", len(tags))
+    for tag, kind, value in tags:  # one value each: a LONG (4) or a SHORT (3) padded to 4 bytes
+        ifd += struct.pack("<HHI", tag, kind, 1) + (
+            struct.pack("<I", value) if kind == 4 else struct.pack("<HH", value, 0)
+        )
+    data = b"II*\x00" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0) + bytes(8)
+    (tmp_path / "x.tif").write_bytes(data)
+
+
 def _empty_pages(tmp_path):
     import warnings
 
@@ -214,6 +230,7 @@ def _mixed_types(p):
         (lambda p: (p / "x.tif").write_bytes(b"II*\x00\x08\x00\x00\x00"), r"x\.tif: .*no images"),
         (_cut_chain, r"x\.tif: damaged or truncated TIFF"),
         (_cut_data, r"x\.tif: damaged or truncated TIFF \(frame 3's image data end"),
+        (_short_strip, r"x\.tif: damaged or truncated TIFF \(frame 0's page holds 8 bytes"),
         (_mixed, r"x\.tif: its pages differ in shape .*page 2 \(8, 11\)"),
         (_mixed_types, r"x\.tif: page 1 holds float32, the first page uint16"),
         (lambda p: _write(p / "x.tif", DATA.astype(np.complex64)), r"x\.tif: complex values"),
@@ -242,6 +259,7 @@ def _mixed_types(p):
         "header-only",
         "cut-chain",
         "cut-data",
+        "short-strip",
         "mixed-pages",
         "mixed-types",
         "complex",
