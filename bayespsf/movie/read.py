@@ -19,6 +19,9 @@ from bayespsf.movie._tiff import check_channel, checked_dtype, tiff_frames
 from bayespsf.psf import check_geometry
 
 _TIFF = (".tif", ".tiff")
+#: The largest pixel value of a floating-point movie, in ADU: float64 holds whole counts
+#: exactly below it (2**53), and their squares without overflow.
+MAX_COUNT = 2.0**53
 
 
 def read_movie(path: str | Path | Sequence[str | Path], *, channel: int | None = None) -> Movie:
@@ -210,8 +213,10 @@ class Movie:
         """Frames ``start`` to ``stop`` (excluded; Python slice rules) as an array ``(k, h, w)``
         in the file's data type; ``rows`` (a slice) reads only those rows of each frame.
 
-        A floating-point movie's NaN or infinite pixel raises ``BayespsfInputError`` naming
-        the frame and pixel: camera counts are finite, and every analysis reads through here.
+        A floating-point movie's NaN or infinite pixel, or one beyond ``MAX_COUNT`` ADU,
+        raises ``BayespsfInputError`` naming the frame and pixel: camera counts are finite
+        whole numbers (float64 holds them exactly below 2**53, and their squares without
+        overflow), and every analysis reads through here.
 
         Parameters
         ----------
@@ -227,7 +232,7 @@ class Movie:
         Raises
         ------
         BayespsfInputError
-            For a NaN or infinite pixel.
+            For a NaN or infinite pixel, or one beyond ``MAX_COUNT``.
         """
         span = range(self.n_frames)[start:stop]
         rows = slice(None) if rows is None else rows
@@ -239,14 +244,17 @@ class Movie:
         if not parts:
             return np.empty((0, len(range(self.shape[1])[rows]), self.shape[2]), self.dtype)
         data = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        if np.issubdtype(data.dtype, np.inexact) and not np.isfinite(data).all():
-            k, r, c = np.argwhere(~np.isfinite(data))[0]
+        if np.issubdtype(data.dtype, np.inexact) and not (np.abs(data) <= MAX_COUNT).all():
+            wrong = ~(np.abs(data) <= MAX_COUNT)  # NaN, infinite, or beyond whole counts
+            k, r, c = np.argwhere(wrong)[0]
             first = range(self.shape[1])[rows][r]
-            bad = int(np.count_nonzero(~np.isfinite(data[k])))
+            bad = int(np.count_nonzero(wrong[k]))
+            what = "NaN or infinite" if not np.isfinite(data[k, r, c]) else "beyond +-2**53"
             raise BayespsfInputError(
-                f"{self.path}: frame {span.start + k} has {bad} NaN or infinite pixel(s), the "
-                f"first at row {first}, column {c} ({data[k, r, c]}); camera counts are finite: "
-                "replace them (with the camera's offset, say) or crop them out"
+                f"{self.path}: frame {span.start + k} has {bad} NaN, infinite or vast pixel(s), "
+                f"the first {what} at row {first}, column {c} ({data[k, r, c]}); camera counts "
+                "are finite whole numbers of ADU below 2**53: replace them (with the camera's "
+                "offset, say) or crop them out"
             )
         return data
 

@@ -109,7 +109,7 @@ def test_inputs_that_cannot_work_are_named(tmp_path):
     np.save(tmp_path / "nan.npy", noisy)
     with pytest.raises(
         BayespsfInputError,
-        match=r"frame 7 has 1 NaN or infinite pixel\(s\), the first at row 3, column 3",
+        match=r"frame 7 has 1 NaN, infinite or vast pixel\(s\), the first NaN or infinite at row 3",
     ):
         pixel_cumulants(tmp_path / "nan.npy", block=4)
     noisy[7, 3, 3] = 30.0

@@ -314,12 +314,28 @@ def test_a_nan_or_infinite_pixel_in_a_movie_is_named_by_frame_and_pixel(tmp_path
     counts = np.random.default_rng(0).poisson(5.0, (6, 32, 32)).astype(np.float32) + 100
     counts[4, 7, 9] = np.inf
     np.save(tmp_path / "m.npy", counts)
-    where = r"m.npy: frame 4 has 1 NaN or infinite pixel\(s\), the first at row 7, column 9"
+    where = r"m.npy: frame 4 has 1 NaN, infinite or vast pixel\(s\), the first NaN or infinite "
+    where += r"at row 7, column 9"
     with pytest.raises(BayespsfInputError, match=where):
         detect_movie(tmp_path / "m.npy", psf_sd=S, pixel_size=A, camera=CAMERA)
     with pytest.raises(BayespsfInputError, match=where):
         detect_frames(tmp_path / "m.npy", psf_sd=S, pixel_size=A, camera=CAMERA)
     assert np.isfinite(read_movie(tmp_path / "m.npy").frames(0, 4)).all()  # the others read
+
+
+def test_a_vast_pixel_in_a_float_movie_is_named_as_a_nan_is(tmp_path):
+    # 1e300 ADU overflowed the projections' squares (RuntimeWarnings, then a solver's NaN
+    # in a traceback); 2**53 itself still reads, one ADU above it does not
+    counts = np.random.default_rng(0).poisson(5.0, (6, 32, 32)).astype(np.float64) + 100
+    counts[2, 5, 6], counts[3, 1, 2] = 2.0**53, 1e300
+    np.save(tmp_path / "m.npy", counts)
+    with pytest.raises(BayespsfInputError, match=r"frame 3 has 1 NaN, infinite or vast pixel"):
+        detect_movie(tmp_path / "m.npy", psf_sd=S, pixel_size=A, camera=CAMERA)
+    assert read_movie(tmp_path / "m.npy").frames(0, 3)[2, 5, 6] == 2.0**53
+    counts[3, 1, 2] = -(2.0**53 + 2.0)
+    np.save(tmp_path / "m.npy", counts)
+    with pytest.raises(BayespsfInputError, match=r"first beyond \+-2\*\*53 at row 1, column 2"):
+        read_movie(tmp_path / "m.npy").frames()
 
 
 def test_frames_beyond_the_movie_are_refused_not_clipped(tmp_path):
