@@ -101,7 +101,22 @@ def add_pixel_size(parser: argparse.ArgumentParser, help: str = PIXEL_SIZE_HELP)
     help : str, optional
         Its help text (default ``PIXEL_SIZE_HELP``).
     """
-    parser.add_argument("--pixel-size", type=float, default=None, help=help)
+    parser.add_argument("--pixel-size", type=_pixel_size, default=None, help=help)
+
+
+def _pixel_size(text: str) -> float:
+    """``--pixel-size`` as a number in the scene's range for ``geometry.pixel_size``, named
+    as the flag (it was named as the camera file's key, which the file did not hold)."""
+    from bayespsf.scene.schema import SCHEMA
+
+    (key,) = [key for key in SCHEMA["geometry"] if key.name == "pixel_size"]
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not key.low <= value <= key.high:  # NaN too
+        raise argparse.ArgumentTypeError(f"a pixel size in nm within {key.allowed()}, got {text}")
+    return value
 
 
 def add_selection(parser: argparse.ArgumentParser) -> None:

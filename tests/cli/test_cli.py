@@ -614,3 +614,14 @@ def test_a_scheduler_address_without_a_port_is_named():
     with pytest.raises(BayespsfInputError, match="'notanaddress' is not a Dask scheduler addr"):
         with task_runner("notanaddress", None):
             pass
+
+
+@pytest.mark.parametrize("value", ["0", "-79", "nan", "1e6", "abc"])
+def test_a_bad_pixel_size_is_named_as_the_flag(value, capsys):
+    # it was named as the camera file's [geometry] pixel_size, a key the file did not hold
+    for command in ("detect", "analyze", "calibrate"):
+        with pytest.raises(SystemExit) as ended:
+            cli.main([command, "m.tif", "--camera", "c.toml", "--pixel-size", value])
+        assert ended.value.code == 2
+        said = capsys.readouterr().err
+        assert f"argument --pixel-size: a pixel size in nm within [1, 100000], got {value}" in said
