@@ -184,8 +184,8 @@ class Movie:
         Parameters
         ----------
         pixel_size : float, optional
-            The pixel side in nm that a run uses where the metadata give none (a camera
-            file's); the metadata's own, where they give one, is shown instead.
+            The pixel side in nm that a run uses (``--pixel-size``, a camera file's, or the
+            metadata's); where the metadata give another, both are shown.
 
         Returns
         -------
@@ -195,11 +195,13 @@ class Movie:
         if isinstance(name, tuple):
             name = f"{name[0]} + {len(name) - 1} files"
         size = time = "None"
-        if self.pixel_size is not None:
-            size = f"{self.pixel_size:.4g} nm ({self.metadata['pixel_size']})"
-        elif pixel_size is not None:
+        if pixel_size is not None:
             _, a = check_geometry(1, pixel_size)  # a named error for a size that is not one
             size = f"{a:g} nm"
+        if self.pixel_size is not None:
+            read = f"{self.pixel_size:.4g} nm ({self.metadata['pixel_size']})"
+            same = pixel_size is None or np.isclose(a, self.pixel_size, rtol=1e-9, atol=0.0)
+            size = read if same else f"{size}, not the metadata's {read}"
         if self.exposure is not None:
             time = f"{self.exposure:.4g} s ({self.metadata['exposure']})"
         return (

@@ -69,7 +69,9 @@ def test_ome_tiff_pixel_size_exposure_and_z_t_frames(tmp_path):
     _check(movie, DATA)  # Z x T flattened in acquisition order
     assert movie.pixel_size == pytest.approx(107.0) and movie.exposure == pytest.approx(0.05)
     assert movie.metadata["pixel_size"] == movie.metadata["exposure"] == "OME"
-    assert "pixel_size=107 nm (OME)" in movie.describe(100.0)  # the file's own size is shown
+    assert "pixel_size=107 nm (OME)," in movie.describe(107.0)  # the size used, and whence
+    # a size given in its place (--pixel-size, a camera file) is the one shown, with the file's
+    assert "pixel_size=100 nm, not the metadata's 107 nm (OME)," in movie.describe(100.0)
     assert movie.metadata["exposure_field"] == "TimeIncrement"
     # a plane's ExposureTime is the exposure, preferred to the frame interval
     meta = {
