@@ -4,6 +4,7 @@ as typed, the movie commands' camera model, spot SD and selection rules, and the
 
 from __future__ import annotations
 
+import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -23,6 +24,19 @@ def output_folder(path: str, option: str = "--out", stem: bool = False) -> Path:
     from bayespsf.io import folders
 
     return folders.output_folder(path, option, stem=stem)
+
+
+def output_file(path: str, force: bool, name: str, what: str) -> Path:
+    """``--out`` as the file a command writes (``calibrate``'s camera file, ``calibrate-z``'s
+    calibration): not a folder (the message offers ``name`` in it), not a file that exists
+    unless ``--force``, in a folder that can be written (``output_folder``); before the work."""
+    out = Path(path)
+    if out.is_dir() or path.endswith(("/", os.sep)):
+        raise CommandError(f"--out {path} is a folder; give the {what}'s name ({out / name})")
+    if out.exists() and not force:
+        raise CommandError(f"--out {out} exists: give another name, or --force to replace it")
+    output_folder(str(out.parent))
+    return out
 
 
 @contextmanager

@@ -9,7 +9,6 @@ only when it runs, so that ``bayespsf --help`` loads no NumPy.
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from bayespsf.cli._shared import (
     geometry,
     movie_model,
     one_run,
+    output_file,
     output_folder,
     selection_rules,
 )
@@ -310,9 +310,7 @@ def _calibrate_z(args) -> int:
     from bayespsf.io import write_z_calibration
     from bayespsf.simulation.zstack import zstack_positions
 
-    out = Path(args.out)
-    if out.is_dir():
-        raise CommandError(f"--out {out} is a folder; give the calibration file's name")
+    out = output_file(args.out, args.force, "z-calibration.toml", "calibration file")
     if args.frames_per_step < 1:
         raise CommandError(f"--frames-per-step must be >= 1, got {args.frames_per_step}")
     movie, model, s0 = movie_model(args)
@@ -367,14 +365,7 @@ def _calibrate(args) -> int:
     from bayespsf.movie import read_movie
     from bayespsf.movie.psf_width import resolve_psf_sd  # the spot's SD, stated or estimated
 
-    out = Path(args.out)
-    if out.is_dir() or args.out.endswith(("/", os.sep)):
-        raise CommandError(
-            f"--out {args.out} is a folder; give the camera file's name ({out / 'camera.toml'})"
-        )
-    if out.exists() and not args.force:
-        raise CommandError(f"--out {out} exists: give another name, or --force to replace it")
-    output_folder(str(out.parent))
+    out = output_file(args.out, args.force, "camera.toml", "camera file")
     roi, fit = geometry(args)
     movie = read_movie(args.movie, channel=args.channel)
     dark = None if args.dark is None else _dark_frames(args.dark, args.channel)

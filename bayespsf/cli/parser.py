@@ -296,6 +296,7 @@ def _add_calibrate_z(commands) -> None:
     add_seed(calibrate_z)
     add_workers(calibrate_z, terse=True)
     add_out(calibrate_z, "z-calibration.toml", "the file to write")
+    add_force(calibrate_z, "replace the calibration file that --out names instead of refusing")
 
 
 def _add_calibrate(commands) -> None:

@@ -625,3 +625,15 @@ def test_a_bad_pixel_size_is_named_as_the_flag(value, capsys):
         assert ended.value.code == 2
         said = capsys.readouterr().err
         assert f"argument --pixel-size: a pixel size in nm within [1, 100000], got {value}" in said
+
+
+def test_calibrate_z_keeps_an_existing_calibration_without_force(tmp_path):
+    # it overwrote the file without a word, where calibrate refuses its camera file
+    (tmp_path / "z.toml").write_text("kept")
+    args = ["calibrate-z", "s.tif", "--camera", "c.toml", "--z-start", "0", "--z-step", "50"]
+    args += ["--frames-per-step", "4", "--out", str(tmp_path / "z.toml")]
+    with pytest.raises(SystemExit, match=r"--out .*z\.toml exists: give another name, or --force"):
+        cli.main(args)
+    assert (tmp_path / "z.toml").read_text() == "kept"
+    with pytest.raises(SystemExit, match=r"--out .* is a folder; give the calibration file's na"):
+        cli.main([*args[:-1], str(tmp_path)])
