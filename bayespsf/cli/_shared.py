@@ -5,6 +5,7 @@ as typed, the movie commands' camera model, spot SD and selection rules, and the
 from __future__ import annotations
 
 import os
+import re
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -24,6 +25,21 @@ def output_folder(path: str, option: str = "--out", stem: bool = False) -> Path:
     from bayespsf.io import folders
 
     return folders.output_folder(path, option, stem=stem)
+
+
+def as_flag(message: str, usage: str) -> str:
+    """``message`` with its leading Python name (``ess must be ...``, from the functions beneath
+    a command) given as the command's flag that sets it (``--ess must be ...``): ``--name``, or
+    ``--z-name`` (``calibrate-z``'s ``--z-start``, ``--z-step``), where ``usage`` (the
+    command's help) holds that flag and the message does not name it already; else
+    ``message`` as it is."""
+    name, _, rest = message.partition(" ")
+    if rest and name.isidentifier():
+        for flag in (f"--{name}", f"--z-{name}"):
+            flag = flag.replace("_", "-")
+            if re.search(rf"{re.escape(flag)}(?![\w-])", usage):
+                return message if flag in rest else f"{flag} {rest}"  # named once
+    return message
 
 
 def output_file(path: str, force: bool, name: str, what: str) -> Path:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from bayespsf.cli._shared import (
     CommandError,
+    as_flag,
     command_line,
     fit_report,
     geometry,
@@ -448,8 +449,9 @@ def main(argv: list[str] | None = None) -> int:
                 "workers run the tasks), not both"
             )
         return COMMANDS[args.command](args)
-    except (CommandError, BayespsfInputError) as exc:
-        raise SystemExit(f"bayespsf: {exc}") from None
+    except (CommandError, BayespsfInputError) as exc:  # a function's name as the flag
+        usage = parser.subcommands[args.command].format_help()
+        raise SystemExit(f"bayespsf: {as_flag(str(exc), usage)}") from None
     except OSError as exc:  # the disk's or the path's trouble, not bayespsf's: no traceback
         where = exc.filename if exc.filename is not None else "a file"
         raise SystemExit(

@@ -117,7 +117,7 @@ class Rules:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float | np.number):
                 raise BayespsfInputError(f"{name} must be a number, got {value!r}")
-            if not np.isfinite(value) or value < 0:
+            if name != "min_valid_frames" and (not np.isfinite(value) or value < 0):  # below
                 raise BayespsfInputError(f"{name} must be a finite number >= 0, got {value!r}")
         if not 0 < self.photon_tolerance < 1:
             raise BayespsfInputError("photon_tolerance must be in (0, 1), e.g. 0.2 for 20%")
@@ -125,8 +125,11 @@ class Rules:
         high = PAPER_WIDTHS[1] if self.width_high is None else self.width_high
         if not 0 <= low <= high:
             raise BayespsfInputError("width_low must be in [0, width_high]")
-        if int(self.min_valid_frames) != self.min_valid_frames or self.min_valid_frames < 1:
-            raise BayespsfInputError("min_valid_frames must be a whole number >= 1")
+        frames = self.min_valid_frames
+        if not np.isfinite(frames) or int(frames) != frames or frames < 1:
+            raise BayespsfInputError(
+                f"min_valid_frames must be a whole number >= 1, got {frames!r}"
+            )
         if isinstance(self.skip, str):
             raise BayespsfInputError(
                 f"skip must be a tuple of rule names, e.g. ({self.skip!r},), got {self.skip!r}"

@@ -151,7 +151,9 @@ def test_a_z_range_is_checked_before_the_detection_and_needs_a_calibration(run, 
     (tmp_path / "camera.toml").write_text(CAMERA)
     given = [str(made.files["movie"]), "--camera", str(tmp_path / "camera.toml")]
     given += ["--psf-sd", "150", "--workers", "1", "--out", str(tmp_path / "out")]
-    with pytest.raises(SystemExit, match=r"z_range must have low < high; got \(800\.0, -800\.0\)"):
+    with pytest.raises(
+        SystemExit, match=r"--z-range must have low < high; got \(800\.0, -800\.0\)"
+    ):
         cli.main(["analyze", *given, "--z-calibration", str(path), "--z-range", "800", "-800"])
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
     with pytest.raises(SystemExit, match="--z-range is the prior of z: it goes with --z-cali"):

@@ -155,7 +155,7 @@ def test_calibrate_inputs_that_cannot_work_are_one_line(movie, tmp_path):
         (["--dark", str(tmp_path / "small.npy")], r"dark frames \(64, 64\) and movie frames"),
         (["--dark", str(dark), "--kind", "photon"], None),
         (["--dark", str(dark), "--e-per-adu", "0"], "e_per_adu must be"),
-        (["--dark", str(dark), "--quantum-efficiency", "1.5"], "quantum_efficiency must be"),
+        (["--dark", str(dark), "--quantum-efficiency", "1.5"], "--quantum-efficiency must be"),
         (["--readout-sd", "-1"], "readout_sd must be a number >= 0"),
         (["--dark", str(dark), "--readout-sd", "50"], "the dark frames measure the readout"),
         (["--dark", str(path), "--out", str(tmp_path)], "is a folder"),

@@ -406,11 +406,33 @@ def test_analyze_names_a_bad_sampler_setting_before_any_work(tmp_path):
     movie, camera = _one_frame_movie(tmp_path, side=32, molecules=1)
     base = ["analyze", movie, "--camera", camera, "--psf-sd", "120", "--fit", "9"]
     base += ["--out", str(tmp_path / "a")]
-    for option, value, named in (("--max-seconds", "0", "max_seconds"), ("--ess", "nan", "ess")):
-        for extra in (["--rules", "none"], ["--per-frame"]):
-            with pytest.raises(SystemExit, match=rf"{named} must be a number in"):
+    for option, value in (("--max-seconds", "0"), ("--ess", "nan")):
+        for extra in (["--rules", "none"], ["--per-frame"]):  # named as the flag, not max_seconds
+            with pytest.raises(SystemExit, match=rf"^bayespsf: {option} must be a number in"):
                 cli.main([*base, *extra, option, value])
             assert not (tmp_path / "a").exists()
+
+
+@pytest.mark.parametrize(
+    ("message", "usage", "said"),
+    [
+        ("ess must be > 0, got nan", "[--ess ESS]", "--ess must be > 0, got nan"),
+        ("step must not be 0", "[--z-step Z_STEP]", "--z-step must not be 0"),
+        ("min_valid_frames must be", "[--min-valid-frames N]", "--min-valid-frames must be"),
+        ("z must be", "[--z-range LOW HIGH]", "z must be"),  # --z alone is not its flag
+        ("store x was made for another run", "[--out OUT]", "store x was made for another run"),
+        ("--out x is a folder", "[--out OUT]", "--out x is a folder"),
+        (
+            "e_per_adu must be > 0 (--e-per-adu)",
+            "[--e-per-adu E]",
+            "e_per_adu must be > 0 (--e-per-adu)",
+        ),
+    ],
+)
+def test_a_functions_argument_in_a_message_is_named_as_the_commands_flag(message, usage, said):
+    from bayespsf.cli._shared import as_flag
+
+    assert as_flag(message, usage) == said
 
 
 def test_selection_options_run_a_short_movie_from_the_command_line(tmp_path, capsys):
