@@ -9,6 +9,7 @@ only when it runs, so that ``bayespsf --help`` loads no NumPy.
 
 from __future__ import annotations
 
+import errno
 import sys
 from pathlib import Path
 
@@ -450,17 +451,18 @@ def main(argv: list[str] | None = None) -> int:
             )
         return COMMANDS[args.command](args)
     except (CommandError, BayespsfInputError) as exc:  # a function's name as the flag
-        usage = parser.subcommands[args.command].format_help()
+        usage = parser.subcommands[args.command].format_usage()  # its flags, not its prose
         raise SystemExit(f"bayespsf: {as_flag(str(exc), usage)}") from None
-    except OSError as exc:  # the disk's or the path's trouble, not bayespsf's: no traceback
-        where = exc.filename if exc.filename is not None else "a file"
+    except OSError as exc:  # a file's or a disk's trouble (not a network's): no traceback
+        if exc.filename is None and exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+            raise
         raise SystemExit(
-            f"bayespsf: {where}: {exc.strerror or exc} (the disk, its permissions or the path; "
-            "for an output, give --out a folder that can be written)"
+            f"bayespsf: {exc.filename or 'a file'}: {exc.strerror or exc} (the disk, its "
+            "permissions or the path; for an output, give --out a folder that can be written)"
         ) from None
     except MemoryError as exc:
         raise SystemExit(
-            f"bayespsf: out of memory ({exc or 'an allocation failed'}): the input or the "
+            f"bayespsf: out of memory ({str(exc) or 'an allocation failed'}): the input or the "
             "output asked for is larger than this machine's memory"
         ) from None
     except KeyboardInterrupt:

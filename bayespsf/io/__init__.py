@@ -1,7 +1,8 @@
 """Every file format, one module per format: ROI stacks (``rois``), the camera file
 (``camera_file``), z calibrations (``z_calibration``), localisation tables (``locs``:
-picasso's ``locs.hdf5`` + ``locs.yaml``, ThunderSTORM's CSV, Parquet) and an output folder's
-run record (``run_record``: ``run.json``, which keeps one run's results per folder)."""
+picasso's ``locs.hdf5`` + ``locs.yaml``, ThunderSTORM's CSV, Parquet), an output folder's
+run record (``run_record``: ``run.json``, which keeps one run's results per folder) and the
+check of an output folder before a run writes into it (``folders``)."""
 
 from bayespsf.io.camera_file import (
     CAMERA_KEYS,

@@ -335,8 +335,8 @@ def check_folder(
     Raises
     ------
     BayespsfInputError
-        If ``folder`` is, or lies under, a file, or holds a posterior store (a
-        ``manifest.json``: ``force`` does not remove another kind of run), naming ``option``.
+        If ``folder`` is, or lies under, a file (naming ``option``), or holds a posterior
+        store (a ``manifest.json``: ``force`` does not remove another kind of run).
     RunConflict
         Without ``force``, if the folder holds another run's results: its record names
         another run, it cannot be read, or some of ``files`` are there without a record.
@@ -349,8 +349,8 @@ def check_folder(
     folder = output_folder(folder, option)
     if (folder / "manifest.json").is_file():  # not --force's to remove: a store is one whole
         raise BayespsfInputError(
-            f"{_named(option, folder)} holds a posterior store (manifest.json: the results of "
-            f"`bayespsf fit` or sample_many); give {option} another folder"
+            f"{folder} holds a posterior store (manifest.json: the results of `bayespsf fit` "
+            "or sample_many); write this run's results to another folder"
         )
     run, files = _with_copies(run, files, copies)
     try:

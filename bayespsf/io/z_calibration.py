@@ -146,7 +146,7 @@ def read_z_calibration(path: str | os.PathLike) -> DefocusCalibration:
     ------
     BayespsfInputError
         If the file is missing or not TOML, a key is unknown or missing or a value bad (a
-        ``[source] pixel_size`` that is not a number > 0, a covariance that is not finite, a
+        ``[source] pixel_size`` that is not a number > 0, a covariance with an infinity, a
         fit's ``chi2``, ``dof`` or ``p`` that is not a number), named with the file.
 
     See Also
@@ -182,8 +182,10 @@ def read_z_calibration(path: str | os.PathLike) -> DefocusCalibration:
             cov = np.array(table["covariance"], dtype=np.float64)
         except (BayespsfInputError, TypeError, ValueError) as exc:
             raise BayespsfInputError(f"{where}: [{axis}]: {exc}") from None
-        if cov.shape != (5, 5) or not np.all(np.isfinite(cov)):
-            raise BayespsfInputError(f"{where}: [{axis}] covariance must be 5 x 5 finite numbers")
+        if cov.shape != (5, 5) or np.any(np.isinf(cov)):  # NaN where the fit had none
+            raise BayespsfInputError(
+                f"{where}: [{axis}] covariance must be 5 x 5 numbers (NaN where not defined)"
+            )
         for key in ("chi2", "dof", "p"):  # the fit's record: numbers (NaN where not defined)
             if isinstance(table[key], bool) or not isinstance(table[key], int | float):
                 raise BayespsfInputError(

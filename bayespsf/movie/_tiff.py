@@ -82,7 +82,7 @@ def _reader(path: Path, tif, pages, frame_shape, dtype):
     """A reader of ``pages`` (one per frame): memory-mapped if every page is stored
     uncompressed in final form, decoded page by page otherwise."""
     size = tif.filehandle.size
-    need = int(np.prod(frame_shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    rows, columns = (int(n) for n in frame_shape)
     offsets, numbers, final = [], [], True
     for j, page in enumerate(pages):
         if page is None:
@@ -99,11 +99,13 @@ def _reader(path: Path, tif, pages, frame_shape, dtype):
             )
         ends = [o + c for o, c in zip(page.dataoffsets, page.databytecounts, strict=True)]
         _check_end(path, j, max(ends, default=0), size)
+        bits = page.keyframe.bitspersample  # a TiffFrame reads its tags from its key page
+        need = -(-columns * bits // 8) * rows  # rows of whole bytes, packed
         if page.compression == 1 and sum(page.databytecounts) < need:  # stored uncompressed
             raise BayespsfInputError(
                 f"{path}: damaged or truncated TIFF (frame {j}'s page holds "
-                f"{sum(page.databytecounts)} bytes of image data, where its "
-                f"{' x '.join(map(str, frame_shape))} pixels of {np.dtype(dtype)} need {need})"
+                f"{sum(page.databytecounts)} bytes of image data, where its {rows} x {columns} "
+                f"pixels of {bits} bits need {need})"
             )
         numbers.append(page.index)
         final = final and page.is_final

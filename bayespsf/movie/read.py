@@ -246,8 +246,12 @@ class Movie:
         if not parts:
             return np.empty((0, len(range(self.shape[1])[rows]), self.shape[2]), self.dtype)
         data = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        if np.issubdtype(data.dtype, np.inexact) and not (np.abs(data) <= MAX_COUNT).all():
-            wrong = ~(np.abs(data) <= MAX_COUNT)  # NaN, infinite, or beyond whole counts
+        # a type too narrow to reach MAX_COUNT (float16) is checked for finite values alone
+        limit = MAX_COUNT if np.issubdtype(data.dtype, np.inexact) else None
+        if limit is not None and float(np.finfo(data.dtype).max) < limit:
+            limit = np.inf
+        if limit is not None and not (np.abs(data) <= limit).all():
+            wrong = ~(np.abs(data) <= limit)  # NaN, infinite, or beyond whole counts
             k, r, c = np.argwhere(wrong)[0]
             first = range(self.shape[1])[rows][r]
             bad = int(np.count_nonzero(wrong[k]))
@@ -255,8 +259,8 @@ class Movie:
             raise BayespsfInputError(
                 f"{self.path}: frame {span.start + k} has {bad} NaN, infinite or vast pixel(s), "
                 f"the first {what} at row {first}, column {c} ({data[k, r, c]}); camera counts "
-                "are finite whole numbers of ADU below 2**53: replace them (with the camera's "
-                "offset, say) or crop them out"
+                "are finite and below 2**53 ADU: replace them (with the camera's offset, say) or "
+                "crop them out"
             )
         return data
 

@@ -126,7 +126,7 @@ class Rules:
         if not 0 <= low <= high:
             raise BayespsfInputError("width_low must be in [0, width_high]")
         frames = self.min_valid_frames
-        if not np.isfinite(frames) or int(frames) != frames or frames < 1:
+        if not np.isfinite(float(frames)) or int(frames) != frames or frames < 1:
             raise BayespsfInputError(
                 f"min_valid_frames must be a whole number >= 1, got {frames!r}"
             )

@@ -107,7 +107,8 @@ class Store:
         Raises
         ------
         BayespsfInputError
-            If another run holds it, naming the process that does.
+            If another run holds it, naming the process that does, or the folder holds a
+            detect or analyze run's results (``run.json``; nothing is written then).
 
         Notes
         -----
@@ -118,6 +119,7 @@ class Store:
         """
         import fcntl
 
+        self._refuse_a_run()
         self.path.mkdir(parents=True, exist_ok=True)
         handle = (self.path / ".lock").open("a+")
         try:
@@ -163,11 +165,7 @@ class Store:
         With the lock held (``lock``), the ``.partial`` files of a killed run are removed.
         """
         manifest = {"store": STORE_FORMAT, **manifest}
-        if (self.path / RUN_RECORD).is_file():  # a detect or analyze run's folder
-            raise BayespsfInputError(
-                f"store {self.path} holds the results of a `bayespsf detect` or `analyze` run "
-                f"({RUN_RECORD}); use a new store folder"
-            )
+        self._refuse_a_run()
         self.path.mkdir(parents=True, exist_ok=True)
         file = self.path / "manifest.json"
         if file.exists():
@@ -190,6 +188,13 @@ class Store:
         if self._lock is not None:
             for partial in self.path.glob("posteriors-*.nc.partial"):
                 partial.unlink()
+
+    def _refuse_a_run(self) -> None:
+        if (self.path / RUN_RECORD).is_file():  # a detect or analyze run's folder
+            raise BayespsfInputError(
+                f"store {self.path} holds the results of a `bayespsf detect` or `analyze` run "
+                f"({RUN_RECORD}); use a new store folder"
+            )
 
     def files(self) -> list[Path]:
         """The store's result files, in the order of their first molecule.

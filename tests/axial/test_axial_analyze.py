@@ -165,8 +165,8 @@ def test_a_z_range_is_checked_before_the_detection_and_needs_a_calibration(run, 
     [
         (lambda d: d["x"].update(chi2="abc"), r"\[x\] chi2 must be a number, got 'abc'"),
         (
-            lambda d: d["x"]["covariance"][2].__setitem__(2, float("nan")),
-            r"\[x\] covariance must be 5 x 5 finite",
+            lambda d: d["x"]["covariance"][2].__setitem__(2, float("inf")),
+            r"\[x\] covariance must be 5 x 5 numbers \(NaN where not defined\)",
         ),
         (lambda d: d.update(bogus=5), r"unknown key\(s\) \['bogus'\]"),
     ],
@@ -186,3 +186,18 @@ def test_a_z_calibration_file_with_a_bad_value_is_refused_by_name(run, tmp_path,
     bad.write_text(tomli_w.dumps(content))
     with pytest.raises(BayespsfInputError, match=rf"calibration file {bad}: {named}"):
         read_z_calibration(bad)
+
+
+def test_a_z_calibration_whose_fit_had_no_covariance_reads_back(run, tmp_path):
+    # calibrate writes NaN where the fit's information cannot be inverted: its own file reads
+    import tomllib
+
+    import tomli_w
+
+    from bayespsf.io import read_z_calibration
+
+    _, _, path = run
+    content = tomllib.loads(Path(path).read_text())
+    content["x"]["covariance"] = [[float("nan")] * 5] * 5
+    (tmp_path / "z.toml").write_text(tomli_w.dumps(content))
+    assert np.isnan(read_z_calibration(tmp_path / "z.toml").fits.loc["x", "w0_sd"])

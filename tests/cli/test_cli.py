@@ -604,6 +604,20 @@ def test_a_disk_or_path_error_ends_in_one_line_naming_the_file(monkeypatch):
     with pytest.raises(SystemExit, match=r"^bayespsf: out of memory \(Unable to allocate 74.5"):
         cli.main(["simulate", "ideal"])
 
+    def bare(args):
+        raise MemoryError
+
+    monkeypatch.setitem(commands.COMMANDS, "simulate", bare)
+    with pytest.raises(SystemExit, match=r"^bayespsf: out of memory \(an allocation failed\)"):
+        cli.main(["simulate", "ideal"])
+
+    def network(args):  # an OSError of a cluster or a pipe is not the disk's: raised as it is
+        raise ConnectionResetError(errno.ECONNRESET, "Connection reset by peer")
+
+    monkeypatch.setitem(commands.COMMANDS, "simulate", network)
+    with pytest.raises(ConnectionResetError):
+        cli.main(["simulate", "ideal"])
+
 
 def test_an_output_folder_that_cannot_be_written_is_refused_before_the_work(tmp_path, monkeypatch):
     # the nearest existing folder is asked, before any work (a read-only disk was found when

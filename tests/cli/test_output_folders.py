@@ -338,12 +338,13 @@ def test_a_store_and_a_detect_or_analyze_run_refuse_each_others_folders(tmp_path
     run_folder, store_folder = tmp_path / "detected", tmp_path / "fitted"
     run_folder.mkdir()
     (run_folder / RECORD_NAME).write_text("{}")
-    with pytest.raises(BayespsfInputError, match=r"holds the results of a `bayespsf detect`"):
-        Store(run_folder).open({"molecules": 1})
-    assert sorted(p.name for p in run_folder.iterdir()) == [RECORD_NAME]
+    for refused in (Store(run_folder).lock, lambda: Store(run_folder).open({"molecules": 1})):
+        with pytest.raises(BayespsfInputError, match=r"holds the results of a `bayespsf detect`"):
+            refused()
+    assert sorted(p.name for p in run_folder.iterdir()) == [RECORD_NAME]  # not even a .lock
     store_folder.mkdir()
     Store(store_folder).open({"molecules": 1})  # writes its manifest.json
     for force in (False, True):
-        with pytest.raises(BayespsfInputError, match=r"--out .*fitted holds a posterior store"):
+        with pytest.raises(BayespsfInputError, match=r"fitted holds a posterior store \(manif"):
             check_folder(store_folder, {"run": 1}, SELECTION_FILES, force=force, option="--out")
     assert sorted(p.name for p in store_folder.iterdir()) == ["manifest.json"]

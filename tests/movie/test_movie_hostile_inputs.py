@@ -336,6 +336,8 @@ def test_a_vast_pixel_in_a_float_movie_is_named_as_a_nan_is(tmp_path):
     np.save(tmp_path / "m.npy", counts)
     with pytest.raises(BayespsfInputError, match=r"first beyond \+-2\*\*53 at row 1, column 2"):
         read_movie(tmp_path / "m.npy").frames()
+    np.save(tmp_path / "h.npy", counts[:2].astype(np.float16))  # 2**53 is beyond float16:
+    assert read_movie(tmp_path / "h.npy").frames().shape == (2, 32, 32)  # finite is the test
 
 
 def test_frames_beyond_the_movie_are_refused_not_clipped(tmp_path):

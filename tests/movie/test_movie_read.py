@@ -186,20 +186,31 @@ def _cut_npy(tmp_path):
     (tmp_path / "x.npy").write_bytes(raw[:-100])
 
 
-def _short_strip(tmp_path):
-    """One uncompressed page that declares 100 000 x 100 000 uint16 pixels and holds 8 bytes
-    (written by hand: the header, an IFD of 8 tags, then the data)."""
+def _hand_tiff(path, bits: int, stored: int, side: int = 100_000):
+    """One uncompressed page of ``side`` x ``side`` pixels of ``bits`` bits over ``stored``
+    bytes, written by hand: the header, an IFD of 8 tags, then the data."""
     import struct
 
-    tags = [(256, 4, 100_000), (257, 4, 100_000), (258, 3, 16), (259, 3, 1), (262, 3, 1)]
-    tags += [(273, 4, 8 + 2 + 8 * 12 + 4), (277, 3, 1), (279, 4, 8)]  # offset, samples, bytes
+    tags = [(256, 4, side), (257, 4, side), (258, 3, bits), (259, 3, 1), (262, 3, 1)]
+    tags += [(273, 4, 8 + 2 + 8 * 12 + 4), (277, 3, 1), (279, 4, stored)]  # offset, bytes
     ifd = struct.pack("<H", len(tags))
     for tag, kind, value in tags:  # one value each: a LONG (4) or a SHORT (3) padded to 4 bytes
-        ifd += struct.pack("<HHI", tag, kind, 1) + (
-            struct.pack("<I", value) if kind == 4 else struct.pack("<HH", value, 0)
-        )
-    data = b"II*\x00" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0) + bytes(8)
-    (tmp_path / "x.tif").write_bytes(data)
+        ifd += struct.pack("<HHI", tag, kind, 1)
+        ifd += struct.pack("<I", value) if kind == 4 else struct.pack("<HH", value, 0)
+    path.write_bytes(b"II*\x00" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0) + bytes(stored))
+    return path
+
+
+def _short_strip(tmp_path):
+    _hand_tiff(tmp_path / "x.tif", 16, 8)  # 100 000 x 100 000 pixels of 16 bits over 8 bytes
+
+
+def test_a_packed_12_bit_page_is_not_taken_for_a_short_one(tmp_path):
+    # 16 x 16 pixels of 12 bits fill 16 rows of 24 bytes, not 512 bytes of uint16
+    movie = read_movie(_hand_tiff(tmp_path / "p.tif", 12, 16 * 24, side=16))
+    assert movie.shape == (1, 16, 16)
+    with pytest.raises(BayespsfInputError, match=r"holds 383 bytes .* 12 bits need 384\)"):
+        read_movie(_hand_tiff(tmp_path / "q.tif", 12, 16 * 24 - 1, side=16))
 
 
 def _empty_pages(tmp_path):
