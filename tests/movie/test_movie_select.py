@@ -139,3 +139,8 @@ def test_the_width_range_follows_the_spots_sd():
     assert Rules(width_high=150.0).for_psf(160.0).width_low == pytest.approx(95 * 4 / 3)
     with pytest.raises(BayespsfInputError, match=r"width_low .* is above width_high"):
         Rules(width_high=120.0).for_psf(160.0)
+
+
+def test_a_min_valid_frames_beyond_int64_is_a_whole_number():
+    # np.isfinite(10**30) raised numpy's TypeError (an int beyond int64 is an object)
+    assert Rules(min_valid_frames=10**30).min_valid_frames == 10**30
