@@ -284,10 +284,10 @@ def _analyze(args) -> int:
             executor=args.scheduler,
             provenance={"command": command, "camera file": camera_text},
             z_calibration=z_calibration,
-            z_range=(-800.0, 800.0) if args.z_range is None else tuple(args.z_range),
             copies={"camera.toml": args.camera},  # the camera file used, verbatim
             gof_discrepancy=args.gof_discrepancy,
             force=args.force,
+            **({} if args.z_range is None else {"z_range": tuple(args.z_range)}),
         )
     check = result.consistency.set_index("parameter")
     z_sd, z_sd_se = check.loc["s_x", "z_sd"], check.loc["s_x", "z_sd_se"]

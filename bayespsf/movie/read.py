@@ -246,11 +246,12 @@ class Movie:
         if not parts:
             return np.empty((0, len(range(self.shape[1])[rows]), self.shape[2]), self.dtype)
         data = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        # a type too narrow to reach MAX_COUNT (float16) is checked for finite values alone
-        limit = MAX_COUNT if np.issubdtype(data.dtype, np.inexact) else None
-        if limit is not None and float(np.finfo(data.dtype).max) < limit:
-            limit = np.inf
-        if limit is not None and not (np.abs(data) <= limit).all():
+        if not np.issubdtype(data.dtype, np.inexact):
+            return data
+        # a type too narrow to reach MAX_COUNT (float16) is checked for finite values alone;
+        # a NaN makes the extremes NaN, which fail both comparisons
+        limit = min(MAX_COUNT, float(np.finfo(data.dtype).max))
+        if not (data.size == 0 or (data.min() >= -limit and data.max() <= limit)):
             wrong = ~(np.abs(data) <= limit)  # NaN, infinite, or beyond whole counts
             k, r, c = np.argwhere(wrong)[0]
             first = range(self.shape[1])[rows][r]
